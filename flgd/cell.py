@@ -1,0 +1,168 @@
+"""The cell interface: the little a robot cell must do, and the registry that finds cells by name.
+
+A cell captures raw RGB-D frames and executes *checked* plans.  Everything
+else -- heightmaps, rewards, decisions, plans, the safety envelope -- is
+cell-independent and lives in ``flgd``.  Cells register a factory under a
+name (``backend:`` in the config) so that a new arm or camera is a new module,
+not an edit across the code base.
+"""
+
+from __future__ import annotations
+
+import abc
+import importlib
+import threading
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+
+from flgd.config import CellConfig
+from flgd.geometry import ToolPose
+from flgd.safety import CheckedPlan
+
+__all__ = [
+    "Frame",
+    "ExecutionResult",
+    "Cell",
+    "CellFault",
+    "register_cell",
+    "make_cell",
+    "available_cells",
+]
+
+
+@dataclass(frozen=True)
+class Frame:
+    """One raw RGB-D frame as a camera delivers it, plus what is needed to project it.
+
+    color: HxWx3 uint8 RGB.  depth: HxW uint16 raw units (0 = no reading).
+    intrinsics: 3x3 pinhole matrix.  camera_pose: 4x4 camera-to-base transform
+    of the OpenCV optical frame (x right, y down, z forward).
+    """
+
+    color: np.ndarray
+    depth: np.ndarray
+    depth_scale: float
+    intrinsics: np.ndarray
+    camera_pose: np.ndarray
+    timestamp: float = 0.0
+
+    def __post_init__(self) -> None:
+        if self.color.ndim != 3 or self.color.shape[2] != 3 or self.color.dtype != np.uint8:
+            raise ValueError(f"Frame.color: expected HxWx3 uint8, got {self.color.shape} {self.color.dtype}")
+        if self.depth.shape != self.color.shape[:2]:
+            raise ValueError(f"Frame.depth: shape {self.depth.shape} does not match color "
+                             f"{self.color.shape[:2]}")
+        if np.shape(self.intrinsics) != (3, 3) or np.shape(self.camera_pose) != (4, 4):
+            raise ValueError("Frame: intrinsics must be 3x3 and camera_pose 4x4")
+        if not self.depth_scale > 0:
+            raise ValueError(f"Frame.depth_scale: expected > 0, got {self.depth_scale!r}")
+
+
+@dataclass
+class ExecutionResult:
+    """What happened when a cell ran a plan.
+
+    ``completed`` is False when a motion could not be carried out (unreachable
+    pose, collision stop); the cell is then left safe and the caller decides.
+    ``widths`` holds the gripper widths measured at the plan's MeasureWidth steps.
+    """
+
+    completed: bool
+    widths: list[float] = field(default_factory=list)
+    failure: str = ""
+    duration: float = 0.0
+
+
+class CellFault(RuntimeError):
+    """The cell cannot go on safely (protective stop, lost connection, camera gone ...).
+
+    After a fault no further motion is attempted until ``Cell.recover`` succeeds.
+    """
+
+
+class Cell(abc.ABC):
+    """A robot cell: camera + arm + gripper behind one small interface."""
+
+    name: str = "cell"
+
+    def __init__(self, config: CellConfig):
+        self.config = config
+        self._lock = threading.RLock()
+
+    # -- sensing
+    @abc.abstractmethod
+    def capture(self) -> Frame:
+        """A fresh RGB-D frame, taken with the arm out of view."""
+
+    # -- acting
+    @abc.abstractmethod
+    def execute(self, plan: CheckedPlan) -> ExecutionResult:
+        """Run a plan that passed the safety envelope.
+
+        Implementations must call ``plan.verify(self.config)`` first, so an
+        unchecked or tampered plan never moves the arm.
+        """
+
+    @abc.abstractmethod
+    def gripper_width(self) -> float:
+        """Current finger opening in metres."""
+
+    # -- life cycle
+    def reset_scene(self) -> None:
+        """Prepare a new episode (new clutter in simulation; nothing on a real cell)."""
+
+    def recover(self) -> None:
+        """Clear a fault and bring the arm home; raise CellFault if that is not possible."""
+
+    def workspace_empty_hint(self) -> bool | None:
+        """A cell that *knows* the workspace is empty (simulation) says so; others return None."""
+        return None
+
+    def home_pose(self) -> ToolPose:
+        h = self.config.robot.home
+        return ToolPose.top_down(*h.position, h.yaw)
+
+    def close(self) -> None:
+        """Release hardware or the physics client.  Safe to call twice."""
+
+    def __enter__(self) -> "Cell":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+CellFactory = Callable[[CellConfig], Cell]
+_REGISTRY: dict[str, str | CellFactory] = {
+    # name -> "module:attribute", imported on first use so that a machine
+    # without a cell's libraries can still run the others.
+    "sim": "sim_cell.cell:SimCell",
+    "ur5e": "flgd.hardware.ur5e_cell:UR5eCell",
+}
+
+
+def register_cell(name: str, factory: str | CellFactory) -> None:
+    """Register a cell factory (a callable, or "module:attribute" imported lazily)."""
+    _REGISTRY[name] = factory
+
+
+def available_cells() -> list[str]:
+    return sorted(_REGISTRY)
+
+
+def make_cell(config: CellConfig, backend: str | None = None) -> Cell:
+    """Create the cell named by ``backend`` (default: the config's backend)."""
+    name = backend or config.backend
+    if name not in _REGISTRY:
+        raise ValueError(f"unknown cell backend {name!r}; available: {', '.join(available_cells())}")
+    factory = _REGISTRY[name]
+    if isinstance(factory, str):
+        module_name, _, attr = factory.partition(":")
+        try:
+            module = importlib.import_module(module_name)
+        except ImportError as exc:
+            raise ValueError(f"cell backend {name!r} cannot load ({module_name}): {exc}") from exc
+        factory = getattr(module, attr)
+    return factory(config)

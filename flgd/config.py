@@ -1,0 +1,475 @@
+"""Cell configuration: one YAML file describes one cell.
+
+The file is loaded into frozen, typed dataclasses.  Every problem found is
+reported with the file, the dotted key, the offending value and what was
+expected, and unknown keys get a did-you-mean suggestion, because a typo in a
+safety limit must never be silently ignored on a real robot.
+
+Units are explicit and fixed: metres, radians, seconds, m/s, m/s^2.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import math
+import os
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+import yaml
+
+__all__ = [
+    "ConfigError",
+    "CellConfig",
+    "load_config",
+    "config_from_dict",
+    "config_to_dict",
+]
+
+
+class ConfigError(ValueError):
+    """A config file is unusable; ``problems`` lists every problem found."""
+
+    def __init__(self, source: str, problems: list[str]):
+        self.source = source
+        self.problems = problems
+        lines = "\n".join(f"  - {p}" for p in problems)
+        super().__init__(f"invalid config {source}:\n{lines}")
+
+
+def param(default: Any = dataclasses.MISSING, *, unit: str | None = None, gt: float | None = None,
+          ge: float | None = None, le: float | None = None, lt: float | None = None,
+          help: str = "", default_factory: Any = dataclasses.MISSING) -> Any:
+    """A dataclass field with range limits and a unit used for validation and messages."""
+    meta = {"unit": unit, "gt": gt, "ge": ge, "le": le, "lt": lt, "help": help}
+    if default_factory is not dataclasses.MISSING:
+        return field(default_factory=default_factory, metadata=meta)
+    return field(default=default, metadata=meta)
+
+
+Range = tuple[float, float]
+Vec3 = tuple[float, float, float]
+
+
+# --------------------------------------------------------------------------- sections
+
+@dataclass(frozen=True)
+class WorkspaceConfig:
+    """The table region seen by the heightmap, in the robot base frame."""
+
+    x: Range = param((-0.724, -0.276), unit="m", help="min, max of the heightmap region")
+    y: Range = param((-0.224, 0.224), unit="m")
+    z: Range = param((0.0, 0.3), unit="m", help="table surface height, top of the region")
+    resolution: float = param(0.002, unit="m/px", gt=0.0, le=0.05)
+
+    @property
+    def table_z(self) -> float:
+        return self.z[0]
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """(rows, cols) of the heightmap: rows follow y, columns follow x."""
+        return (int(round((self.y[1] - self.y[0]) / self.resolution)),
+                int(round((self.x[1] - self.x[0]) / self.resolution)))
+
+
+@dataclass(frozen=True)
+class IntrinsicsConfig:
+    width: int = param(640, unit="px", gt=0)
+    height: int = param(480, unit="px", gt=0)
+    fx: float = param(615.0, unit="px", gt=0.0)
+    fy: float = param(615.0, unit="px", gt=0.0)
+    cx: float = param(320.0, unit="px")
+    cy: float = param(240.0, unit="px")
+
+
+@dataclass(frozen=True)
+class PoseConfig:
+    """A rigid pose in the robot base frame: position and roll/pitch/yaw.
+
+    The rotation is R = Rz(yaw) @ Ry(pitch) @ Rx(roll) (extrinsic x-y-z).
+    """
+
+    position: Vec3 = param((0.0, 0.0, 0.0), unit="m")
+    rpy: Vec3 = param((0.0, 0.0, 0.0), unit="rad")
+
+
+@dataclass(frozen=True)
+class CameraConfig:
+    """The RGB-D camera.  Its optical frame follows OpenCV: x right, y down, z forward."""
+
+    serial: str = param("", help="device serial number; empty picks the only camera")
+    intrinsics: IntrinsicsConfig = param(default_factory=IntrinsicsConfig)
+    depth_scale: float = param(0.001, unit="m/unit", gt=0.0, help="metres per raw depth unit")
+    depth_range: Range = param((0.15, 2.0), unit="m", help="valid depth readings")
+    pose: PoseConfig = param(default_factory=lambda: PoseConfig(position=(-0.5, 0.0, 0.62),
+                                                               rpy=(math.pi, 0.0, -math.pi / 2)))
+    fps: int = param(30, unit="Hz", gt=0)
+    frame_timeout: float = param(2.0, unit="s", gt=0.0)
+
+
+@dataclass(frozen=True)
+class ToolPoseConfig:
+    """A top-down tool pose: TCP position and rotation about the vertical axis."""
+
+    position: Vec3 = param((0.0, 0.0, 0.0), unit="m")
+    yaw: float = param(0.0, unit="rad")
+
+
+@dataclass(frozen=True)
+class RobotConfig:
+    host: str = param("", help="controller address (real cell)")
+    home: ToolPoseConfig = param(default_factory=lambda: ToolPoseConfig((-0.5, 0.0, 0.35), 0.0))
+    place: ToolPoseConfig = param(default_factory=lambda: ToolPoseConfig((-0.5, 0.32, 0.30), 0.0),
+                                  help="where a grasped object is released, outside the heightmap")
+    approach_height: float = param(0.10, unit="m", gt=0.0, help="above the target before descending")
+    lift_height: float = param(0.25, unit="m", gt=0.0, help="TCP height above the table after a grasp")
+    grasp_depth: float = param(0.03, unit="m", ge=0.0, help="how far below the surface the fingertips go")
+    push_height: float = param(0.012, unit="m", gt=0.0, help="TCP height above the table during a push")
+    push_distance: float = param(0.10, unit="m", gt=0.0)
+    shift_press: float = param(0.012, unit="m", ge=0.0, help="how far below the top surface a shift presses")
+    shift_distance: float = param(0.06, unit="m", gt=0.0)
+    speed: float = param(0.25, unit="m/s", gt=0.0, help="free moves")
+    approach_speed: float = param(0.10, unit="m/s", gt=0.0, help="descents, pushes and shifts")
+    acceleration: float = param(0.8, unit="m/s^2", gt=0.0)
+    tcp_offset: Vec3 = param((0.0, 0.0, 0.20), unit="m", help="flange to fingertip centre")
+
+
+@dataclass(frozen=True)
+class GripperConfig:
+    driver: Literal["sim", "rg2_xmlrpc", "tool_digital_output"] = param("sim")
+    open_width: float = param(0.085, unit="m", gt=0.0, le=0.110)
+    closed_width: float = param(0.0, unit="m", ge=0.0)
+    force: float = param(40.0, unit="N", gt=0.0, le=40.0)
+    success_threshold: float = param(0.005, unit="m", gt=0.0,
+                                     help="measured width above this after lifting = object held")
+    xmlrpc_port: int = param(41414, gt=0, lt=65536)
+    digital_output: int = param(0, ge=0, le=7, help="tool output that closes the gripper")
+    timeout: float = param(5.0, unit="s", gt=0.0)
+
+
+@dataclass(frozen=True)
+class SafetyConfig:
+    """The box the TCP may never leave, and motion caps."""
+
+    envelope_x: Range = param((-0.80, -0.20), unit="m")
+    envelope_y: Range = param((-0.40, 0.40), unit="m")
+    envelope_z: Range = param((0.0, 0.45), unit="m")
+    min_table_clearance: float = param(0.004, unit="m", ge=0.0, help="lowest TCP height above the table")
+    max_tilt: float = param(0.05, unit="rad", ge=0.0, le=math.pi / 2,
+                            help="tool axis deviation from straight down")
+    max_speed: float = param(0.5, unit="m/s", gt=0.0)
+    max_acceleration: float = param(1.5, unit="m/s^2", gt=0.0)
+
+
+@dataclass(frozen=True)
+class RewardConfig:
+    """Thresholds of the FLG rewards and masks (paper III-B, III-D); see README."""
+
+    delta: float = param(0.01, unit="m", gt=0.0, help="height rise that counts a pixel in mu")
+    tau1: int = param(500, unit="px", ge=0, help="mu above this rewards a move")
+    tau2: int = param(200, unit="px", ge=0, help="eta above this rewards a move")
+    min_height: float = param(0.01, unit="m", gt=0.0, help="object/background height threshold")
+    clutter_dilation: int = param(11, unit="px", ge=1, help="kernel size of the clutter quantization map")
+    move_mask_dilation: int = param(21, unit="px", ge=1, help="kernel size turning rho_g into rho_m")
+    shift_height: float = param(0.01, unit="m", gt=0.0, help="a move point higher than this is a shift")
+    move_reward: float = param(0.5, ge=0.0)
+
+
+@dataclass(frozen=True)
+class ExplorationConfig:
+    epsilon_start: float = param(0.5, ge=0.0, le=1.0)
+    epsilon_end: float = param(0.05, ge=0.0, le=1.0)
+    epsilon_decay_steps: int = param(1000, ge=1)
+    top_m: int = param(10, ge=1, help="anti-repeat: choose among the M best actions")
+    failed_grasps_trigger: int = param(2, ge=1, help="consecutive failed grasps that force a move")
+    curriculum_steps: int = param(500, ge=0, help="steps with fewer moves at the start")
+    curriculum_move_probability: float = param(0.2, ge=0.0, le=1.0,
+                                               help="chance a chosen move is kept during the curriculum")
+    masks: bool = param(True, help="use the grasp/move masks (false = DPEN ablation)")
+
+
+@dataclass(frozen=True)
+class LearningConfig:
+    network: Literal["fast", "densenet121", "rho-fcn"] = param("fast")
+    rotations: int = param(16, ge=1)
+    gamma: float = param(0.5, ge=0.0, lt=1.0)
+    learning_rate: float = param(1e-4, gt=0.0)
+    weight_decay: float = param(1e-5, ge=0.0)
+    batch_size: int = param(4, ge=1)
+    updates_per_action: int = param(1, ge=0)
+    target_update_every: int = param(50, ge=1, unit="updates")
+    replay_capacity: int = param(20000, ge=1)
+    priority_alpha: float = param(0.6, ge=0.0, le=1.0)
+    priority_beta_start: float = param(0.4, ge=0.0, le=1.0)
+    priority_beta_steps: int = param(5000, ge=1)
+    priority_epsilon: float = param(0.01, gt=0.0)
+    huber_delta: float = param(1.0, gt=0.0)
+    checkpoint_every: int = param(100, ge=1, unit="updates")
+    threads: int = param(0, ge=0, help="torch CPU threads; 0 = all cores")
+    device: Literal["cpu", "cuda", "auto"] = param("auto")
+    seed: int = param(0, ge=0)
+
+
+@dataclass(frozen=True)
+class SimConfig:
+    """Used only by the simulated cell."""
+
+    objects: int = param(10, ge=0, le=60)
+    object_set: str = param("blocks", help="'blocks', or a glob/list of pybullet_data URDFs")
+    depth_noise: bool = param(True)
+    domain_randomization: bool = param(True)
+    seed: int = param(0, ge=0)
+    scene: str = param("", help="scene file to load instead of random clutter")
+    time_step: float = param(1.0 / 240.0, unit="s", gt=0.0, le=0.01)
+
+
+@dataclass(frozen=True)
+class CellConfig:
+    backend: str = param("sim", help="registered cell name: sim, ur5e, ...")
+    name: str = param("", help="free-form cell name recorded in policies and logs")
+    workspace: WorkspaceConfig = param(default_factory=WorkspaceConfig)
+    camera: CameraConfig = param(default_factory=CameraConfig)
+    robot: RobotConfig = param(default_factory=RobotConfig)
+    gripper: GripperConfig = param(default_factory=GripperConfig)
+    safety: SafetyConfig = param(default_factory=SafetyConfig)
+    rewards: RewardConfig = param(default_factory=RewardConfig)
+    exploration: ExplorationConfig = param(default_factory=ExplorationConfig)
+    learning: LearningConfig = param(default_factory=LearningConfig)
+    sim: SimConfig = param(default_factory=SimConfig)
+    policy: str = param("", help="policy file loaded at start; empty = a fresh network")
+    state_dir: str = param("/var/lib/flgd", help="replay store, logs and checkpoints")
+    source: str = param("<defaults>", help="file this config came from (set by the loader)")
+
+
+# --------------------------------------------------------------------------- loading
+
+def _type_name(tp: Any) -> str:
+    origin = typing.get_origin(tp)
+    if origin is Literal:
+        return "one of " + ", ".join(repr(a) for a in typing.get_args(tp))
+    if origin is tuple:
+        args = typing.get_args(tp)
+        return f"a list of {len(args)} {_type_name(args[0])}s"
+    if dataclasses.is_dataclass(tp):
+        return "a mapping"
+    return {float: "number", int: "integer", bool: "boolean (true/false)", str: "string"}.get(tp, str(tp))
+
+
+def _describe_limits(meta: dict) -> str:
+    parts = []
+    for key, op in (("gt", ">"), ("ge", ">="), ("lt", "<"), ("le", "<=")):
+        if meta.get(key) is not None:
+            parts.append(f"{op} {meta[key]}")
+    unit = f" {meta['unit']}" if meta.get("unit") else ""
+    return (" " + " and ".join(parts) + unit) if parts else unit
+
+
+def _convert(value: Any, tp: Any, key: str, meta: dict, problems: list[str], source: str) -> Any:
+    """Convert one YAML value to ``tp``; on failure record a problem and return MISSING."""
+    origin = typing.get_origin(tp)
+    expected = _type_name(tp) + _describe_limits(meta)
+
+    def bad(why: str = "") -> Any:
+        extra = f" ({why})" if why else ""
+        problems.append(f"{key}: got {value!r}, expected {expected}{extra}")
+        return dataclasses.MISSING
+
+    if dataclasses.is_dataclass(tp):
+        if not isinstance(value, dict):
+            return bad()
+        return _build(tp, value, key, problems, source)
+    if origin is Literal:
+        return value if value in typing.get_args(tp) else bad()
+    if origin is tuple:
+        args = typing.get_args(tp)
+        if not isinstance(value, (list, tuple)) or len(value) != len(args):
+            return bad()
+        out = []
+        for i, (v, a) in enumerate(zip(value, args)):
+            c = _convert(v, a, f"{key}[{i}]", meta, problems, source)
+            if c is dataclasses.MISSING:
+                return dataclasses.MISSING
+            out.append(c)
+        return tuple(out)
+    if tp is bool:
+        return value if isinstance(value, bool) else bad()
+    if tp is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            return bad()
+        return _check_range(value, key, meta, expected, problems)
+    if tp is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            return bad()
+        if not math.isfinite(value):
+            return bad("not a finite number")
+        return _check_range(float(value), key, meta, expected, problems)
+    if tp is str:
+        return value if isinstance(value, str) else bad()
+    raise TypeError(f"unsupported config field type {tp!r} at {key}")
+
+
+def _check_range(value: float, key: str, meta: dict, expected: str, problems: list[str]) -> Any:
+    checks = (("gt", lambda v, b: v > b), ("ge", lambda v, b: v >= b),
+              ("lt", lambda v, b: v < b), ("le", lambda v, b: v <= b))
+    for name, ok in checks:
+        bound = meta.get(name)
+        if bound is not None and not ok(value, bound):
+            problems.append(f"{key}: got {value!r}, expected {expected}")
+            return dataclasses.MISSING
+    return value
+
+
+def _build(cls: type, data: dict, prefix: str, problems: list[str], source: str) -> Any:
+    hints = typing.get_type_hints(cls)
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    kwargs: dict[str, Any] = {}
+    for raw_key, value in data.items():
+        key = f"{prefix}.{raw_key}" if prefix else str(raw_key)
+        if raw_key not in fields or raw_key == "source":
+            close = difflib.get_close_matches(str(raw_key), [n for n in fields if n != "source"], n=1)
+            hint = f"; did you mean '{close[0]}'?" if close else ""
+            valid = ", ".join(n for n in fields if n != "source")
+            problems.append(f"{key}: unknown key{hint} (valid keys here: {valid})")
+            continue
+        f = fields[raw_key]
+        converted = _convert(value, hints[raw_key], key, dict(f.metadata), problems, source)
+        if converted is not dataclasses.MISSING:
+            kwargs[raw_key] = converted
+    try:
+        return cls(**kwargs)
+    except TypeError as exc:  # a field without default that was not given
+        problems.append(f"{prefix or '<top>'}: {exc}")
+        return dataclasses.MISSING
+
+
+def _check_relations(cfg: CellConfig, problems: list[str]) -> None:
+    """Constraints between keys, which single-field limits cannot express."""
+    ws, sf = cfg.workspace, cfg.safety
+    for name in ("x", "y", "z"):
+        lo, hi = getattr(ws, name)
+        if not lo < hi:
+            problems.append(f"workspace.{name}: got {[lo, hi]!r}, expected min < max")
+        elo, ehi = getattr(sf, f"envelope_{name}")
+        if not elo < ehi:
+            problems.append(f"safety.envelope_{name}: got {[elo, ehi]!r}, expected min < max")
+    if problems:
+        return
+    for name in ("x", "y"):
+        span = getattr(ws, name)[1] - getattr(ws, name)[0]
+        cells = span / ws.resolution
+        if abs(cells - round(cells)) > 1e-6 * max(1.0, cells):
+            problems.append(f"workspace.resolution: got {ws.resolution!r}, expected a value that divides "
+                            f"the workspace {name} span {span:.4f} m into whole pixels")
+    rows, cols = ws.shape
+    if min(rows, cols) < 32 or max(rows, cols) > 2048:
+        problems.append(f"workspace: heightmap would be {rows}x{cols} px, expected 32..2048 px per side")
+    for name in ("x", "y"):
+        lo, hi = getattr(ws, name)
+        elo, ehi = getattr(sf, f"envelope_{name}")
+        if lo < elo or hi > ehi:
+            problems.append(f"workspace.{name}: {[lo, hi]!r} is not inside safety.envelope_{name} "
+                            f"{[elo, ehi]!r}; the whole workspace must be reachable safely")
+    if ws.z[0] < sf.envelope_z[0] - 1e-9:
+        problems.append(f"safety.envelope_z: lower bound {sf.envelope_z[0]!r} is below the table "
+                        f"(workspace.z[0] = {ws.z[0]!r}); expected >= the table height")
+    for pose_key in ("home", "place"):
+        pose = getattr(cfg.robot, pose_key)
+        for axis, v in zip("xyz", pose.position):
+            elo, ehi = getattr(sf, f"envelope_{axis}")
+            if not elo <= v <= ehi:
+                problems.append(f"robot.{pose_key}.position: {axis} = {v!r} is outside "
+                                f"safety.envelope_{axis} {[elo, ehi]!r}")
+    rb = cfg.robot
+    for key in ("speed", "approach_speed"):
+        if getattr(rb, key) > sf.max_speed:
+            problems.append(f"robot.{key}: got {getattr(rb, key)!r} m/s, expected <= safety.max_speed "
+                            f"({sf.max_speed!r} m/s)")
+    if rb.acceleration > sf.max_acceleration:
+        problems.append(f"robot.acceleration: got {rb.acceleration!r} m/s^2, expected <= "
+                        f"safety.max_acceleration ({sf.max_acceleration!r} m/s^2)")
+    if ws.z[0] + rb.lift_height > sf.envelope_z[1]:
+        problems.append(f"robot.lift_height: table + {rb.lift_height!r} m is above safety.envelope_z "
+                        f"upper bound {sf.envelope_z[1]!r}")
+    gr = cfg.gripper
+    if gr.closed_width >= gr.open_width:
+        problems.append(f"gripper.closed_width: got {gr.closed_width!r}, expected < gripper.open_width "
+                        f"({gr.open_width!r})")
+    if not gr.closed_width < gr.success_threshold < gr.open_width:
+        problems.append(f"gripper.success_threshold: got {gr.success_threshold!r}, expected between "
+                        f"closed_width and open_width")
+    ex = cfg.exploration
+    if ex.epsilon_end > ex.epsilon_start:
+        problems.append(f"exploration.epsilon_end: got {ex.epsilon_end!r}, expected <= epsilon_start "
+                        f"({ex.epsilon_start!r})")
+    if cfg.rewards.shift_height < cfg.rewards.min_height:
+        problems.append(f"rewards.shift_height: got {cfg.rewards.shift_height!r}, expected >= "
+                        f"rewards.min_height ({cfg.rewards.min_height!r})")
+    intr = cfg.camera.intrinsics
+    if not (0 <= intr.cx < intr.width and 0 <= intr.cy < intr.height):
+        problems.append(f"camera.intrinsics: principal point ({intr.cx}, {intr.cy}) lies outside the "
+                        f"{intr.width}x{intr.height} image")
+    if not 0 < cfg.camera.depth_range[0] < cfg.camera.depth_range[1]:
+        problems.append(f"camera.depth_range: got {list(cfg.camera.depth_range)!r}, expected 0 < min < max")
+    if not cfg.state_dir:
+        problems.append("state_dir: got '', expected a directory path")
+
+
+def config_from_dict(data: Any, source: str = "<dict>") -> CellConfig:
+    """Build and validate a config from parsed YAML; raises ConfigError listing every problem."""
+    if data is None:
+        data = {}
+    if not isinstance(data, dict):
+        raise ConfigError(source, [f"<top>: got {type(data).__name__}, expected a mapping of sections"])
+    problems: list[str] = []
+    cfg = _build(CellConfig, data, "", problems, source)
+    if cfg is dataclasses.MISSING or problems:
+        raise ConfigError(source, problems or ["could not build the config"])
+    _check_relations(cfg, problems)
+    if problems:
+        raise ConfigError(source, problems)
+    return dataclasses.replace(cfg, source=source)
+
+
+def load_config(path: str | os.PathLike) -> CellConfig:
+    """Read, parse and validate a YAML config file."""
+    p = Path(path)
+    source = str(p)
+    try:
+        text = p.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise ConfigError(source, ["file not found"]) from None
+    except IsADirectoryError:
+        raise ConfigError(source, ["is a directory, expected a YAML file"]) from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ConfigError(source, [f"cannot read: {exc}"]) from None
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
+        problem = getattr(exc, "problem", None) or str(exc)
+        raise ConfigError(source, [f"invalid YAML{where}: {problem}"]) from None
+    cfg = config_from_dict(data, source)
+    # A relative state directory is relative to the config file, not to the cwd.
+    if not os.path.isabs(cfg.state_dir):
+        cfg = dataclasses.replace(cfg, state_dir=str((p.parent / cfg.state_dir).resolve()))
+    return cfg
+
+
+def config_to_dict(cfg: Any) -> Any:
+    """The effective config as plain YAML-able data (tuples become lists)."""
+    if dataclasses.is_dataclass(cfg):
+        return {f.name: config_to_dict(getattr(cfg, f.name)) for f in dataclasses.fields(cfg)
+                if f.name != "source"}
+    if isinstance(cfg, tuple):
+        return [config_to_dict(v) for v in cfg]
+    return cfg
+
+
+def dump_config(cfg: CellConfig) -> str:
+    return yaml.safe_dump(config_to_dict(cfg), sort_keys=False, default_flow_style=None)
+

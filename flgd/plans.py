@@ -1,0 +1,213 @@
+"""Primitive plans: a grasp, push or shift at (x, y, z, theta) becomes tool poses and gripper commands.
+
+One implementation, used by every cell, so that the simulated and the real arm
+execute the same motions.  Plans are pure data; ``flgd.safety.check_plan``
+must pass before a cell runs one.
+
+Distances (defaults in ``RobotConfig``, all configurable):
+  * grasp: open, approach ``approach_height`` above the grasp point, descend to
+    ``grasp_depth`` below the surface (never below the table clearance), close,
+    lift to ``lift_height``, go home, measure the width (the paper's success test).
+  * push (the point is background): close, descend beside the objects to
+    ``push_height`` above the table, travel ``push_distance`` (10 cm) along
+    theta, rise, go home.  The end point is clamped to the workspace.
+  * shift (the point is on an object): close, press ``shift_press`` below the
+    object's top surface, drag ``shift_distance`` (6 cm) along theta, rise, go
+    home.  Friction between the closed fingers and the top of the object drags it.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Union
+
+import numpy as np
+
+from flgd.actions import Action
+from flgd.config import CellConfig
+from flgd.geometry import ToolPose, wrap_symmetric_yaw
+from flgd.perception import pixel_to_base
+
+__all__ = [
+    "MoveL",
+    "GripperCommand",
+    "MeasureWidth",
+    "Step",
+    "Plan",
+    "move_kind",
+    "plan_action",
+    "plan_grasp",
+    "plan_push",
+    "plan_shift",
+    "plan_release",
+    "plan_home",
+]
+
+
+@dataclass(frozen=True)
+class MoveL:
+    """Linear tool move to ``pose`` at ``speed`` (m/s) and ``acceleration`` (m/s^2)."""
+
+    pose: ToolPose
+    speed: float
+    acceleration: float
+    label: str = ""
+
+
+@dataclass(frozen=True)
+class GripperCommand:
+    """Move the fingers to ``width`` (m) with at most ``force`` (N)."""
+
+    width: float
+    force: float
+    label: str = ""
+
+
+@dataclass(frozen=True)
+class MeasureWidth:
+    """Record the gripper width at this point of the plan."""
+
+    label: str = "width"
+
+
+Step = Union[MoveL, GripperCommand, MeasureWidth]
+
+
+@dataclass(frozen=True)
+class Plan:
+    """An ordered list of steps for one primitive, with where it came from.
+
+    ``refusal`` is set by a builder that already knows the request is invalid
+    (a pixel outside the heightmap, say); the envelope then refuses the plan.
+    """
+
+    primitive: str
+    steps: tuple[Step, ...]
+    target: tuple[float, float, float] = (math.nan, math.nan, math.nan)
+    angle: float = math.nan
+    refusal: str = ""
+    notes: dict = field(default_factory=dict)
+
+    @property
+    def poses(self) -> list[ToolPose]:
+        return [s.pose for s in self.steps if isinstance(s, MoveL)]
+
+
+def move_kind(height_at_point: float, config: CellConfig) -> str:
+    """Paper III-A: a move on an object is a shift, elsewhere a push."""
+    return "shift" if height_at_point > config.rewards.shift_height else "push"
+
+
+def _refused(primitive: str, why: str) -> Plan:
+    return Plan(primitive=primitive, steps=(), refusal=why)
+
+
+def _target(action: Action, height_map: np.ndarray, config: CellConfig) -> tuple[tuple[float, float, float], float] | str:
+    rows, cols = height_map.shape
+    if not (0 <= action.row < rows and 0 <= action.col < cols):
+        return f"pixel ({action.row}, {action.col}) is outside the {rows}x{cols} heightmap"
+    h = float(height_map[action.row, action.col])
+    if not math.isfinite(h):
+        return f"height at pixel ({action.row}, {action.col}) is not finite ({h!r})"
+    x, y, z = pixel_to_base(action.row, action.col, h, config.workspace)
+    return (x, y, z), h
+
+
+def plan_grasp(x: float, y: float, surface_height: float, angle: float, config: CellConfig) -> Plan:
+    """Top-down grasp with the fingers closing along ``angle`` at (x, y); heights above the table."""
+    if not all(map(math.isfinite, (x, y, surface_height, angle))):
+        return _refused("grasp", f"non-finite grasp request x={x!r} y={y!r} "
+                                 f"height={surface_height!r} angle={angle!r}")
+    rb, gr, table = config.robot, config.gripper, config.workspace.table_z
+    yaw = wrap_symmetric_yaw(angle)
+    z = table + max(surface_height - rb.grasp_depth, config.safety.min_table_clearance)
+    above = z + rb.approach_height
+    home = config.robot.home
+    steps: tuple[Step, ...] = (
+        GripperCommand(gr.open_width, gr.force, "open"),
+        MoveL(ToolPose.top_down(x, y, above, yaw), rb.speed, rb.acceleration, "approach"),
+        MoveL(ToolPose.top_down(x, y, z, yaw), rb.approach_speed, rb.acceleration, "descend"),
+        GripperCommand(gr.closed_width, gr.force, "close"),
+        MoveL(ToolPose.top_down(x, y, table + rb.lift_height, yaw), rb.approach_speed, rb.acceleration, "lift"),
+        MoveL(ToolPose.top_down(*home.position, home.yaw), rb.speed, rb.acceleration, "home"),
+        MeasureWidth("held"),
+    )
+    return Plan("grasp", steps, target=(x, y, z), angle=angle)
+
+
+def _travel_plan(primitive: str, x: float, y: float, z: float, angle: float, distance: float,
+                 config: CellConfig) -> Plan:
+    if not all(map(math.isfinite, (x, y, z, angle))):
+        return _refused(primitive, f"non-finite {primitive} request x={x!r} y={y!r} z={z!r} angle={angle!r}")
+    rb, gr, ws = config.robot, config.gripper, config.workspace
+    yaw = wrap_symmetric_yaw(angle)
+    # Keep the end of the travel over the table the camera sees.
+    ex = min(max(x + distance * math.cos(angle), ws.x[0]), ws.x[1])
+    ey = min(max(y + distance * math.sin(angle), ws.y[0]), ws.y[1])
+    above = z + rb.approach_height
+    home = config.robot.home
+    steps: tuple[Step, ...] = (
+        GripperCommand(gr.closed_width, gr.force, "close"),
+        MoveL(ToolPose.top_down(x, y, above, yaw), rb.speed, rb.acceleration, "approach"),
+        MoveL(ToolPose.top_down(x, y, z, yaw), rb.approach_speed, rb.acceleration, "descend"),
+        MoveL(ToolPose.top_down(ex, ey, z, yaw), rb.approach_speed, rb.acceleration, primitive),
+        MoveL(ToolPose.top_down(ex, ey, above, yaw), rb.approach_speed, rb.acceleration, "retreat"),
+        MoveL(ToolPose.top_down(*home.position, home.yaw), rb.speed, rb.acceleration, "home"),
+    )
+    return Plan(primitive, steps, target=(x, y, z), angle=angle,
+                notes={"end": (ex, ey, z)})
+
+
+def plan_push(x: float, y: float, angle: float, config: CellConfig) -> Plan:
+    """Push along ``angle`` starting at (x, y), near table level."""
+    z = config.workspace.table_z + max(config.robot.push_height, config.safety.min_table_clearance)
+    return _travel_plan("push", x, y, z, angle, config.robot.push_distance, config)
+
+
+def plan_shift(x: float, y: float, surface_height: float, angle: float, config: CellConfig) -> Plan:
+    """Press on the object top at (x, y) and drag it along ``angle``."""
+    table = config.workspace.table_z
+    z = table + max(surface_height - config.robot.shift_press, config.safety.min_table_clearance)
+    return _travel_plan("shift", x, y, z, angle, config.robot.shift_distance, config)
+
+
+def plan_action(action: Action, height_map: np.ndarray, config: CellConfig) -> Plan:
+    """The plan for an action chosen on ``height_map`` (metres above the table).
+
+    A move action is turned into a push or shift here (from the height at its
+    pixel), whatever primitive the caller put in ``action``.
+    """
+    target = _target(action, height_map, config)
+    if isinstance(target, str):
+        return _refused(action.primitive, target)
+    (x, y, _z), h = target
+    if action.primitive == "grasp":
+        return plan_grasp(x, y, h, action.angle, config)
+    if move_kind(h, config) == "shift":
+        return plan_shift(x, y, h, action.angle, config)
+    return plan_push(x, y, action.angle, config)
+
+
+def plan_release(held: bool, config: CellConfig) -> Plan:
+    """After a grasp: carry a held object to the place pose and open; otherwise just open."""
+    gr, rb = config.gripper, config.robot
+    if not held:
+        return Plan("release", (GripperCommand(gr.open_width, gr.force, "open"),))
+    place, home = rb.place, rb.home
+    steps: tuple[Step, ...] = (
+        MoveL(ToolPose.top_down(*place.position, place.yaw), rb.speed, rb.acceleration, "place"),
+        GripperCommand(gr.open_width, gr.force, "open"),
+        MoveL(ToolPose.top_down(*home.position, home.yaw), rb.speed, rb.acceleration, "home"),
+    )
+    return Plan("place", steps, target=tuple(place.position))
+
+
+def plan_home(config: CellConfig) -> Plan:
+    """Straight to the home pose with the gripper open."""
+    rb, gr = config.robot, config.gripper
+    home = rb.home
+    return Plan("home", (
+        MoveL(ToolPose.top_down(*home.position, home.yaw), rb.speed, rb.acceleration, "home"),
+        GripperCommand(gr.open_width, gr.force, "open"),
+    ), target=tuple(home.position))

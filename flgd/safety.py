@@ -1,0 +1,108 @@
+"""The safety envelope: every pose of a plan is checked before any cell sees it.
+
+A plan with one bad step is refused as a whole, with the reason, and nothing of
+it is sent.  Cells accept only ``CheckedPlan`` objects and re-verify them
+against their own config, so a plan built by hand cannot bypass the check.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from flgd.config import CellConfig
+from flgd.plans import GripperCommand, MeasureWidth, MoveL, Plan
+
+__all__ = ["PlanRefused", "CheckedPlan", "check_plan"]
+
+_ORTHO_TOL = 1e-6
+GRIPPER_STROKE = 0.110  # RG2: 0-110 mm
+
+
+class PlanRefused(ValueError):
+    """A plan left the safety envelope; ``reason`` says which step and why."""
+
+    def __init__(self, reason: str, step: int | None = None):
+        self.reason = reason
+        self.step = step
+        super().__init__(reason if step is None else f"step {step}: {reason}")
+
+
+@dataclass(frozen=True)
+class CheckedPlan:
+    """A plan that passed the envelope of a given config."""
+
+    plan: Plan
+    _config_id: int
+
+    def verify(self, config: CellConfig) -> Plan:
+        """Re-check against ``config`` (the cell's own); raise PlanRefused if it does not pass."""
+        check_plan(self.plan, config)
+        return self.plan
+
+
+def _finite(values) -> bool:
+    try:
+        arr = np.asarray(values, dtype=float)
+    except (TypeError, ValueError):
+        return False
+    return bool(np.all(np.isfinite(arr)))
+
+
+def _check_move(step: MoveL, cfg: CellConfig) -> str | None:
+    sf = cfg.safety
+    pos, rot = step.pose.position, step.pose.rotation
+    if len(pos) != 3 or not _finite(pos):
+        return f"position {pos!r} is not three finite numbers"
+    r = np.asarray(rot, dtype=float) if _finite(rot) else None
+    if r is None or r.shape != (3, 3):
+        return "orientation is not a finite 3x3 rotation"
+    if np.abs(r.T @ r - np.eye(3)).max() > _ORTHO_TOL or abs(np.linalg.det(r) - 1.0) > _ORTHO_TOL:
+        return "orientation is not a proper rotation matrix"
+    for axis, v, (lo, hi) in zip("xyz", pos, (sf.envelope_x, sf.envelope_y, sf.envelope_z)):
+        if not lo <= v <= hi:
+            return f"{axis} = {v:.4f} m is outside the envelope [{lo}, {hi}] m"
+    floor = cfg.workspace.table_z + sf.min_table_clearance
+    if pos[2] < floor:
+        return f"z = {pos[2]:.4f} m is below the table clearance floor {floor:.4f} m"
+    tool_axis = r[:, 2]
+    tilt = math.acos(max(-1.0, min(1.0, -float(tool_axis[2]))))
+    if tilt > sf.max_tilt:
+        return f"tool tilted {tilt:.3f} rad from straight down (max {sf.max_tilt} rad)"
+    if not (_finite([step.speed]) and 0 < step.speed <= sf.max_speed):
+        return f"speed {step.speed!r} m/s is outside (0, {sf.max_speed}] m/s"
+    if not (_finite([step.acceleration]) and 0 < step.acceleration <= sf.max_acceleration):
+        return f"acceleration {step.acceleration!r} m/s^2 is outside (0, {sf.max_acceleration}] m/s^2"
+    return None
+
+
+def _check_gripper(step: GripperCommand, cfg: CellConfig) -> str | None:
+    if not (_finite([step.width]) and 0.0 <= step.width <= GRIPPER_STROKE):
+        return f"gripper width {step.width!r} m is outside [0, {GRIPPER_STROKE}] m"
+    if not (_finite([step.force]) and 0.0 < step.force <= cfg.gripper.force):
+        return f"gripper force {step.force!r} N is outside (0, {cfg.gripper.force}] N"
+    return None
+
+
+def check_plan(plan: Plan, config: CellConfig) -> CheckedPlan:
+    """Check every step of ``plan``; return it wrapped as checked or raise PlanRefused."""
+    if not isinstance(plan, Plan):
+        raise PlanRefused(f"not a Plan: {type(plan).__name__}")
+    if not plan.steps:
+        raise PlanRefused("the plan has no steps")
+    if plan.refusal:
+        raise PlanRefused(plan.refusal)
+    for i, step in enumerate(plan.steps):
+        if isinstance(step, MoveL):
+            why = _check_move(step, config)
+        elif isinstance(step, GripperCommand):
+            why = _check_gripper(step, config)
+        elif isinstance(step, MeasureWidth):
+            why = None
+        else:
+            why = f"unknown step type {type(step).__name__}"
+        if why:
+            raise PlanRefused(why, step=i)
+    return CheckedPlan(plan, id(config))
