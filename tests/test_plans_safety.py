@@ -1,0 +1,198 @@
+"""Primitive plans and the safety envelope."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from flgd.actions import Action
+from flgd.config import load_config
+from flgd.geometry import ToolPose
+from flgd.perception import pixel_to_base
+from flgd.plans import GripperCommand, MeasureWidth, MoveL, Plan, move_kind, plan_action, plan_grasp, plan_push, \
+    plan_release, plan_shift
+from flgd.safety import CheckedPlan, PlanRefused, check_plan
+
+ROOT = Path(__file__).resolve().parents[1]
+CFG = load_config(ROOT / "cell_config" / "sim.yaml")
+REAL = load_config(ROOT / "cell_config" / "ur5e-d415.yaml")
+
+
+def assert_inside_envelope(plan: Plan, cfg) -> None:
+    """An independent restatement of the envelope, to check what check_plan let through."""
+    sf = cfg.safety
+    for step in plan.steps:
+        if isinstance(step, MoveL):
+            p = np.asarray(step.pose.position)
+            r = np.asarray(step.pose.rotation)
+            assert np.isfinite(p).all() and np.isfinite(r).all()
+            assert sf.envelope_x[0] <= p[0] <= sf.envelope_x[1]
+            assert sf.envelope_y[0] <= p[1] <= sf.envelope_y[1]
+            assert sf.envelope_z[0] <= p[2] <= sf.envelope_z[1]
+            assert p[2] >= cfg.workspace.table_z + sf.min_table_clearance - 1e-12
+            assert np.allclose(r.T @ r, np.eye(3), atol=1e-6) and np.linalg.det(r) > 0
+            assert math.degrees(math.acos(min(1.0, -r[2, 2]))) <= math.degrees(sf.max_tilt) + 1e-9
+            assert 0 < step.speed <= sf.max_speed and 0 < step.acceleration <= sf.max_acceleration
+        elif isinstance(step, GripperCommand):
+            assert 0 <= step.width <= 0.110 and 0 < step.force <= cfg.gripper.force
+        else:
+            assert isinstance(step, MeasureWidth)
+
+
+def test_grasp_plan_shape() -> None:
+    plan = plan_grasp(-0.5, 0.05, 0.05, math.radians(30), CFG)
+    labels = [s.label for s in plan.steps]
+    assert labels == ["open", "approach", "descend", "close", "lift", "home", "held"]
+    descend = plan.steps[2].pose
+    assert descend.position == pytest.approx((-0.5, 0.05, 0.05 - CFG.robot.grasp_depth))
+    assert plan.steps[1].pose.position[2] == pytest.approx(descend.position[2] + CFG.robot.approach_height)
+    # Fingers close along theta: tool x axis = (cos, sin, 0); tool z points down.
+    r = descend.matrix
+    assert r[:, 0] == pytest.approx([math.cos(math.radians(30)), math.sin(math.radians(30)), 0], abs=1e-12)
+    assert r[:, 2] == pytest.approx([0, 0, -1])
+    assert_inside_envelope(plan, CFG)
+    check_plan(plan, CFG)
+
+
+def test_grasp_yaw_is_wrapped_for_a_symmetric_gripper() -> None:
+    a = plan_grasp(-0.5, 0.0, 0.03, math.radians(200), CFG).steps[2].pose.matrix
+    b = plan_grasp(-0.5, 0.0, 0.03, math.radians(20), CFG).steps[2].pose.matrix
+    assert a == pytest.approx(b)
+
+
+def test_grasp_never_goes_below_the_clearance_floor() -> None:
+    plan = plan_grasp(-0.5, 0.0, 0.005, 0.0, CFG)  # a flat object, 5 mm high
+    assert plan.steps[2].pose.position[2] == pytest.approx(CFG.workspace.table_z + CFG.safety.min_table_clearance)
+
+
+def test_push_travels_ten_cm_along_theta_near_the_table() -> None:
+    theta = math.radians(45)
+    plan = plan_push(-0.6, -0.1, theta, CFG)
+    start, end = plan.steps[2].pose.position, plan.steps[3].pose.position
+    assert start[2] == end[2] == pytest.approx(CFG.workspace.table_z + CFG.robot.push_height)
+    travel = np.subtract(end, start)
+    assert np.linalg.norm(travel) == pytest.approx(0.10)
+    assert travel[:2] / 0.10 == pytest.approx([math.cos(theta), math.sin(theta)])
+    assert plan.steps[0] == GripperCommand(CFG.gripper.closed_width, CFG.gripper.force, "close")
+    check_plan(plan, CFG)
+
+
+def test_push_end_is_clamped_to_the_workspace() -> None:
+    plan = plan_push(-0.3, 0.0, 0.0, CFG)  # heading +x, 2.4 cm from the edge
+    assert plan.steps[3].pose.position[0] == pytest.approx(CFG.workspace.x[1])
+
+
+def test_shift_presses_on_the_object_and_drags() -> None:
+    plan = plan_shift(-0.5, 0.0, 0.05, math.pi / 2, CFG)
+    start, end = plan.steps[2].pose.position, plan.steps[3].pose.position
+    assert start[2] == pytest.approx(0.05 - CFG.robot.shift_press)
+    assert np.subtract(end, start) == pytest.approx([0, CFG.robot.shift_distance, 0], abs=1e-12)
+
+
+def test_move_becomes_push_or_shift_by_height_at_its_point() -> None:
+    hm = np.zeros((224, 224), np.float32)
+    hm[100:120, 100:120] = 0.04
+    on = plan_action(Action("push", 110, 110, 4), hm, CFG)
+    off = plan_action(Action("shift", 10, 10, 4), hm, CFG)
+    assert on.primitive == "shift" and off.primitive == "push"
+    assert move_kind(0.0, CFG) == "push" and move_kind(0.04, CFG) == "shift"
+    x, y, _ = pixel_to_base(110, 110, 0.0, CFG.workspace)
+    assert on.target[:2] == pytest.approx((x, y))
+
+
+def test_release_places_a_held_object_and_only_opens_otherwise() -> None:
+    held = plan_release(True, CFG)
+    assert [s.label for s in held.steps] == ["place", "open", "home"]
+    assert plan_release(False, CFG).steps == (GripperCommand(CFG.gripper.open_width, CFG.gripper.force, "open"),)
+    check_plan(held, CFG)
+
+
+@pytest.mark.parametrize("mutate,needle", [
+    (lambda p: dataclasses.replace(p, steps=()), "no steps"),
+    (lambda p: _replace_move(p, position=(-0.5, 0.0, 0.002)), "below the table"),
+    (lambda p: _replace_move(p, position=(-0.5, 0.0, 1.0)), "outside the envelope"),
+    (lambda p: _replace_move(p, position=(5.0, 0.0, 0.1)), "outside the envelope"),
+    (lambda p: _replace_move(p, position=(float("nan"), 0.0, 0.1)), "finite"),
+    (lambda p: _replace_move(p, speed=10.0), "speed"),
+    (lambda p: _replace_move(p, speed=-0.1), "speed"),
+    (lambda p: _replace_move(p, acceleration=float("inf")), "acceleration"),
+    (lambda p: _replace_move(p, rotation=((1.0, 0, 0), (0, 1.0, 0), (0, 0, 1.0))), "tilted"),
+    (lambda p: _replace_move(p, rotation=((2.0, 0, 0), (0, -1.0, 0), (0, 0, -1.0))), "rotation"),
+    (lambda p: dataclasses.replace(p, steps=p.steps + (GripperCommand(0.5, 10.0),)), "gripper width"),
+    (lambda p: dataclasses.replace(p, steps=p.steps + (GripperCommand(0.05, 400.0),)), "gripper force"),
+    (lambda p: dataclasses.replace(p, steps=p.steps + ("moveJ",)), "unknown step"),
+])
+def test_bad_plans_are_refused_with_a_reason(mutate, needle) -> None:
+    good = plan_grasp(-0.5, 0.0, 0.03, 0.3, CFG)
+    with pytest.raises(PlanRefused) as info:
+        check_plan(mutate(good), CFG)
+    assert needle in str(info.value)
+
+
+def _replace_move(plan: Plan, **changes) -> Plan:
+    i = 2  # the descend step
+    old = plan.steps[i]
+    pose = old.pose
+    if "position" in changes:
+        pose = ToolPose(changes.pop("position"), pose.rotation)
+    if "rotation" in changes:
+        pose = ToolPose(pose.position, changes.pop("rotation"))
+    new = dataclasses.replace(old, pose=pose, **changes)
+    return dataclasses.replace(plan, steps=plan.steps[:i] + (new,) + plan.steps[i + 1:])
+
+
+def test_a_checked_plan_is_reverified_by_the_cell_config() -> None:
+    checked = check_plan(plan_grasp(-0.5, 0.0, 0.03, 0.3, CFG), CFG)
+    assert isinstance(checked, CheckedPlan)
+    assert checked.verify(CFG) is checked.plan
+    tight = dataclasses.replace(CFG, safety=dataclasses.replace(CFG.safety, max_speed=0.05))
+    with pytest.raises(PlanRefused):
+        checked.verify(tight)
+
+
+adversarial_floats = st.one_of(
+    st.floats(allow_nan=True, allow_infinity=True),
+    st.floats(-2.0, 2.0),
+    st.sampled_from([0.0, -0.0, 1e308, -1e308, 5e-324, float("nan"), float("inf"), -float("inf")]),
+)
+
+
+@settings(max_examples=6000, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(x=adversarial_floats, y=adversarial_floats, h=adversarial_floats, angle=adversarial_floats,
+       kind=st.sampled_from(["grasp", "push", "shift"]), real=st.booleans())
+def test_no_plan_that_passes_holds_a_pose_outside_the_envelope(x, y, h, angle, kind, real) -> None:
+    cfg = REAL if real else CFG
+    plan = {"grasp": lambda: plan_grasp(x, y, h, angle, cfg), "push": lambda: plan_push(x, y, angle, cfg),
+            "shift": lambda: plan_shift(x, y, h, angle, cfg)}[kind]()
+    try:
+        check_plan(plan, cfg)
+    except PlanRefused as exc:
+        assert exc.reason.strip(), "a refusal must say why"
+        return
+    assert_inside_envelope(plan, cfg)
+
+
+@settings(max_examples=4500, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(row=st.integers(-10**6, 10**6) | st.integers(-5, 230), col=st.integers(-10**6, 10**6) | st.integers(-5, 230),
+       rotation=st.integers(0, 15), prim=st.sampled_from(["grasp", "push", "shift"]),
+       height=adversarial_floats, real=st.booleans())
+def test_actions_on_adversarial_heightmaps(row, col, rotation, prim, height, real) -> None:
+    cfg = REAL if real else CFG
+    hm = np.full(cfg.workspace.shape, np.float32(0.02), np.float32)
+    if 0 <= row < hm.shape[0] and 0 <= col < hm.shape[1]:
+        with np.errstate(over="ignore"):
+            hm[row, col] = np.float32(height)
+    plan = plan_action(Action(prim, row, col, rotation), hm, cfg)
+    try:
+        check_plan(plan, cfg)
+    except PlanRefused as exc:
+        assert exc.reason.strip()
+        return
+    assert_inside_envelope(plan, cfg)
+    assert 0 <= row < hm.shape[0] and 0 <= col < hm.shape[1], "a pixel off the heightmap must be refused"
