@@ -1,0 +1,129 @@
+"""Cell config loading and `flgd check-config`."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import yaml
+
+from flgd.config import CellConfig, ConfigError, config_from_dict, config_to_dict, load_config
+
+ROOT = Path(__file__).resolve().parents[1]
+SHIPPED = sorted((ROOT / "cell_config").glob("*.yaml"))
+FLGD = Path(sys.executable).parent / "flgd"
+
+
+def run_check(path: Path) -> subprocess.CompletedProcess:
+    return subprocess.run([str(FLGD), "check-config", str(path)], capture_output=True, text=True, timeout=60)
+
+
+def test_there_are_shipped_configs() -> None:
+    names = {p.name for p in SHIPPED}
+    assert {"sim.yaml", "ur5e-d415.yaml"} <= names
+
+
+@pytest.mark.parametrize("path", SHIPPED, ids=lambda p: p.name)
+def test_check_config_passes_on_shipped_configs(path: Path) -> None:
+    result = run_check(path)
+    assert result.returncode == 0, result.stderr
+    assert "OK" in result.stdout
+    # What is printed is the effective config, and it loads back to the same thing.
+    printed = yaml.safe_load(result.stdout)
+    cfg = load_config(path)
+    assert printed == config_to_dict(cfg)
+    assert config_from_dict(printed, "printed") == config_from_dict(config_to_dict(cfg), "printed")
+
+
+def test_defaults_match_the_paper_resolution() -> None:
+    cfg = load_config(ROOT / "cell_config" / "sim.yaml")
+    assert cfg.workspace.shape == (224, 224) and cfg.workspace.resolution == 0.002
+    assert isinstance(cfg, CellConfig) and cfg.exploration.top_m == 10 and cfg.learning.gamma == 0.5
+
+
+def base() -> dict:
+    return yaml.safe_load((ROOT / "cell_config" / "sim.yaml").read_text())
+
+
+def with_change(path: str, value) -> dict:
+    data = base()
+    node = data
+    keys = path.split(".")
+    for k in keys[:-1]:
+        node = node.setdefault(k, {})
+    node[keys[-1]] = value
+    return data
+
+
+BROKEN = {
+    "unknown key with suggestion": (with_change("workspace.resolutoin", 0.002),
+                                    ["workspace.resolutoin", "unknown key", "did you mean 'resolution'"]),
+    "unknown section": (with_change("rewrads", {"delta": 0.01}), ["rewrads", "did you mean 'rewards'"]),
+    "wrong type": (with_change("robot.speed", "fast"), ["robot.speed", "'fast'", "number"]),
+    "negative resolution": (with_change("workspace.resolution", -0.002),
+                            ["workspace.resolution", "-0.002", "> 0.0", "m/px"]),
+    "workspace min > max": (with_change("workspace.x", [-0.2, -0.7]), ["workspace.x", "min < max"]),
+    "list of wrong length": (with_change("camera.pose.position", [0.1, 0.2]),
+                             ["camera.pose.position", "a list of 3"]),
+    "bool for number": (with_change("rewards.tau1", True), ["rewards.tau1", "True", "integer"]),
+    "bad enum": (with_change("gripper.driver", "robotiq"), ["gripper.driver", "'robotiq'", "'rg2_xmlrpc'"]),
+    "speed above the safety cap": (with_change("robot.speed", 2.0), ["robot.speed", "safety.max_speed"]),
+    "workspace outside the envelope": (with_change("safety.envelope_x", [-0.6, -0.2]),
+                                       ["workspace.x", "safety.envelope_x"]),
+    "home outside the envelope": (with_change("robot.home", {"position": [0.5, 0.0, 0.3], "yaw": 0.0}),
+                                  ["robot.home.position", "x = 0.5"]),
+    "resolution not dividing": (with_change("workspace.resolution", 0.0031), ["workspace.resolution", "whole pixels"]),
+    "nan value": (with_change("rewards.delta", float("nan")), ["rewards.delta", "finite"]),
+    "epsilon out of range": (with_change("exploration.epsilon_start", 1.5), ["exploration.epsilon_start", "<= 1.0"]),
+    "section not a mapping": (with_change("camera", [1, 2, 3]), ["camera", "a mapping"]),
+}
+
+
+@pytest.mark.parametrize("name", sorted(BROKEN))
+def test_broken_configs_are_refused_with_a_clear_message(name: str, tmp_path: Path) -> None:
+    data, needles = BROKEN[name]
+    path = tmp_path / "cell.yaml"
+    path.write_text(yaml.safe_dump(data))
+    result = run_check(path)
+    assert result.returncode != 0
+    assert str(path) in result.stderr
+    for needle in needles:
+        assert needle in result.stderr, f"{needle!r} missing from:\n{result.stderr}"
+    assert "Traceback" not in result.stderr
+
+
+@pytest.mark.parametrize("text,needle", [
+    ("workspace: [1, 2\n", "invalid YAML at line"),
+    ("- just\n- a list\n", "expected a mapping"),
+    ("robot: {speed: }\n", "robot.speed"),
+    ("backend: sim\nsafety:\n  max_speed: 0.1\n  max_speed: 3.0\n", "duplicate key 'max_speed'"),
+])
+def test_malformed_files(text: str, needle: str, tmp_path: Path) -> None:
+    path = tmp_path / "bad.yaml"
+    path.write_text(text)
+    result = run_check(path)
+    assert result.returncode != 0 and needle in result.stderr and "Traceback" not in result.stderr
+
+
+def test_missing_file_and_directory(tmp_path: Path) -> None:
+    missing = run_check(tmp_path / "nope.yaml")
+    assert missing.returncode != 0 and "nope.yaml" in missing.stderr and "file not found" in missing.stderr
+    a_dir = run_check(tmp_path)
+    assert a_dir.returncode != 0 and "directory" in a_dir.stderr
+
+
+def test_all_problems_are_reported_at_once() -> None:
+    data = with_change("robot.speed", "fast")
+    data["workspace"]["resolution"] = -1
+    with pytest.raises(ConfigError) as info:
+        config_from_dict(data, "x.yaml")
+    assert len(info.value.problems) == 2
+
+
+def test_relative_state_dir_is_relative_to_the_config_file(tmp_path: Path) -> None:
+    path = tmp_path / "sub" / "cell.yaml"
+    path.parent.mkdir()
+    path.write_text(yaml.safe_dump(with_change("state_dir", "state")))
+    assert load_config(path).state_dir == str((tmp_path / "sub" / "state").resolve())
