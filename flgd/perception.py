@@ -79,32 +79,37 @@ def make_heightmaps(color: np.ndarray, depth: np.ndarray, intrinsics: np.ndarray
     dirs = _rays.get(intrinsics, camera_pose[:3, :3], (h, w))
     t = camera_pose[:3, 3].astype(np.float32)
 
-    d = depth.reshape(-1).astype(np.float32) * np.float32(depth_scale)
-    valid = (d > max(depth_range[0], 0.0)) & (d < depth_range[1])  # NaN compares False
-    idx = np.flatnonzero(valid)
-    d = d[idx]
-    px = dirs[0, idx] * d + t[0]
-    py = dirs[1, idx] * d + t[1]
-    pz = dirs[2, idx] * d + t[2]
-
-    res = workspace.resolution
+    d = depth.reshape(-1).astype(np.float32)
+    if depth_scale != 1.0:
+        d *= np.float32(depth_scale)
+    lo, hi = np.float32(max(depth_range[0], 0.0)), np.float32(min(depth_range[1], 3.0e38))
+    # Whole-frame arithmetic is cheaper than gathering the valid pixels first.
+    res = np.float32(workspace.resolution)
     rows, cols = workspace.shape
-    table = workspace.table_z
-    c = np.floor((px - workspace.x[0]) / res).astype(np.int64)
-    r = np.floor((py - workspace.y[0]) / res).astype(np.int64)
-    hz = pz - np.float32(table)
-    keep = (c >= 0) & (c < cols) & (r >= 0) & (r < rows) & (hz >= -TABLE_TOLERANCE) & \
-        (pz <= workspace.z[1])
-    cell = r[keep] * cols + c[keep]
-    hz = np.maximum(hz[keep], 0.0)
-    src = idx[keep]
+    table = np.float32(workspace.table_z)
+    c = dirs[0] * d
+    c += t[0] - np.float32(workspace.x[0])
+    c /= res
+    r = dirs[1] * d
+    r += t[1] - np.float32(workspace.y[0])
+    r /= res
+    hz = dirs[2] * d
+    hz += t[2] - table
+    keep = (d > lo) & (d < hi)  # NaN compares False
+    keep &= (c >= 0) & (c < cols) & (r >= 0) & (r < rows)
+    keep &= (hz >= -TABLE_TOLERANCE) & (hz <= np.float32(workspace.z[1]) - table)
+    src = np.flatnonzero(keep)
+    cell = r[src].astype(np.int32) * cols + c[src].astype(np.int32)  # truncation = floor here (>= 0)
+    hz = np.maximum(hz[src], 0.0)
 
     height = np.zeros(rows * cols, dtype=np.float32)
     np.maximum.at(height, cell, hz)
     # The colour of a cell is that of a point at the cell's maximum height.
     top = hz >= height[cell]
-    color_flat = np.zeros((rows * cols, 3), dtype=np.uint8)
-    color_flat[cell[top]] = color.reshape(-1, 3)[src[top]]
+    rgb = np.ascontiguousarray(color).reshape(-1).view(np.dtype((np.void, 3)))
+    color_flat = np.zeros(rows * cols, dtype=np.dtype((np.void, 3)))
+    color_flat[cell[top]] = rgb[src[top]]
+    color_flat = color_flat.view(np.uint8)
     return Heightmaps(color=color_flat.reshape(rows, cols, 3), height=height.reshape(rows, cols))
 
 
