@@ -1,0 +1,248 @@
+"""The acting policy (paper III-D, IV-A): masked argmax over rho o Q plus FLG's exploration rules.
+
+One decision, in this order:
+
+1. ``two-failures``: after ``failed_grasps_trigger`` consecutive failed grasps
+   the clutter is judged too dense and the action is the best move.
+2. ``epsilon``: with probability epsilon (linear decay from epsilon_start to
+   epsilon_end over epsilon_decay_steps) a random action: grasp or move with
+   equal chance, then a rotation and a pixel drawn uniformly inside that
+   primitive's mask.
+3. ``greedy``: the best grasp and the best move under their masks; the higher
+   Q wins (a tie goes to the grasp).
+4. ``curriculum``: during the first ``curriculum_steps`` steps a chosen move
+   (from rule 2 or 3) is kept only with probability
+   ``curriculum_move_probability``; otherwise the best grasp is taken.
+5. ``anti-repeat``: if a greedy choice (rule 1, 3 or 4) lands on the same
+   primitive channel and pixel as the previous step, the action is drawn
+   uniformly from the top ``top_m`` actions of that channel that are not at
+   that pixel (the paper: "the action in the previous step will not be chosen").
+
+Masks are applied by setting Q to -inf outside them, not by the paper's literal
+Hadamard product rho o Q: with a 0/1 mask a multiplication leaves 0 outside
+the mask, and dueling Q-values are often negative inside it (Q = V + A -
+mean(A) is centred), so the argmax would land on a masked-out pixel.  -inf
+can never win and keeps ties inside the mask.
+
+``exploration.masks = False`` is the DPEN ablation: both masks are all ones.
+The returned ``Decision`` carries the masks that were applied.
+"""
+
+from __future__ import annotations
+
+import copy
+import threading
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from flgd.actions import Action
+from flgd.clutter import grasp_mask, move_mask
+from flgd.config import CellConfig
+from flgd.perception import Heightmaps
+
+from flgd.learning.networks import QMapNetwork, q_maps
+
+__all__ = ["Decision", "Agent", "WeightsMailbox", "RULES", "epsilon_at", "masked_maps"]
+
+RULES: tuple[str, ...] = ("greedy", "epsilon", "anti-repeat", "two-failures", "curriculum")
+
+
+@dataclass(frozen=True)
+class Decision:
+    action: Action
+    q_maps: np.ndarray  # float32 [R,2,H,W], heightmap frame
+    grasp_mask: np.ndarray  # uint8 [H,W] as applied (all ones without masks)
+    move_mask: np.ndarray
+    q_value: float  # Q of the chosen action
+    rule: str
+    epsilon: float
+
+
+class WeightsMailbox:
+    """A one-slot mailbox: the learner posts whole weight sets, the actor takes the newest.
+
+    Posting replaces an unread set, so the actor never copies more than one set
+    per decision and never waits for training.
+    """
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._weights: dict[str, torch.Tensor] | None = None
+        self._version = 0
+        self.posted = 0
+
+    def post(self, state_dict: dict[str, torch.Tensor], version: int | None = None) -> None:
+        """Publish a detached copy of ``state_dict`` (the caller may keep training its network)."""
+        weights = {k: v.detach().to("cpu", copy=True) for k, v in state_dict.items()}
+        with self._lock:
+            self._weights = weights
+            self.posted += 1
+            self._version = self.posted if version is None else version
+
+    def take(self) -> tuple[dict[str, torch.Tensor], int] | None:
+        """The newest unread set and its version, or None."""
+        with self._lock:
+            weights, self._weights = self._weights, None
+            return None if weights is None else (weights, self._version)
+
+
+def epsilon_at(step: int, exploration) -> float:
+    """Linear decay from epsilon_start to epsilon_end over epsilon_decay_steps, then constant."""
+    frac = min(1.0, max(0, step) / exploration.epsilon_decay_steps)
+    return exploration.epsilon_start + (exploration.epsilon_end - exploration.epsilon_start) * frac
+
+
+def masked_maps(q: np.ndarray, grasp: np.ndarray, move: np.ndarray) -> np.ndarray:
+    """Q [R,2,H,W] with -inf outside the grasp mask (channel 0) and the move mask (channel 1)."""
+    out = np.array(q, dtype=np.float32, copy=True)
+    out[:, 0][:, grasp == 0] = -np.inf
+    out[:, 1][:, move == 0] = -np.inf
+    return out
+
+
+class Agent:
+    """Chooses actions from Q-maps; holds the exploration state (failure streak, previous action)."""
+
+    def __init__(self, config: CellConfig, network: QMapNetwork, seed: int = 0) -> None:
+        self.config = config
+        self.network = network
+        self.rotations = network.rotations
+        self.rng = np.random.default_rng(seed)
+        self.mailbox = WeightsMailbox()
+        self.weights_version = 0
+        self.failed_grasps = 0
+        self.previous: Action | None = None
+        self.network.eval()
+
+    # ------------------------------------------------------------------ weights
+
+    def maybe_swap_weights(self) -> bool:
+        """Load the newest weights posted by the learner, if any; True when swapped."""
+        posted = self.mailbox.take()
+        if posted is None:
+            return False
+        weights, version = posted
+        self.network.load_state_dict(weights)
+        self.network.eval()
+        self.weights_version = version
+        return True
+
+    # ------------------------------------------------------------------ deciding
+
+    def masks(self, height: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(rho_g, rho_m) for ``height``; all ones for the DPEN ablation (object presence still checked)."""
+        if self.config.exploration.masks:
+            return grasp_mask(height, self.config.rewards), move_mask(height, self.config.rewards)
+        ones = np.ones(height.shape, dtype=np.uint8)
+        return ones, ones.copy()
+
+    def q_maps(self, heightmaps: Heightmaps) -> np.ndarray:
+        """All-rotation Q-maps [R,2,H,W] float32 of the acting network."""
+        with torch.inference_mode():
+            q = q_maps(self.network, heightmaps, self.rotations)
+        return q.float().cpu().numpy()
+
+    def decide(self, heightmaps: Heightmaps, step: int) -> Decision | None:
+        """The next action for ``heightmaps`` at training step ``step``; None when nothing is on the table."""
+        self.maybe_swap_weights()
+        height = np.nan_to_num(np.asarray(heightmaps.height, dtype=np.float32), nan=0.0)
+        if not grasp_mask(height, self.config.rewards).any():
+            return None
+        return self.select(self.q_maps(heightmaps), height, step)
+
+    def select(self, q: np.ndarray, height: np.ndarray, step: int) -> Decision | None:
+        """The decision rules on given Q-maps [R,2,H,W] (``decide`` without the network)."""
+        ex = self.config.exploration
+        q = np.asarray(q, dtype=np.float32)
+        if q.ndim != 4 or q.shape[0] != self.rotations or q.shape[1] != 2 or q.shape[2:] != height.shape:
+            raise ValueError(f"q-maps: expected [{self.rotations},2,{height.shape[0]},{height.shape[1]}], "
+                             f"got {list(q.shape)}")
+        gmask, mmask = self.masks(height)
+        if not gmask.any():
+            return None
+        masked = masked_maps(q, gmask, mmask)
+        eps = epsilon_at(step, ex)
+        greedy_choice = True
+
+        if self.failed_grasps >= ex.failed_grasps_trigger:
+            channel, rule = 1, "two-failures"
+            index = self._best(masked, 1)
+        elif self.rng.random() < eps:
+            channel, rule = int(self.rng.integers(2)), "epsilon"
+            index = self._random_inside(gmask if channel == 0 else mmask, channel)
+            greedy_choice = False
+        else:
+            best_grasp, best_move = self._best(masked, 0), self._best(masked, 1)
+            channel = 1 if masked[best_move] > masked[best_grasp] else 0
+            index = best_move if channel else best_grasp
+            rule = "greedy"
+
+        if channel == 1 and rule != "two-failures" and step < ex.curriculum_steps \
+                and self.rng.random() >= ex.curriculum_move_probability:
+            channel, rule, index = 0, "curriculum", self._best(masked, 0)
+            greedy_choice = True
+
+        if greedy_choice and self._repeats(channel, index):
+            index = self._top_m_excluding(masked, channel, (index[2], index[3]))
+            rule = "anti-repeat"
+
+        rot, _, row, col = (int(v) for v in index)
+        primitive = "grasp" if channel == 0 else self._move_kind(float(height[row, col]))
+        action = Action(primitive, row, col, rot, self.rotations)
+        self.previous = action
+        return Decision(action=action, q_maps=q, grasp_mask=gmask, move_mask=mmask,
+                        q_value=float(q[rot, channel, row, col]), rule=rule, epsilon=eps)
+
+    def record_outcome(self, action: Action, grasp_success: bool | None) -> None:
+        """Feed the executed action's result: grasp streaks for rule 1, location for rule 5.
+
+        ``grasp_success`` is None for moves (and for a grasp whose result is
+        unknown, which leaves the streak unchanged).  A move ends the streak.
+        """
+        self.previous = action
+        if action.is_move:
+            self.failed_grasps = 0
+        elif grasp_success is True:
+            self.failed_grasps = 0
+        elif grasp_success is False:
+            self.failed_grasps += 1
+
+    def reset_episode(self) -> None:
+        """Forget the streak and the previous location (new scene)."""
+        self.failed_grasps = 0
+        self.previous = None
+
+    # ------------------------------------------------------------------ helpers
+
+    def _move_kind(self, height_at_point: float) -> str:
+        """flgd.plans.move_kind's rule: a move on an object is a shift, elsewhere a push."""
+        return "shift" if height_at_point > self.config.rewards.shift_height else "push"
+
+    @staticmethod
+    def _best(masked: np.ndarray, channel: int) -> tuple[int, int, int, int]:
+        flat = int(np.argmax(masked[:, channel]))
+        rot, row, col = np.unravel_index(flat, masked[:, channel].shape)
+        return int(rot), channel, int(row), int(col)
+
+    def _random_inside(self, mask: np.ndarray, channel: int) -> tuple[int, int, int, int]:
+        rows, cols = np.nonzero(mask)
+        k = int(self.rng.integers(len(rows)))
+        return int(self.rng.integers(self.rotations)), channel, int(rows[k]), int(cols[k])
+
+    def _repeats(self, channel: int, index: tuple[int, int, int, int]) -> bool:
+        prev = self.previous
+        return prev is not None and prev.channel == channel and (prev.row, prev.col) == (index[2], index[3])
+
+    def _top_m_excluding(self, masked: np.ndarray, channel: int, pixel: tuple[int, int]) -> tuple[int, int, int, int]:
+        values = masked[:, channel].copy()
+        values[:, pixel[0], pixel[1]] = -np.inf
+        flat = values.reshape(-1)
+        finite = int(np.count_nonzero(np.isfinite(flat)))
+        if finite == 0:  # the previous pixel is the only candidate left: keep it
+            return self._best(masked, channel)
+        m = min(self.config.exploration.top_m, finite)
+        top = np.argpartition(-flat, m - 1)[:m]
+        rot, row, col = np.unravel_index(int(top[self.rng.integers(m)]), values.shape)
+        return int(rot), channel, int(row), int(col)

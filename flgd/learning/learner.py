@@ -1,0 +1,308 @@
+"""The learner: dueling double DQN on prioritized replay, trained continually in a background thread.
+
+One update (``update``):
+
+* sample ``batch_size`` transitions with importance weights w from the replay;
+* target y = r + gamma * Q_target(s', a') * (1 - done), where a' is the argmax
+  of the *online* network over all rotations of s' under the masks of s' (the
+  same masks the agent acts with; none for the DPEN ablation) and only a'`s
+  rotation is forwarded through the target network (double DQN);
+* prediction: only the executed rotation i is forwarded through the online
+  network, plus its twin (i + R/2) % R for a grasp, since the two-finger
+  gripper closing along u or -u is the same grasp; both are trained towards y;
+* loss: Huber (delta = huber_delta) at the executed channel and pixel only,
+  averaged over the transition's rotations, weighted by w, averaged over the
+  batch; Adam with the configured learning rate and weight decay;
+* priorities of the batch become |y - Q(s, a)| + epsilon;
+* the target network copies the online one every ``target_update_every`` updates.
+
+The learner trains its own copy of the network given to it, so the acting
+network is never touched mid-decision; after each run of updates it posts the
+new weights to the agent's ``WeightsMailbox``.
+"""
+
+from __future__ import annotations
+
+import copy
+import logging
+import threading
+import time
+from dataclasses import dataclass
+from typing import Callable, Sequence
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from flgd.clutter import grasp_mask, move_mask
+from flgd.config import CellConfig
+
+from flgd.learning.agent import WeightsMailbox, masked_maps
+from flgd.learning.networks import QMapNetwork, q_maps, rotated_inputs, unrotate_maps
+from flgd.learning.replay import PrioritizedReplay, Transition
+
+__all__ = ["Learner", "UpdateStats", "LossTerms", "resolve_device"]
+
+log = logging.getLogger(__name__)
+
+CheckpointCallback = Callable[[QMapNetwork, int], None]
+
+
+@dataclass(frozen=True)
+class UpdateStats:
+    update: int  # number of this update (1-based)
+    loss: float
+    mean_abs_td: float
+    batch_size: int
+    beta: float
+    seconds: float
+
+
+@dataclass
+class LossTerms:
+    """Everything one loss evaluation produced (exposed so tests can inspect the gradient path)."""
+
+    loss: torch.Tensor
+    td_errors: np.ndarray  # per transition, y - Q(s, a) at the executed rotation
+    targets: np.ndarray  # y per transition
+    maps: torch.Tensor  # [N,2,H,W] predicted maps (heightmap frame) of the forwarded rotations
+    owners: list[int]  # transition index of each row of maps
+    rotations: list[int]  # rotation index of each row of maps
+
+
+def resolve_device(device: str | torch.device | None) -> torch.device:
+    if device is None or str(device) == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    device = torch.device(device)
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise ValueError("learning.device: got 'cuda', but torch finds no CUDA device; use 'cpu' or 'auto'")
+    return device
+
+
+class Learner:
+    def __init__(self, config: CellConfig, network: QMapNetwork, replay: PrioritizedReplay,
+                 device: str | torch.device | None = None, mailbox: WeightsMailbox | None = None,
+                 checkpoint_callback: CheckpointCallback | None = None) -> None:
+        lc = config.learning
+        if lc.threads > 0:
+            torch.set_num_threads(lc.threads)
+        self.config = config
+        self.replay = replay
+        self.device = resolve_device(device if device is not None else lc.device)
+        self.rotations = network.rotations
+        self.online = copy.deepcopy(network).to(self.device).train()
+        self.target = copy.deepcopy(network).to(self.device).eval()
+        for p in self.target.parameters():
+            p.requires_grad_(False)
+        self.optimizer = torch.optim.Adam(self.online.parameters(), lr=lc.learning_rate,
+                                          weight_decay=lc.weight_decay)
+        self.mailbox = mailbox
+        self.checkpoint_callback = checkpoint_callback
+        self.updates = 0
+        self.failed_updates = 0
+        self.last_error: str | None = None
+        self.last_stats: UpdateStats | None = None
+        self._update_lock = threading.Lock()
+        self._cond = threading.Condition()
+        self._pending = 0
+        self._busy = False
+        self._stop = False
+        self._thread: threading.Thread | None = None
+
+    @property
+    def network(self) -> QMapNetwork:
+        """The online (trained) network; read it only from the learner thread or via ``snapshot``."""
+        return self.online
+
+    # ------------------------------------------------------------------ one update
+
+    def _masks(self, height: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        if self.config.exploration.masks:
+            return grasp_mask(height, self.config.rewards), move_mask(height, self.config.rewards)
+        ones = np.ones(height.shape, dtype=np.uint8)
+        return ones, ones
+
+    @torch.no_grad()
+    def targets(self, transitions: Sequence[Transition]) -> np.ndarray:
+        """y = r + gamma * Q_target(s', argmax_a' online(s')) * (1 - done) for each transition."""
+        gamma = self.config.learning.gamma
+        ys = np.zeros(len(transitions), dtype=np.float64)
+        self.online.eval()
+        try:
+            for k, t in enumerate(transitions):
+                ys[k] = t.reward
+                if t.done or t.next_state is None or gamma == 0.0:
+                    continue
+                height = np.nan_to_num(np.asarray(t.next_state.height, dtype=np.float32), nan=0.0)
+                gmask, mmask = self._masks(height)
+                q_next = q_maps(self.online, t.next_state, self.rotations).cpu().numpy()
+                masked = masked_maps(q_next, gmask, mmask)
+                flat = int(np.argmax(masked))
+                if not np.isfinite(masked.reshape(-1)[flat]):
+                    continue  # nothing left to act on in s': no future value
+                rot, ch, row, col = np.unravel_index(flat, masked.shape)
+                q_t = q_maps(self.target, t.next_state, self.rotations, rotation_indices=[int(rot)])
+                ys[k] += gamma * float(q_t[0, ch, row, col])
+        finally:
+            self.online.train()
+        return ys
+
+    def loss_terms(self, transitions: Sequence[Transition], weights: np.ndarray) -> LossTerms:
+        """The weighted Huber loss at the executed pixels (see module doc), with its intermediate maps."""
+        ys = self.targets(transitions)
+        colors, heights, owners, rots = [], [], [], []
+        for k, t in enumerate(transitions):
+            a = t.action
+            if a.rotations != self.rotations:
+                raise ValueError(f"transition {k}: action has {a.rotations} rotations, network {self.rotations}")
+            these = [a.rotation]
+            if not a.is_move:
+                these.append((a.rotation + self.rotations // 2) % self.rotations)
+            c, h = rotated_inputs(t.state, these, self.rotations, self.online.stride, self.device)
+            colors.append(c)
+            heights.append(h)
+            owners += [k] * len(these)
+            rots += these
+        shapes = {tuple(np.asarray(t.state.height).shape) for t in transitions}
+        if len(shapes) != 1:
+            raise ValueError(f"transitions in one batch have different heightmap sizes: {sorted(shapes)}")
+        (h_px, w_px), = shapes
+        out = self.online(torch.cat(colors), torch.cat(heights))
+        maps = unrotate_maps(out, rots, self.rotations, h_px, w_px)
+        channel = torch.tensor([transitions[k].action.channel for k in owners], device=self.device)
+        row = torch.tensor([transitions[k].action.row for k in owners], device=self.device)
+        col = torch.tensor([transitions[k].action.col for k in owners], device=self.device)
+        predicted = maps[torch.arange(len(owners), device=self.device), channel, row, col]
+        y = torch.tensor(ys[owners], dtype=predicted.dtype, device=self.device)
+        per_row = F.huber_loss(predicted, y, reduction="none", delta=self.config.learning.huber_delta)
+        owner_t = torch.tensor(owners, device=self.device)
+        per_transition = torch.zeros(len(transitions), dtype=per_row.dtype, device=self.device)
+        per_transition = per_transition.index_add(0, owner_t, per_row)
+        counts = torch.bincount(owner_t, minlength=len(transitions)).to(per_row.dtype)
+        w = torch.as_tensor(np.asarray(weights, dtype=np.float32), device=self.device)
+        loss = (w * per_transition / counts).mean()
+        first = [owners.index(k) for k in range(len(transitions))]  # the executed rotation's row
+        td = (y[first] - predicted[first]).detach().cpu().numpy().astype(np.float64)
+        return LossTerms(loss=loss, td_errors=td, targets=ys, maps=maps, owners=owners, rotations=rots)
+
+    def update(self) -> UpdateStats | None:
+        """One gradient step on a prioritized batch; None while the replay is empty."""
+        if len(self.replay) == 0:
+            return None
+        with self._update_lock:
+            start = time.perf_counter()
+            beta = self.replay.beta
+            indices, transitions, weights = self.replay.sample(self.config.learning.batch_size)
+            terms = self.loss_terms(transitions, weights)
+            self.optimizer.zero_grad(set_to_none=True)
+            terms.loss.backward()
+            self.optimizer.step()
+            self.replay.update_priorities(indices, np.abs(terms.td_errors))
+            self.updates += 1
+            if self.updates % self.config.learning.target_update_every == 0:
+                self.target.load_state_dict(self.online.state_dict())
+            stats = UpdateStats(update=self.updates, loss=float(terms.loss.detach()),
+                                mean_abs_td=float(np.mean(np.abs(terms.td_errors))),
+                                batch_size=len(transitions), beta=beta, seconds=time.perf_counter() - start)
+            self.last_stats = stats
+            if self.checkpoint_callback is not None and self.updates % self.config.learning.checkpoint_every == 0:
+                try:
+                    self.checkpoint_callback(self.online, self.updates)
+                except Exception as exc:  # a failed checkpoint must not stop learning
+                    log.exception("checkpoint callback failed at update %d", self.updates)
+                    self.last_error = f"checkpoint at update {self.updates}: {exc}"
+        return stats
+
+    def publish(self) -> bool:
+        """Post the online weights to the mailbox (if one is attached)."""
+        if self.mailbox is None:
+            return False
+        with self._update_lock:
+            self.mailbox.post(self.online.state_dict(), version=self.updates)
+        return True
+
+    def snapshot(self) -> QMapNetwork:
+        """A consistent copy of the online network (safe from any thread), e.g. to save a policy."""
+        with self._update_lock:
+            net = copy.deepcopy(self.online)
+        return net.to("cpu").eval()
+
+    def load_weights(self, network: QMapNetwork) -> None:
+        """Replace online and target weights (a policy loaded at run time) and publish them."""
+        with self._update_lock:
+            self.online.load_state_dict(network.state_dict())
+            self.target.load_state_dict(network.state_dict())
+        self.publish()
+
+    # ------------------------------------------------------------------ background thread
+
+    def notify_new_transition(self) -> None:
+        """A transition was added: schedule ``updates_per_action`` updates."""
+        with self._cond:
+            self._pending += self.config.learning.updates_per_action
+            self._cond.notify_all()
+
+    @property
+    def pending(self) -> int:
+        with self._cond:
+            return self._pending
+
+    def start(self) -> None:
+        if self._thread is not None and self._thread.is_alive():
+            return
+        with self._cond:
+            self._stop = False
+        self._thread = threading.Thread(target=self._run, name="flgd-learner", daemon=True)
+        self._thread.start()
+
+    def stop(self, timeout: float | None = None) -> None:
+        """Finish the update in progress, drop the pending ones and join the thread."""
+        with self._cond:
+            self._stop = True
+            self._pending = 0
+            self._cond.notify_all()
+        if self._thread is not None:
+            self._thread.join(timeout)
+            self._thread = None
+
+    @property
+    def running(self) -> bool:
+        return self._thread is not None and self._thread.is_alive()
+
+    def wait_idle(self, timeout: float | None = None) -> bool:
+        """Block until no update is pending or running; False on timeout."""
+        deadline = None if timeout is None else time.monotonic() + timeout
+        with self._cond:
+            while self._pending > 0 or self._busy:
+                remaining = None if deadline is None else deadline - time.monotonic()
+                if remaining is not None and remaining <= 0:
+                    return False
+                self._cond.wait(remaining)
+        return True
+
+    def _run(self) -> None:
+        while True:
+            with self._cond:
+                while not self._stop and self._pending == 0:
+                    self._cond.wait()
+                if self._stop:
+                    return
+                self._pending -= 1
+                self._busy = True
+            try:
+                self.update()
+            except Exception as exc:  # keep the daemon alive; the error is reported through status
+                self.failed_updates += 1
+                self.last_error = f"update {self.updates + 1}: {type(exc).__name__}: {exc}"
+                log.exception("learner update failed")
+            with self._cond:
+                run_finished = self._pending == 0
+            if run_finished:
+                try:
+                    self.publish()
+                except Exception as exc:
+                    self.last_error = f"publish: {type(exc).__name__}: {exc}"
+                    log.exception("publishing weights failed")
+            with self._cond:
+                self._busy = False
+                self._cond.notify_all()
