@@ -1,0 +1,250 @@
+"""``flgctl``: command a running flgd over its control socket (protocol: ``flgd.daemon.protocol``).
+
+Human-readable output by default, ``--json`` prints the daemon's reply object
+for scripts.  Exit codes: 0 success, 1 the daemon refused or the command
+failed, 2 usage error, 3 the daemon is not running (or not reachable),
+4 permission denied.
+"""
+
+from __future__ import annotations
+
+import argparse
+import base64
+import datetime as _dt
+import json
+import os
+import socket
+import sys
+from pathlib import Path
+from typing import Any
+
+__all__ = ["main", "Client", "DaemonUnreachable", "EXIT_OK", "EXIT_FAILED", "EXIT_USAGE", "EXIT_NOT_RUNNING",
+           "EXIT_FORBIDDEN"]
+
+EXIT_OK, EXIT_FAILED, EXIT_USAGE, EXIT_NOT_RUNNING, EXIT_FORBIDDEN = 0, 1, 2, 3, 4
+
+
+class DaemonUnreachable(RuntimeError):
+    def __init__(self, message: str, code: int = EXIT_NOT_RUNNING):
+        super().__init__(message)
+        self.code = code
+
+
+class Client:
+    """One connection to the daemon; ``call`` sends a request and returns the reply object."""
+
+    def __init__(self, path: str | os.PathLike, timeout: float = 150.0):
+        self.path = Path(path)
+        self.sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        self.sock.settimeout(timeout)
+        try:
+            self.sock.connect(str(self.path))
+        except FileNotFoundError:
+            self.sock.close()
+            raise DaemonUnreachable(f"flgd is not running (no control socket at {self.path})") from None
+        except ConnectionRefusedError:
+            self.sock.close()
+            raise DaemonUnreachable(f"flgd is not running (nothing listens on {self.path})") from None
+        except PermissionError:
+            self.sock.close()
+            raise DaemonUnreachable(f"permission denied on {self.path}: ask to be added to the flgd group",
+                                    EXIT_FORBIDDEN) from None
+        except OSError as exc:
+            self.sock.close()
+            raise DaemonUnreachable(f"cannot connect to {self.path}: {exc}") from None
+        self._buf = b""
+
+    def call(self, cmd: str, **args: Any) -> dict:
+        req: dict[str, Any] = {"cmd": cmd}
+        if args:
+            req["args"] = args
+        try:
+            self.sock.sendall((json.dumps(req) + "\n").encode("utf-8"))
+        except OSError as exc:
+            # A refused peer is disconnected after its error line; that line is the better message.
+            try:
+                return self._read_reply()
+            except DaemonUnreachable:
+                raise DaemonUnreachable(f"connection to {self.path} lost: {exc}") from None
+        return self._read_reply()
+
+    def _read_reply(self) -> dict:
+        while b"\n" not in self._buf:
+            try:
+                chunk = self.sock.recv(1 << 20)
+            except socket.timeout:
+                raise DaemonUnreachable(f"no reply from flgd on {self.path} (timed out)") from None
+            except OSError as exc:
+                raise DaemonUnreachable(f"connection to {self.path} lost: {exc}") from None
+            if not chunk:
+                raise DaemonUnreachable(f"flgd closed the connection on {self.path} without a reply")
+            self._buf += chunk
+        line, _, self._buf = self._buf.partition(b"\n")
+        try:
+            reply = json.loads(line)
+        except json.JSONDecodeError:
+            raise DaemonUnreachable(f"unreadable reply from {self.path}: {line[:200]!r}", EXIT_FAILED) from None
+        if not isinstance(reply, dict) or "ok" not in reply:
+            raise DaemonUnreachable(f"unexpected reply from {self.path}: {line[:200]!r}", EXIT_FAILED)
+        return reply
+
+    def close(self) -> None:
+        self.sock.close()
+
+    def __enter__(self) -> "Client":
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
+
+
+def _find_socket(explicit: str | None) -> Path:
+    from flgd.daemon.run import socket_candidates
+
+    if explicit:
+        return Path(explicit)
+    cands = socket_candidates()
+    for p in cands:
+        if p.exists():
+            return p
+    return cands[0]
+
+
+def _parser() -> argparse.ArgumentParser:
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument("--json", action="store_true", default=argparse.SUPPRESS,
+                        help="print the daemon's reply as JSON")
+    common.add_argument("--socket", default=argparse.SUPPRESS, help="control socket path")
+    common.add_argument("--timeout", type=float, default=argparse.SUPPRESS,
+                        help="seconds to wait for a reply (default 150)")
+    p = argparse.ArgumentParser(prog="flgctl", parents=[common],
+                                description="Command a running flgd daemon over its control socket.")
+    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    for name, help_ in (("start", "start cycling (IDLE/PAUSED -> RUNNING)"),
+                        ("pause", "pause after the cycle in flight (RUNNING -> PAUSED)"),
+                        ("reset", "clear a fault, home the arm, new scene in sim (-> IDLE)"),
+                        ("status", "state, cause, cycles, policy, learner"),
+                        ("stats", "grasp success, picks per hour, moves, faults, cycle-time split"),
+                        ("stop", "stop the daemon after the cycle in flight"),
+                        ("ping", "check that the daemon answers")):
+        sub.add_parser(name, parents=[common], help=help_)
+    pol = sub.add_parser("policy", parents=[common], help="load or save the acting policy")
+    polsub = pol.add_subparsers(dest="policy_command", required=True, metavar="load|save")
+    load = polsub.add_parser("load", parents=[common], help="validate a policy file, then use it")
+    load.add_argument("file")
+    save = polsub.add_parser("save", parents=[common], help="write the current policy (default: state dir)")
+    save.add_argument("file", nargs="?")
+    be = sub.add_parser("backend", parents=[common], help="swap the cell between cycles (sim, ur5e, ...)")
+    be.add_argument("name")
+    snap = sub.add_parser("snapshot", parents=[common], help="PNG of the heightmap, Q-maps and chosen action")
+    snap.add_argument("file")
+    return p
+
+
+def _pct(v: Any) -> str:
+    return "-" if v is None else f"{100 * v:.1f}%"
+
+
+def _human(command: str, reply: dict, extra: dict) -> str:
+    r = reply.get("result", {})
+    if command == "status":
+        since = _dt.datetime.fromtimestamp(r["since"]).strftime("%Y-%m-%d %H:%M:%S")
+        lines = [f"state         {r['state']} since {since} ({r['cause']})",
+                 f"cycles        {r['cycles']}  (grasp success last 50: {_pct(r.get('grasp_success_last_50'))}, "
+                 f"picks/h: {'-' if r.get('picks_per_hour') is None else format(r['picks_per_hour'], '.0f')})",
+                 f"backend       {r['backend']}   config {r['config']}",
+                 f"policy        {r['policy']}",
+                 f"learner       {r['learner_updates']} updates, replay {r['replay_size']} "
+                 f"(stored {r['stored_transitions']}), last checkpoint {r['last_checkpoint'] or '-'}",
+                 f"state dir     {r['state_dir']}   pid {r['pid']}"]
+        if r.get("learner_error"):
+            lines.append(f"learner error {r['learner_error']}")
+        if r.get("store_problem"):
+            lines.append(f"store problem {r['store_problem']}")
+        last = r.get("last_cycle")
+        if last:
+            lines.append(f"last cycle    step {last['step']} {last['outcome']} {last['kind'] or ''} "
+                         f"reward {last['reward']} ({last['duration']:.2f} s)")
+        return "\n".join(lines)
+    if command == "stats":
+        from flgd.daemon.metrics import format_stats
+        return format_stats(r)
+    if command == "snapshot":
+        act = r.get("action")
+        what = "no action (empty workspace)" if not act else \
+            f"{act['primitive']} at row {act['row']} col {act['col']} rotation {act['rotation']}"
+        return f"wrote {extra['file']} ({r.get('source')}: {what})"
+    if command == "policy load":
+        return f"policy loaded: {r['loaded']}"
+    if command == "policy save":
+        return f"policy saved: {r['saved']} ({r['learner_updates']} learner updates)"
+    if command == "backend":
+        return f"backend {r['previous']} -> {r['backend']}"
+    if command == "stop":
+        return "flgd is stopping after the cycle in flight"
+    if command == "ping":
+        return f"flgd answers (pid {r['pid']}, {reply['state']})"
+    return f"{command}: ok, state {reply['state']}"
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    parser = _parser()
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as exc:
+        return EXIT_USAGE if exc.code not in (0, None) else EXIT_OK
+    as_json = getattr(args, "json", False)
+    timeout = getattr(args, "timeout", 150.0)
+    path = _find_socket(getattr(args, "socket", None))
+
+    command = args.command
+    call_args: dict[str, Any] = {}
+    extra: dict[str, Any] = {}
+    cmd = command
+    if command == "policy":
+        command = f"policy {args.policy_command}"
+        cmd = f"policy_{args.policy_command}"
+        if args.file is not None:
+            call_args["path"] = os.path.abspath(args.file)
+    elif command == "backend":
+        call_args["name"] = args.name
+    elif command == "snapshot":
+        extra["file"] = args.file
+
+    try:
+        with Client(path, timeout=timeout) as client:
+            reply = client.call(cmd, **call_args)
+    except DaemonUnreachable as exc:
+        if as_json:
+            print(json.dumps({"ok": False, "error": {"code": "not_running" if exc.code == EXIT_NOT_RUNNING
+                                                     else "unreachable", "message": str(exc)}}))
+        else:
+            print(f"flgctl: {exc}", file=sys.stderr)
+        return exc.code
+
+    if reply.get("ok") and command == "snapshot":
+        try:
+            png = base64.b64decode(reply["result"].pop("png_base64"), validate=True)
+            Path(args.file).write_bytes(png)
+            reply["result"]["file"] = os.path.abspath(args.file)
+            reply["result"]["bytes"] = len(png)
+        except (OSError, ValueError, KeyError) as exc:
+            print(f"flgctl: cannot write {args.file}: {exc}", file=sys.stderr)
+            return EXIT_FAILED
+
+    if as_json:
+        print(json.dumps(reply, indent=2))
+    elif reply.get("ok"):
+        print(_human(command, reply, extra))
+    else:
+        err = reply.get("error", {})
+        print(f"flgctl {command}: {err.get('message', 'failed')} [{err.get('code')}; state "
+              f"{reply.get('state')}]", file=sys.stderr)
+    if reply.get("ok"):
+        return EXIT_OK
+    return EXIT_FORBIDDEN if reply.get("error", {}).get("code") == "forbidden" else EXIT_FAILED
+
+
+if __name__ == "__main__":
+    sys.exit(main())

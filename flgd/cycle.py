@@ -1,0 +1,316 @@
+"""The one FLG cycle: capture -> perceive -> decide -> plan -> check -> execute -> judge -> store -> learn.
+
+The daemon, ``flgd train`` and ``flgd eval`` all run this class, so there is a
+single definition of what an action, a reward and a transition are.  It knows
+nothing about sockets, states or systemd; the caller decides when to run a
+cycle and what to do with the record and with exceptions.
+
+One capture per cycle: the frame taken after an action is both the "after" of
+its move judgement and the state the next decision is made on (the next state
+of the stored transition).  A fresh capture is needed only after a scene
+reset, a discarded action or when the runner is new.
+
+Outcomes of a cycle (``CycleRecord.outcome``):
+  * ``executed``  -- the plan ran; a transition was stored and learned from.
+  * ``refused``   -- the safety envelope refused the plan; nothing was sent to
+    the cell; the action is stored with reward 0 and an unchanged next state,
+    so the learner is taught not to choose it again.
+  * ``discarded`` -- the cell reported the physics unstable: the scene is reset
+    and nothing is learned.
+  * ``fault``     -- the cell raised CellFault: the action is logged, its
+    transition dropped, and the CellFault re-raised for the caller.
+  * ``empty``     -- there was nothing to act on: the scene was reset; no step.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Any, Callable
+
+import numpy as np
+
+from flgd.actions import Action
+from flgd.cell import Cell, CellFault, ExecutionResult
+from flgd.clutter import grasp_mask, grasp_reward, judge_move
+from flgd.config import CellConfig
+from flgd.perception import Heightmaps, frame_heightmaps
+from flgd.plans import plan_action, plan_home, plan_release
+from flgd.safety import PlanRefused, check_plan
+
+__all__ = ["CycleRecord", "CycleRunner", "UNSTABLE_MARK"]
+
+# ExecutionResult.failure containing this word means the simulation blew up: never learn from it.
+UNSTABLE_MARK = "unstable"
+
+
+@dataclass
+class CycleRecord:
+    """What one cycle did; ``row()`` is its action-log row."""
+
+    outcome: str
+    step: int | None = None
+    time: float = 0.0
+    backend: str = ""
+    action: Action | None = None
+    kind: str | None = None          # grasp / push / shift as executed
+    reward: float | None = None
+    success: bool | None = None      # grasps only
+    mu: int | None = None
+    eta: int | None = None
+    rule: str = ""
+    epsilon: float | None = None
+    q_value: float | None = None
+    refused: str = ""
+    failure: str = ""
+    done: bool = False
+    duration: float = 0.0
+    timings: dict[str, float] = field(default_factory=dict)
+    transition_id: int | None = None
+
+    @property
+    def primitive(self) -> str | None:
+        return None if self.action is None else self.action.primitive
+
+    def row(self) -> dict[str, Any]:
+        a = self.action
+        out: dict[str, Any] = {
+            "step": self.step, "time": self.time, "backend": self.backend, "outcome": self.outcome,
+            "primitive": None if a is None else a.primitive, "kind": self.kind,
+            "row": None if a is None else a.row, "col": None if a is None else a.col,
+            "rotation": None if a is None else a.rotation, "reward": self.reward,
+            "success": None if self.success is None else int(self.success),
+            "mu": self.mu, "eta": self.eta, "rule": self.rule, "epsilon": self.epsilon,
+            "q_value": self.q_value, "refused": self.refused, "failure": self.failure,
+            "done": int(self.done), "duration": self.duration,
+        }
+        for phase, seconds in self.timings.items():
+            if phase != "store":
+                out[f"t_{phase}"] = seconds
+        return out
+
+
+class _Timer:
+    def __init__(self, timings: dict[str, float], on_phase: Callable[[str], None] | None):
+        self.timings = timings
+        self.on_phase = on_phase
+
+    def phase(self, name: str) -> "_Phase":
+        return _Phase(self, name)
+
+
+class _Phase:
+    def __init__(self, timer: _Timer, name: str):
+        self.timer, self.name = timer, name
+
+    def __enter__(self) -> None:
+        self.t0 = time.perf_counter()
+
+    def __exit__(self, *exc: Any) -> None:
+        t = self.timer.timings
+        t[self.name] = t.get(self.name, 0.0) + time.perf_counter() - self.t0
+        if self.timer.on_phase is not None:
+            self.timer.on_phase(self.name)
+
+
+def _make_transition(state: Heightmaps, action: Action, reward: float, next_state: Heightmaps | None,
+                     done: bool) -> Any:
+    from flgd.learning.replay import Transition
+    return Transition(state=state, action=action, reward=reward, next_state=next_state, done=done)
+
+
+class CycleRunner:
+    """Runs cycles on one cell with one agent; optional store, replay and learner.
+
+    ``store``   -- a ``flgd.store.Store`` (anything with ``commit_cycle``,
+                   ``note_store_time``, ``forget_last_state``); None = not persisted.
+    ``replay``  -- gets every stored transition (``add``); None = no learning.
+    ``learner`` -- told about each new transition (``notify_new_transition``).
+    ``on_phase``-- called after each phase (the daemon pings its watchdog there).
+    """
+
+    def __init__(self, config: CellConfig, cell: Cell, agent: Any, *, store: Any = None, replay: Any = None,
+                 learner: Any = None, step: int = 0, backend: str | None = None,
+                 on_phase: Callable[[str], None] | None = None):
+        self.config = config
+        self.cell = cell
+        self.agent = agent
+        self.store = store
+        self.replay = replay
+        self.learner = learner
+        self.step = int(step)
+        self.backend = backend or config.backend
+        self.on_phase = on_phase
+        self.current: Heightmaps | None = None
+        self.last_decision: Any = None
+        self.last_heightmaps: Heightmaps | None = None
+
+    # ------------------------------------------------------------------ helpers
+    def forget_state(self) -> None:
+        """The next cycle starts from a fresh capture (after a reset, a swap of cell or agent)."""
+        self.current = None
+        if self.store is not None:
+            self.store.forget_last_state()
+
+    def perceive(self, timer: _Timer) -> Heightmaps:
+        with timer.phase("capture"):
+            frame = self.cell.capture()
+        with timer.phase("perceive"):
+            cam = self.config.camera
+            return frame_heightmaps(frame, self.config.workspace, cam.depth_range)
+
+    def perceive_now(self) -> Heightmaps:
+        """A fresh capture and its heightmaps, outside any cycle (for snapshots); keeps the cycle's state."""
+        return self.perceive(_Timer({}, None))
+
+    def _reset_scene(self, timer: _Timer) -> None:
+        with timer.phase("execute"):
+            self.cell.reset_scene()
+        self.forget_state()
+
+    def _run_checked(self, plan: Any, what: str) -> ExecutionResult:
+        """Check and run a follow-up plan (release, home); a refusal here is a cell fault."""
+        try:
+            checked = check_plan(plan, self.config)
+        except PlanRefused as exc:
+            raise CellFault(f"{what} plan refused by the safety envelope: {exc}") from exc
+        return self.cell.execute(checked)
+
+    def _empty(self, hm: Heightmaps) -> bool:
+        hint = self.cell.workspace_empty_hint()
+        if hint is True:
+            return True
+        return not bool(grasp_mask(hm.height, self.config.rewards).any())
+
+    def _commit(self, record: CycleRecord, transition: Any, timer: _Timer) -> None:
+        t0 = time.perf_counter()
+        if self.store is not None:
+            record.transition_id = self.store.commit_cycle(record.row(), transition)
+        if transition is not None and self.replay is not None:
+            self.replay.add(transition)
+            if self.learner is not None:
+                self.learner.notify_new_transition()
+        record.timings["store"] = time.perf_counter() - t0
+        if self.store is not None:
+            self.store.note_store_time(record.step, record.timings["store"])
+        if timer.on_phase is not None:
+            timer.on_phase("store")
+
+    # ------------------------------------------------------------------ the cycle
+    def run_once(self) -> CycleRecord:
+        """One cycle.  Raises CellFault (after logging the action) and store errors."""
+        t_start = time.perf_counter()
+        timings: dict[str, float] = {}
+        timer = _Timer(timings, self.on_phase)
+        record = CycleRecord(outcome="empty", time=time.time(), backend=self.backend, timings=timings)
+
+        def finish() -> CycleRecord:
+            record.duration = time.perf_counter() - t_start
+            return record
+
+        if self.current is None:
+            self.current = self.perceive(timer)
+        state = self.current
+        self.last_heightmaps = state
+
+        with timer.phase("decide"):
+            if hasattr(self.agent, "maybe_swap_weights"):
+                self.agent.maybe_swap_weights()
+            decision = self.agent.decide(state, self.step)
+        if decision is None:
+            self._reset_scene(timer)
+            return finish()
+        self.last_decision = decision
+        action: Action = decision.action
+        record.step = self.step
+        record.action = action
+        record.rule = str(getattr(decision, "rule", "") or "")
+        record.epsilon = _float_or_none(getattr(decision, "epsilon", None))
+        record.q_value = _float_or_none(getattr(decision, "q_value", None))
+        self.step += 1
+
+        with timer.phase("plan"):
+            plan = plan_action(action, state.height, self.config)
+            record.kind = plan.primitive
+            try:
+                checked = check_plan(plan, self.config)
+            except PlanRefused as exc:
+                checked = None
+                record.refused = str(exc)
+        if checked is None:
+            record.outcome = "refused"
+            record.reward = 0.0
+            if action.primitive == "grasp":
+                record.success = False
+            self.agent.record_outcome(action, False if action.primitive == "grasp" else None)
+            self._commit(finish(), _make_transition(state, action, 0.0, state, False), timer)
+            return finish()
+
+        try:
+            with timer.phase("execute"):
+                result = self.cell.execute(checked)
+                held = False
+                width = math.nan
+                if action.primitive == "grasp" and result.completed:
+                    width = float(result.widths[-1]) if result.widths else math.nan
+                    held = grasp_reward(width, self.config.gripper) > 0
+                if result.completed or UNSTABLE_MARK not in result.failure.lower():
+                    if action.primitive == "grasp":
+                        released = self._run_checked(plan_release(held, self.config), "release")
+                        if not released.completed:
+                            raise CellFault(f"could not release after the grasp: {released.failure}")
+                    if not result.completed:
+                        home = self._run_checked(plan_home(self.config), "home")
+                        if not home.completed:
+                            raise CellFault(f"could not return home after a failed {record.kind}: "
+                                            f"{home.failure}")
+        except CellFault as exc:
+            record.outcome = "fault"
+            record.failure = str(exc)
+            self.forget_state()
+            if self.store is not None:
+                try:
+                    self.store.commit_cycle(finish().row(), None)
+                except Exception:  # the fault is what matters; the log row is best effort
+                    pass
+            raise
+
+        if not result.completed and UNSTABLE_MARK in result.failure.lower():
+            record.outcome = "discarded"
+            record.failure = result.failure
+            self._reset_scene(timer)
+            self._commit(finish(), None, timer)
+            return finish()
+
+        after = self.perceive(timer)
+        with timer.phase("judge"):
+            if action.primitive == "grasp":
+                record.success = held
+                record.reward = 1.0 if held else 0.0
+            else:
+                judgement = judge_move(state.height, after.height, self.config.rewards)
+                record.reward, record.mu, record.eta = judgement.reward, judgement.mu, judgement.eta
+            if not result.completed:
+                record.failure = result.failure
+            record.done = self._empty(after)
+            self.agent.record_outcome(action, record.success if action.primitive == "grasp" else None)
+        record.outcome = "executed"
+        transition = _make_transition(state, action, float(record.reward),
+                                      None if record.done else after, record.done)
+        self._commit(finish(), transition, timer)
+        if record.done:
+            self._reset_scene(timer)
+        else:
+            self.current = after
+        return finish()
+
+
+def _float_or_none(v: Any) -> float | None:
+    if v is None:
+        return None
+    try:
+        f = float(np.asarray(v))
+    except (TypeError, ValueError):
+        return None
+    return f if math.isfinite(f) else None

@@ -1,0 +1,573 @@
+"""The daemon's orchestration: cell, agent, learner, store and state machine around the one cycle.
+
+Threads: the run loop (the caller's thread, normally the main thread) is the
+only one that touches the cell, so commands that need the cell (reset,
+backend, a first snapshot) are queued to it and executed between cycles.  The
+learner trains in its own thread and posts weights to the agent's mailbox; a
+decision never waits for it.  Control connections have their own threads and
+only read state, validate input and queue work.
+"""
+
+from __future__ import annotations
+
+import base64
+import concurrent.futures
+import dataclasses
+import datetime as _dt
+import fcntl
+import logging
+import os
+import queue
+import threading
+import time
+from pathlib import Path
+from typing import Any, Callable
+
+from flgd.cell import Cell, CellFault, make_cell
+from flgd.config import CellConfig
+from flgd.cycle import CycleRecord, CycleRunner
+from flgd.daemon.metrics import compute_stats, status_summary
+from flgd.daemon.notify import Notifier
+from flgd.daemon.protocol import ProtocolError, Request
+from flgd.daemon.state import IllegalTransition, State, StateChange, StateMachine
+from flgd.plans import plan_home
+from flgd.safety import PlanRefused, check_plan
+from flgd.store import CheckpointDir, Store, StoreError
+
+__all__ = ["Controller", "StartupError"]
+
+log = logging.getLogger("flgd")
+
+COMMAND_TIMEOUT = 120.0  # seconds a control request waits for the run loop
+ACCEPTING_COMMANDS = frozenset({State.IDLE, State.RUNNING, State.PAUSED, State.FAULT})
+
+
+class StartupError(RuntimeError):
+    """The daemon cannot start (bad policy, cell does not connect, state dir locked ...)."""
+
+
+def _fmt_pct(v: float | None) -> str:
+    return "-" if v is None else f"{100 * v:.0f}%"
+
+
+class Controller:
+    """Owns everything the daemon runs; ``setup`` then ``run_loop``; ``handle`` serves requests."""
+
+    def __init__(self, config: CellConfig, *, policy_path: str | None = None, autostart: bool = False,
+                 notifier: Notifier | None = None, checkpoint_keep: int = 3):
+        self.config = config
+        self.policy_arg = policy_path if policy_path is not None else (config.policy or None)
+        self.autostart = autostart
+        self.notifier = notifier or Notifier({})
+        self.state = StateMachine(State.IDLE)
+        self.state.add_listener(self._on_state_change)
+        self.state_dir = Path(config.state_dir)
+        self.checkpoints = CheckpointDir(self.state_dir / "checkpoints", keep=checkpoint_keep)
+        self.store: Store | None = None
+        self.store_problem = ""
+        self.cell: Cell | None = None
+        self.backend = config.backend
+        self.agent: Any = None
+        self.learner: Any = None
+        self.replay: Any = None
+        self.runner: CycleRunner | None = None
+        self.policy_source = ""
+        self.resumed_from_updates = 0
+        self.last_checkpoint: str = ""
+        self.last_record: CycleRecord | None = None
+        self.cycle_in_flight = False
+        self._learning_problem = ""
+        self._inbox: "queue.Queue[tuple[Callable[[], dict], concurrent.futures.Future]]" = queue.Queue()
+        self._wake = threading.Event()
+        self._lock_fd: int | None = None
+        self._started = time.time()
+
+    # ================================================================== setup
+    def setup(self) -> None:
+        """Store, policy, learning stack, cell.  Raises StartupError for what an operator must fix."""
+        self._take_state_dir_lock()
+        self._open_store()
+        network = self._initial_network()
+        self._build_learning(network)
+        try:
+            self.cell = make_cell(self.config)
+        except CellFault as exc:
+            raise StartupError(f"cell {self.backend!r} failed to connect: {exc}") from exc
+        except (ValueError, ImportError, OSError, RuntimeError) as exc:
+            raise StartupError(f"cell {self.backend!r} cannot be created: {exc}") from exc
+        self.runner = CycleRunner(self.config, self.cell, self.agent, store=self.store, replay=self.replay,
+                                  learner=self.learner, step=self._next_step(), backend=self.backend,
+                                  on_phase=lambda _phase: self.notifier.watchdog())
+        self.learner.start()
+        if self.store_problem:
+            self.state.transition(State.FAULT, self.store_problem)
+
+    def _take_state_dir_lock(self) -> None:
+        try:
+            self.state_dir.mkdir(parents=True, exist_ok=True)
+            fd = os.open(self.state_dir / "flgd.lock", os.O_RDWR | os.O_CREAT, 0o640)
+        except OSError as exc:
+            log.warning("cannot create the lock file in %s: %s", self.state_dir, exc)
+            return  # the store will report the same problem as a FAULT
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            os.close(fd)
+            raise StartupError(f"another flgd is using the state directory {self.state_dir}") from None
+        self._lock_fd = fd
+
+    def _open_store(self) -> bool:
+        try:
+            self.store = Store(self.state_dir)
+            self.store_problem = ""
+            return True
+        except StoreError as exc:
+            self.store = None
+            self.store_problem = str(exc)
+            log.error("%s", exc)
+            return False
+
+    def _next_step(self) -> int:
+        return self.store.next_step() if self.store is not None else 0
+
+    def _initial_network(self) -> Any:
+        """Resume from the newest readable checkpoint; else the given policy; else a fresh network."""
+        from flgd.learning.networks import build_network
+        from flgd.learning.policy_file import PolicyFileError, load_policy
+
+        variant = self.config.learning.network
+        for path in self.checkpoints.checkpoints():
+            try:
+                loaded = load_policy(path, expected_variant=variant)
+            except PolicyFileError as exc:
+                log.warning("skipping unreadable checkpoint: %s", exc)
+                continue
+            self.resumed_from_updates = CheckpointDir.updates_of(path)
+            self.policy_source = f"checkpoint {path}"
+            self.last_checkpoint = str(path)
+            log.info("resuming from %s (%d learner updates)", path, self.resumed_from_updates)
+            return loaded.network
+        if self.policy_arg:
+            try:
+                loaded = load_policy(self.policy_arg, expected_variant=variant)
+            except PolicyFileError as exc:
+                raise StartupError(str(exc)) from exc
+            self.policy_source = f"policy {self.policy_arg}"
+            return loaded.network
+        self.policy_source = f"fresh {variant} network (seed {self.config.learning.seed})"
+        return build_network(variant, rotations=self.config.learning.rotations, seed=self.config.learning.seed)
+
+    def _build_learning(self, network: Any) -> None:
+        from flgd.learning.agent import Agent
+        from flgd.learning.learner import Learner
+        from flgd.learning.replay import PrioritizedReplay, Transition
+
+        lc = self.config.learning
+        self.replay = PrioritizedReplay.from_config(lc)
+        if self.store is not None:
+            try:
+                for st in self.store.iter_transitions(limit=lc.replay_capacity):
+                    self.replay.add(Transition(st.state, st.action, st.reward, st.next_state, st.done),
+                                    st.priority)
+            except StoreError as exc:
+                self.store_problem = str(exc)
+        log.info("replay rebuilt with %d transitions", len(self.replay))
+        self.agent = Agent(self.config, network, seed=lc.seed)
+        self.learner = Learner(self.config, network, self.replay, mailbox=self.agent.mailbox,
+                               checkpoint_callback=self._write_checkpoint)
+        self.learner.updates = self.resumed_from_updates
+
+    # ================================================================== checkpoints
+    def _write_checkpoint(self, network: Any, updates: int) -> None:
+        """Learner thread: write a checkpoint; a storage failure puts the daemon in FAULT."""
+        from flgd.learning.policy_file import save_policy
+
+        step = self.runner.step if self.runner is not None else 0
+        meta = {"training_steps": int(step), "cell": self.config.name or self.backend,
+                "learner_updates": int(updates), "source": self.policy_source}
+        try:
+            path = self.checkpoints.write(lambda p: save_policy(p, network, meta), updates)
+            if self.store is not None:
+                self.store.set_counter("learner_updates", updates)
+        except (StoreError, OSError) as exc:
+            self._learning_problem = f"checkpoint failed: {exc}"
+            self._wake.set()
+            raise
+        self.last_checkpoint = str(path)
+        log.info("checkpoint %s", path)
+
+    # ================================================================== the run loop
+    def run_loop(self, stop_requested: Callable[[], bool] = lambda: False) -> None:
+        """Run until STOPPING; cycles while RUNNING, commands between cycles."""
+        self.notifier.ready(self.status_text())
+        if self.autostart and self.state.state is State.IDLE:
+            self.state.transition(State.RUNNING, "--autostart")
+        while True:
+            self.notifier.watchdog()
+            if stop_requested() and self.state.state is not State.STOPPING:
+                self.request_stop("signal")
+            self._drain_inbox()
+            if self._learning_problem and self.state.state in (State.RUNNING, State.IDLE, State.PAUSED):
+                self._fault(self._learning_problem)
+                self._learning_problem = ""
+            st = self.state.state
+            if st is State.STOPPING:
+                return
+            if st is State.RUNNING:
+                self._one_cycle()
+            else:
+                self._wake.wait(0.5)
+                self._wake.clear()
+
+    def _one_cycle(self) -> None:
+        assert self.runner is not None
+        self.cycle_in_flight = True
+        try:
+            record = self.runner.run_once()
+        except CellFault as exc:
+            self._fault(f"cell fault: {exc}")
+            return
+        except StoreError as exc:
+            self._fault(str(exc))
+            return
+        except Exception as exc:  # a bug must stop the arm, not kill the service
+            log.exception("cycle failed")
+            self._fault(f"internal error in the cycle: {type(exc).__name__}: {exc}")
+            return
+        finally:
+            self.cycle_in_flight = False
+        self.last_record = record
+        if record.outcome == "empty":
+            self._event("scene", "workspace empty: new scene")
+        elif record.outcome == "discarded":
+            self._event("discarded", f"step {record.step}: {record.failure}")
+        self.notifier.status(self.status_text())
+
+    def _fault(self, cause: str) -> None:
+        try:
+            self.state.transition(State.FAULT, cause)
+        except IllegalTransition:
+            return
+        self._event("fault", cause)
+
+    def _event(self, kind: str, message: str) -> None:
+        if self.store is None:
+            return
+        try:
+            self.store.record_event(kind, message)
+        except StoreError as exc:
+            log.error("cannot record event %s (%s): %s", kind, message, exc)
+            if kind != "fault" and self.state.state is not State.STOPPING:
+                self._fault(str(exc))
+
+    def _drain_inbox(self) -> None:
+        while True:
+            try:
+                fn, fut = self._inbox.get_nowait()
+            except queue.Empty:
+                return
+            if not fut.set_running_or_notify_cancel():
+                continue
+            try:
+                fut.set_result(fn())
+            except BaseException as exc:
+                fut.set_exception(exc)
+
+    def _in_loop(self, fn: Callable[[], dict], timeout: float = COMMAND_TIMEOUT) -> dict:
+        fut: concurrent.futures.Future = concurrent.futures.Future()
+        self._inbox.put((fn, fut))
+        self._wake.set()
+        try:
+            return fut.result(timeout)
+        except concurrent.futures.TimeoutError:
+            if fut.cancel():
+                raise ProtocolError("busy", f"the run loop did not take the command within {timeout:.0f} s")
+            return fut.result()
+
+    def request_stop(self, cause: str) -> None:
+        try:
+            self.state.transition(State.STOPPING, cause)
+        except IllegalTransition:
+            return
+        self._wake.set()
+
+    def _on_state_change(self, change: StateChange) -> None:
+        if change.new is State.STOPPING:
+            self.notifier.stopping(f"stopping: {change.cause}")
+        else:
+            self.notifier.status(self.status_text())
+        if change.new is not State.FAULT:  # faults are recorded with their own kind
+            if self.store is not None:
+                try:
+                    self.store.record_event("state", f"{change.old.value} -> {change.new.value}: {change.cause}")
+                except StoreError as exc:
+                    log.error("cannot record the state change: %s", exc)
+
+    # ================================================================== shutdown
+    def shutdown(self) -> None:
+        """After the loop: stop learning, save a final checkpoint, flush the store, release the cell."""
+        if self.learner is not None:
+            self.learner.stop(timeout=30.0)
+            last = CheckpointDir.updates_of(Path(self.last_checkpoint)) if self.last_checkpoint else -1
+            if self.learner.updates > last and self.learner.updates > 0 and self.store is not None:
+                try:
+                    self._write_checkpoint(self.learner.snapshot(), self.learner.updates)
+                except Exception as exc:
+                    log.error("final checkpoint failed: %s", exc)
+        if self.store is not None:
+            try:
+                self.store.query("PRAGMA wal_checkpoint(TRUNCATE)")
+            except StoreError as exc:
+                log.error("store flush failed: %s", exc)
+            self.store.close()
+        if self.cell is not None:
+            try:
+                self.cell.close()
+            except Exception as exc:
+                log.error("closing the cell failed: %s", exc)
+        if self._lock_fd is not None:
+            os.close(self._lock_fd)
+            self._lock_fd = None
+
+    # ================================================================== status
+    def summary(self) -> dict[str, Any]:
+        if self.store is None:
+            return {"cycles": 0, "grasp_success_last_50": None, "picks_per_hour": None}
+        try:
+            return status_summary(self.store)
+        except StoreError:
+            return {"cycles": None, "grasp_success_last_50": None, "picks_per_hour": None}
+
+    def status_text(self) -> str:
+        s = self.summary()
+        pph = "-" if s["picks_per_hour"] is None else f"{s['picks_per_hour']:.0f}"
+        text = (f"{self.state.state.value} | cycles {s['cycles']} | grasp success {_fmt_pct(s['grasp_success_last_50'])}"
+                f" (last 50) | picks/h {pph}")
+        if self.state.state is State.FAULT:
+            text += f" | {self.state.cause}"
+        return text
+
+    def status(self) -> dict[str, Any]:
+        rec = self.last_record
+        last = None
+        if rec is not None:
+            last = {"step": rec.step, "outcome": rec.outcome, "primitive": rec.primitive, "kind": rec.kind,
+                    "reward": rec.reward, "success": rec.success, "rule": rec.rule, "refused": rec.refused,
+                    "failure": rec.failure, "duration": rec.duration}
+        stored = None
+        if self.store is not None:
+            try:
+                stored = self.store.transition_count()
+            except StoreError:
+                stored = None
+        lr = self.learner
+        return {
+            "state": self.state.state.value,
+            "cause": self.state.cause,
+            "since": self.state.since,
+            "pid": os.getpid(),
+            "uptime": time.time() - self._started,
+            "backend": self.backend,
+            "config": self.config.source,
+            "state_dir": str(self.state_dir),
+            "policy": self.policy_source,
+            "step": self.runner.step if self.runner is not None else None,
+            "cycle_in_flight": self.cycle_in_flight,
+            "replay_size": len(self.replay) if self.replay is not None else 0,
+            "stored_transitions": stored,
+            "learner_updates": lr.updates if lr is not None else 0,
+            "learner_running": bool(lr is not None and lr.running),
+            "learner_error": getattr(lr, "last_error", None) if lr is not None else None,
+            "resumed_from_updates": self.resumed_from_updates,
+            "last_checkpoint": self.last_checkpoint,
+            "store_problem": self.store_problem,
+            "last_cycle": last,
+            **{k: v for k, v in self.summary().items()},
+        }
+
+    # ================================================================== commands
+    def handle(self, req: Request) -> dict:
+        """Serve one validated request (control thread); raise ProtocolError for error replies."""
+        st = self.state.state
+        if req.cmd == "ping":
+            return {"pong": True, "pid": os.getpid()}
+        if req.cmd == "status":
+            return self.status()
+        if req.cmd == "stats":
+            if self.store is None:
+                raise ProtocolError("failed", f"no statistics: {self.store_problem}")
+            try:
+                return compute_stats(self.store)
+            except StoreError as exc:
+                raise ProtocolError("failed", str(exc)) from None
+        if st not in ACCEPTING_COMMANDS:
+            raise ProtocolError("wrong_state", f"{req.cmd}: the daemon is {st.value}")
+        if req.cmd == "start":
+            return self._change(State.RUNNING, "start by operator", {State.IDLE, State.PAUSED}, req.cmd)
+        if req.cmd == "pause":
+            return self._change(State.PAUSED, "pause by operator", {State.RUNNING}, req.cmd)
+        if req.cmd == "stop":
+            self.request_stop("stop by operator")
+            return {"stopping": True}
+        if req.cmd == "reset":
+            if st not in (State.IDLE, State.PAUSED, State.FAULT):
+                raise ProtocolError("wrong_state", f"reset: not allowed while {st.value}; pause first")
+            return self._in_loop(self._reset)
+        if req.cmd == "policy_load":
+            return self._policy_load(req.args["path"])
+        if req.cmd == "policy_save":
+            return self._policy_save(req.args.get("path"))
+        if req.cmd == "backend":
+            return self._in_loop(lambda: self._swap_backend(req.args["name"]))
+        if req.cmd == "snapshot":
+            return self._snapshot()
+        raise ProtocolError("unknown_command", f"unknown command {req.cmd!r}")
+
+    def _change(self, new: State, cause: str, allowed: set[State], cmd: str) -> dict:
+        try:
+            self.state.transition(new, cause, allowed_from=frozenset(allowed))
+        except IllegalTransition:
+            names = ", ".join(sorted(s.value for s in allowed))
+            hint = " (reset first)" if self.state.state is State.FAULT else ""
+            raise ProtocolError("wrong_state", f"{cmd}: not allowed while {self.state.state.value}; "
+                                               f"allowed in {names}{hint}") from None
+        self._wake.set()
+        return {"state": new.value}
+
+    def _reset(self) -> dict:
+        """Run loop: clear a fault, home the arm, new scene."""
+        st = self.state.state
+        if st not in (State.IDLE, State.PAUSED, State.FAULT):
+            raise ProtocolError("wrong_state", f"reset: not allowed while {st.value}")
+        assert self.runner is not None and self.cell is not None
+        if self.store is None:
+            if not self._open_store():
+                self._fault(self.store_problem)
+                raise ProtocolError("failed", f"reset: {self.store_problem}")
+            self.learner.stop(timeout=30.0)
+            self._build_learning(self.agent.network)
+            self.runner.store, self.runner.replay, self.runner.learner = self.store, self.replay, self.learner
+            self.runner.agent = self.agent
+            self.runner.step = self._next_step()
+            self.learner.start()
+        try:
+            self.store.record_event("reset", f"reset requested in {st.value}")
+        except StoreError as exc:
+            self._fault(str(exc))
+            raise ProtocolError("failed", f"reset: the store is still unusable: {exc}") from None
+        try:
+            self.cell.recover()
+            result = self.cell.execute(check_plan(plan_home(self.config), self.config))
+            if not result.completed:
+                raise CellFault(f"homing did not complete: {result.failure}")
+            self.cell.reset_scene()
+        except (CellFault, PlanRefused) as exc:
+            self._fault(f"reset failed: {exc}")
+            raise ProtocolError("failed", f"reset failed, still FAULT: {exc}") from None
+        self.runner.forget_state()
+        self.agent.reset_episode()
+        self.state.transition(State.IDLE, f"reset by operator (was {st.value})")
+        return {"state": State.IDLE.value}
+
+    def _policy_load(self, path: str) -> dict:
+        from flgd.learning.policy_file import PolicyFileError, load_policy
+
+        if not os.path.isabs(path):
+            raise ProtocolError("bad_request", f"policy_load: path must be absolute, got {path!r}")
+        try:
+            loaded = load_policy(path, expected_variant=self.config.learning.network)
+        except PolicyFileError as exc:
+            raise ProtocolError("failed", f"policy not loaded, the running policy stays: {exc}") from None
+        try:
+            self.learner.load_weights(loaded.network)
+        except (RuntimeError, ValueError) as exc:
+            raise ProtocolError("failed", f"policy not loaded, the running policy stays: {path}: "
+                                          f"weights do not fit the running network: {exc}") from None
+        self.policy_source = f"policy {path} (loaded at step {self.runner.step if self.runner else 0})"
+        self._event("policy", f"loaded {path}")
+        return {"loaded": path, "metadata": {k: v for k, v in loaded.metadata.items()
+                                             if isinstance(v, (str, int, float, bool, type(None)))}}
+
+    def _policy_save(self, path: str | None) -> dict:
+        from flgd.learning.policy_file import PolicyFileError, save_policy
+
+        if path is None:
+            stamp = _dt.datetime.now(_dt.timezone.utc).strftime("%Y%m%dT%H%M%SZ")
+            path = str(self.state_dir / "policies" / f"policy-{stamp}-u{self.learner.updates}.safetensors")
+        elif not os.path.isabs(path):
+            raise ProtocolError("bad_request", f"policy_save: path must be absolute, got {path!r}")
+        stats = self.summary()
+        meta = {"training_steps": int(self.runner.step if self.runner else 0),
+                "cell": self.config.name or self.backend,
+                "rolling_success": stats.get("grasp_success_last_50"),
+                "learner_updates": int(self.learner.updates), "source": self.policy_source}
+        try:
+            save_policy(path, self.learner.snapshot(), meta)
+        except (PolicyFileError, OSError) as exc:
+            raise ProtocolError("failed", f"policy not saved to {path}: {exc}") from None
+        self._event("policy", f"saved {path}")
+        return {"saved": path, "learner_updates": int(self.learner.updates)}
+
+    def _swap_backend(self, name: str) -> dict:
+        """Run loop: connect the new cell first; keep the old one if that fails."""
+        assert self.runner is not None
+        try:
+            new = make_cell(self.config, backend=name)
+        except Exception as exc:
+            raise ProtocolError("failed", f"backend {name!r} did not connect; still on {self.backend!r}: "
+                                          f"{type(exc).__name__}: {exc}") from None
+        old, old_name = self.cell, self.backend
+        self.cell, self.backend = new, name
+        self.runner.cell, self.runner.backend = new, name
+        self.runner.forget_state()
+        self.agent.reset_episode()
+        if old is not None:
+            try:
+                old.close()
+            except Exception as exc:
+                log.error("closing the %s cell failed: %s", old_name, exc)
+        self._event("backend", f"{old_name} -> {name}")
+        return {"backend": name, "previous": old_name}
+
+    def _snapshot(self) -> dict:
+        from flgd.visualize import encode_png, qmap_picture
+
+        runner = self.runner
+        assert runner is not None
+        decision, hm = runner.last_decision, runner.last_heightmaps
+        note = "last decision"
+        if decision is None:
+            if self.state.state is State.FAULT:
+                raise ProtocolError("failed", "snapshot: no decision yet and the cell is in FAULT")
+            return self._in_loop(self._fresh_snapshot)
+        image = qmap_picture(hm.color, hm.height, decision.q_maps, decision.grasp_mask, decision.move_mask,
+                             decision.action, caption=f"{note}: step {self._decision_step()} rule {decision.rule}")
+        return {"png_base64": base64.b64encode(encode_png(image)).decode("ascii"), "source": note,
+                "action": dataclasses.asdict(decision.action), "q_value": decision.q_value}
+
+    def _decision_step(self) -> int | None:
+        rec = self.last_record
+        return rec.step if rec is not None else None
+
+    def _fresh_snapshot(self) -> dict:
+        """Run loop: capture and evaluate the network without acting (no decision state changes)."""
+        from flgd.visualize import encode_png, greedy_action, qmap_picture
+
+        assert self.runner is not None
+        try:
+            hm = self.runner.perceive_now()
+        except CellFault as exc:
+            self._fault(f"cell fault during snapshot capture: {exc}")
+            raise ProtocolError("failed", f"snapshot: capture failed: {exc}") from None
+        self.agent.maybe_swap_weights()
+        q = self.agent.q_maps(hm)
+        gmask, mmask = self.agent.masks(hm.height)
+        action = None
+        if gmask.any():
+            action = greedy_action(q, gmask, mmask, hm.height, self.config.rewards.shift_height)
+        note = "fresh capture, greedy action (not executed)"
+        image = qmap_picture(hm.color, hm.height, q, gmask, mmask, action, caption=note)
+        return {"png_base64": base64.b64encode(encode_png(image)).decode("ascii"), "source": note,
+                "action": None if action is None else dataclasses.asdict(action),
+                "q_value": None if action is None else float(q[action.rotation, action.channel, action.row,
+                                                               action.col])}

@@ -1,0 +1,114 @@
+"""The numbers of ``flgctl stats``, computed from the action log so they always agree with it.
+
+Definitions (VPG's where they exist):
+  * cycles: rows of the action log (one per decided action, whatever its outcome).
+  * grasp attempts / successes: executed grasps / those that held an object.
+  * rolling grasp success: successes over the last 50 and last 200 grasp attempts.
+  * picks per hour: grasp successes per hour of cycle time (the summed wall time
+    of all cycles, so pauses and idle time do not count).
+  * action efficiency: grasp successes / executed actions (objects per action).
+  * moves by kind: executed pushes and shifts.
+  * plans refused: decisions the safety envelope refused (never sent to the cell).
+  * faults: fault events recorded by the daemon.
+  * timing: medians over the last ``TIMING_WINDOW`` cycles of each phase, the
+    whole cycle, and the controller's own time (cycle minus execution).
+"""
+
+from __future__ import annotations
+
+import statistics
+from typing import Any
+
+from flgd.store import TIMING_PHASES, Store
+
+__all__ = ["compute_stats", "status_summary", "TIMING_WINDOW", "format_stats"]
+
+TIMING_WINDOW = 200
+
+
+def _rate(rows: list[tuple]) -> float | None:
+    return (sum(1 for (s,) in rows if s) / len(rows)) if rows else None
+
+
+def compute_stats(store: Store) -> dict[str, Any]:
+    q = store.query
+    cycles = q("SELECT COUNT(*) FROM actions")[0][0]
+    by_outcome = dict(q("SELECT outcome, COUNT(*) FROM actions GROUP BY outcome"))
+    executed = by_outcome.get("executed", 0)
+    attempts, successes = q("SELECT COUNT(*), COALESCE(SUM(success), 0) FROM actions "
+                            "WHERE outcome='executed' AND primitive='grasp'")[0]
+    window = {}
+    for n in (50, 200):
+        rows = q("SELECT success FROM actions WHERE outcome='executed' AND primitive='grasp' "
+                 "ORDER BY step DESC LIMIT ?", (n,))
+        window[f"grasp_success_last_{n}"] = _rate(rows)
+    moves = dict(q("SELECT kind, COUNT(*) FROM actions WHERE outcome='executed' AND primitive!='grasp' "
+                   "GROUP BY kind"))
+    cycle_time = q("SELECT COALESCE(SUM(duration), 0) FROM actions")[0][0]
+    faults = q("SELECT COUNT(*) FROM events WHERE kind='fault'")[0][0]
+    cols = ", ".join(f"t_{p}" for p in TIMING_PHASES)
+    recent = q(f"SELECT {cols}, duration FROM actions ORDER BY step DESC LIMIT ?", (TIMING_WINDOW,))
+    timing: dict[str, float | None] = {}
+    for i, phase in enumerate((*TIMING_PHASES, "cycle")):
+        vals = [r[i] for r in recent if r[i] is not None]
+        timing[phase] = statistics.median(vals) if vals else None
+    i_exec, i_store = TIMING_PHASES.index("execute"), TIMING_PHASES.index("store")
+    overhead = [r[-1] + (r[i_store] or 0.0) - (r[i_exec] or 0.0) for r in recent if r[-1] is not None]
+    timing["controller"] = statistics.median(overhead) if overhead else None
+    return {
+        "cycles": cycles,
+        "outcomes": by_outcome,
+        "actions_executed": executed,
+        "grasp_attempts": attempts,
+        "grasp_successes": successes,
+        "grasp_success": (successes / attempts) if attempts else None,
+        **window,
+        "picks_per_hour": (successes * 3600.0 / cycle_time) if cycle_time > 0 else None,
+        "action_efficiency": (successes / executed) if executed else None,
+        "moves": {"push": moves.get("push", 0), "shift": moves.get("shift", 0)},
+        "plans_refused": by_outcome.get("refused", 0),
+        "faults": faults,
+        "cycle_time_total": cycle_time,
+        "timing_median": timing,
+        "timing_window": min(len(recent), TIMING_WINDOW),
+    }
+
+
+def status_summary(store: Store) -> dict[str, Any]:
+    """The cheap subset for the live status line and STATUS= notifications."""
+    q = store.query
+    cycles = q("SELECT COUNT(*) FROM actions")[0][0]
+    rows = q("SELECT success FROM actions WHERE outcome='executed' AND primitive='grasp' "
+             "ORDER BY step DESC LIMIT 50")
+    successes, cycle_time = q("SELECT COALESCE(SUM(success), 0), COALESCE(SUM(duration), 0) FROM actions")[0]
+    return {"cycles": cycles, "grasp_success_last_50": _rate(rows),
+            "picks_per_hour": (successes * 3600.0 / cycle_time) if cycle_time > 0 else None}
+
+
+def _pct(v: float | None) -> str:
+    return "-" if v is None else f"{100.0 * v:.1f}%"
+
+
+def _num(v: float | None, fmt: str = "{:.1f}") -> str:
+    return "-" if v is None else fmt.format(v)
+
+
+def format_stats(s: dict[str, Any]) -> str:
+    """Human-readable ``flgctl stats``."""
+    t = s["timing_median"]
+    lines = [
+        f"cycles               {s['cycles']}  (executed {s['actions_executed']}, refused {s['plans_refused']}, "
+        f"other {s['cycles'] - s['actions_executed'] - s['plans_refused']})",
+        f"grasps               {s['grasp_successes']} / {s['grasp_attempts']} succeeded ({_pct(s['grasp_success'])})",
+        f"rolling success      last 50: {_pct(s['grasp_success_last_50'])}   last 200: "
+        f"{_pct(s['grasp_success_last_200'])}",
+        f"picks per hour       {_num(s['picks_per_hour'])}",
+        f"action efficiency    {_pct(s['action_efficiency'])}",
+        f"moves                push {s['moves']['push']}, shift {s['moves']['shift']}",
+        f"plans refused        {s['plans_refused']}",
+        f"faults               {s['faults']}",
+        f"cycle time (median of last {s['timing_window']}):",
+    ]
+    for phase in (*TIMING_PHASES, "cycle", "controller"):
+        lines.append(f"  {phase:<10} {_num(t.get(phase), '{:.3f}')} s")
+    return "\n".join(lines)
