@@ -109,6 +109,13 @@ class CameraConfig:
                                                                rpy=(math.pi, 0.0, -math.pi / 2)))
     fps: int = param(30, unit="Hz", gt=0)
     frame_timeout: float = param(2.0, unit="s", gt=0.0)
+    depth_scale_correction: float = param(1.0, ge=0.9, le=1.1,
+                                          help="real cell: multiplies the device's depth scale; "
+                                               "measured by `flgd calibrate`")
+    spatial_filter: bool = param(False, help="real cell: librealsense edge-preserving spatial depth filter")
+    temporal_filter: bool = param(False, help="real cell: librealsense temporal filter over a few "
+                                              "consecutive frames per capture")
+    hole_filling: bool = param(False, help="real cell: librealsense hole filling of missing depth")
 
 
 @dataclass(frozen=True)

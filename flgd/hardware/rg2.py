@@ -1,0 +1,209 @@
+"""OnRobot RG2 gripper drivers: the URCap's XML-RPC service, or a tool digital output.
+
+The measured finger width decides grasp success (FLG's grasp reward), so a
+driver says whether it can measure it (``measures_width``).
+
+XML-RPC (``gripper.driver: rg2_xmlrpc``).  The OnRobot URCap runs an XML-RPC
+server on the robot controller, port 41414 (``gripper.xmlrpc_port``).  The
+functions used here, as published OnRobot/URCap client code calls them:
+  * ``rg_grip(tool_index: int, width_mm: float, force_N: float)`` starts a
+    move (width 0..110 mm, force 0..40 N for the RG2);
+  * ``rg_get_busy(tool_index) -> bool`` is true while the fingers move;
+  * ``rg_get_width(tool_index) -> float`` is the finger opening in mm;
+  * ``rg_get_safety_failed(tool_index) -> bool`` reports a tripped safety switch;
+  * ``rg_stop(tool_index)`` halts the fingers.
+The tool index is 0 for a single gripper.  Every call has a timeout
+(``gripper.timeout``); slow replies, refused connections and XML-RPC faults
+become :class:`GripperFault` with the host, port and function named.
+
+Tool digital output (``gripper.driver: tool_digital_output``).  The RG2 is
+wired so that a tool output closes it (``gripper.digital_output``; the UR
+tool connector has outputs 0 and 1).  That wiring gives no width feedback:
+ur_rtde's receive interface exposes no tool analog input, so this driver
+*cannot* measure the width and grasp success needs another signal.
+``width()`` raises :class:`GripperWidthUnavailable`, and ``UR5eCell``
+refuses to run a learning cell with such a driver unless told otherwise.
+"""
+
+from __future__ import annotations
+
+import abc
+import http.client
+import math
+import socket
+import time
+import xmlrpc.client
+from typing import Any, Callable
+
+from flgd.cell import CellFault
+from flgd.config import CellConfig
+from flgd.safety import GRIPPER_STROKE
+
+__all__ = [
+    "GripperDriver",
+    "GripperFault",
+    "GripperWidthUnavailable",
+    "RG2XmlRpcDriver",
+    "ToolDigitalOutputDriver",
+    "make_gripper_driver",
+    "RG2_MAX_FORCE",
+]
+
+RG2_MAX_FORCE = 40.0       # N
+_BUSY_START_DELAY = 0.05   # s before the first busy poll: the URCap needs a moment to start the move
+_WIDTH_SANITY_MM = (-5.0, 120.0)
+
+
+class GripperFault(CellFault):
+    """The gripper did not do what it was told, or could not be reached."""
+
+
+class GripperWidthUnavailable(GripperFault):
+    """This driver has no way to measure the finger width."""
+
+
+class GripperDriver(abc.ABC):
+    """Open/close to a width with a force limit, and read the width."""
+
+    measures_width: bool = True
+
+    @abc.abstractmethod
+    def move(self, width: float, force: float) -> None:
+        """Move the fingers towards ``width`` (m) with at most ``force`` (N); return when they stopped."""
+
+    @abc.abstractmethod
+    def width(self) -> float:
+        """Current finger opening in metres."""
+
+    def stop(self) -> None:
+        """Halt the fingers (best effort, any thread)."""
+
+    def close(self) -> None:
+        """Release connections; safe to call twice."""
+
+
+def _check_command(width: float, force: float) -> None:
+    if not (math.isfinite(width) and 0.0 <= width <= GRIPPER_STROKE):
+        raise GripperFault(f"gripper width {width!r} m is outside [0, {GRIPPER_STROKE}] m")
+    if not (math.isfinite(force) and 0.0 < force <= RG2_MAX_FORCE):
+        raise GripperFault(f"gripper force {force!r} N is outside (0, {RG2_MAX_FORCE}] N")
+
+
+class _TimeoutTransport(xmlrpc.client.Transport):
+    """xmlrpc.client's transport with a socket timeout on connect and on every reply."""
+
+    def __init__(self, timeout: float):
+        super().__init__()
+        self._timeout = timeout
+
+    def make_connection(self, host: Any) -> http.client.HTTPConnection:
+        conn = super().make_connection(host)
+        conn.timeout = self._timeout
+        return conn
+
+
+class RG2XmlRpcDriver(GripperDriver):
+    """The RG2 through the OnRobot URCap's XML-RPC server on the controller."""
+
+    measures_width = True
+
+    def __init__(self, host: str, port: int = 41414, *, timeout: float = 5.0, tool_index: int = 0,
+                 clock: Callable[[], float] = time.monotonic, sleep: Callable[[float], None] = time.sleep,
+                 poll_interval: float = 0.02):
+        if not host:
+            raise GripperFault("robot.host is empty: the RG2 XML-RPC service runs on the UR controller")
+        self.host, self.port, self.timeout = host, int(port), float(timeout)
+        self.tool_index = int(tool_index)
+        self._clock, self._sleep, self._poll = clock, sleep, poll_interval
+        self._proxy = xmlrpc.client.ServerProxy(f"http://{host}:{self.port}/", transport=_TimeoutTransport(timeout),
+                                                allow_none=False)
+
+    def _rpc(self, function: str, *args: Any) -> Any:
+        where = f"RG2 XML-RPC {function} at {self.host}:{self.port}"
+        try:
+            return getattr(self._proxy, function)(self.tool_index, *args)
+        except (socket.timeout, TimeoutError) as exc:
+            raise GripperFault(f"{where}: no reply within {self.timeout} s (gripper.timeout)") from exc
+        except ConnectionRefusedError as exc:
+            raise GripperFault(f"{where}: connection refused (is the OnRobot URCap installed and running, "
+                               f"and gripper.xmlrpc_port right?)") from exc
+        except xmlrpc.client.Fault as exc:
+            raise GripperFault(f"{where}: fault {exc.faultCode}: {exc.faultString}") from exc
+        except xmlrpc.client.ProtocolError as exc:
+            raise GripperFault(f"{where}: HTTP {exc.errcode} {exc.errmsg}") from exc
+        except (OSError, http.client.HTTPException, xmlrpc.client.ResponseError) as exc:
+            raise GripperFault(f"{where}: {type(exc).__name__}: {exc}") from exc
+
+    def move(self, width: float, force: float) -> None:
+        _check_command(width, force)
+        self._rpc("rg_grip", float(width * 1000.0), float(force))
+        self._sleep(_BUSY_START_DELAY)
+        deadline = self._clock() + self.timeout
+        while self._rpc("rg_get_busy"):
+            if self._clock() > deadline:
+                self.stop()
+                raise GripperFault(f"RG2 at {self.host}:{self.port}: still moving {self.timeout} s after "
+                                   f"rg_grip({width * 1000:.1f} mm, {force:.0f} N)")
+            self._sleep(self._poll)
+        if self._rpc("rg_get_safety_failed"):
+            raise GripperFault(f"RG2 at {self.host}:{self.port}: safety switch tripped; power-cycle the tool "
+                               f"(rg_get_safety_failed is true)")
+
+    def width(self) -> float:
+        raw = self._rpc("rg_get_width")
+        if isinstance(raw, bool) or not isinstance(raw, (int, float)) or not math.isfinite(raw) \
+                or not _WIDTH_SANITY_MM[0] <= raw <= _WIDTH_SANITY_MM[1]:
+            raise GripperFault(f"RG2 at {self.host}:{self.port}: rg_get_width returned {raw!r}, expected a "
+                               f"width in mm within {list(_WIDTH_SANITY_MM)}")
+        return max(0.0, float(raw)) / 1000.0
+
+    def stop(self) -> None:
+        try:
+            self._rpc("rg_stop")
+        except GripperFault:
+            pass  # best effort: the caller is already handling a stop or fault
+
+    def close(self) -> None:
+        self._proxy("close")()
+
+
+class ToolDigitalOutputDriver(GripperDriver):
+    """Close = tool output high, open = low.  No width feedback (see the module docstring)."""
+
+    measures_width = False
+
+    def __init__(self, set_output: Callable[[int, bool], None], output: int, open_width: float,
+                 closed_width: float, *, settle_time: float = 1.0, sleep: Callable[[float], None] = time.sleep):
+        if output not in (0, 1):
+            raise GripperFault(f"gripper.digital_output: got {output!r}, expected 0 or 1 (the UR tool connector "
+                               f"has two digital outputs)")
+        self._set_output = set_output
+        self.output = output
+        self._threshold = (open_width + closed_width) / 2.0
+        self._settle = settle_time
+        self._sleep = sleep
+
+    def move(self, width: float, force: float) -> None:
+        _check_command(width, force)
+        # The force is set on the gripper itself in this wiring; only open/close can be commanded.
+        self._set_output(self.output, width < self._threshold)
+        self._sleep(self._settle)  # no busy signal: give the fingers their travel time
+
+    def width(self) -> float:
+        raise GripperWidthUnavailable(
+            "gripper.driver 'tool_digital_output' cannot measure the finger width (no feedback on this wiring), "
+            "so grasp success needs another signal; use gripper.driver 'rg2_xmlrpc' with the OnRobot URCap")
+
+
+def make_gripper_driver(config: CellConfig, set_tool_output: Callable[[int, bool], None], *,
+                        clock: Callable[[], float] = time.monotonic,
+                        sleep: Callable[[float], None] = time.sleep) -> GripperDriver:
+    """The driver named by ``gripper.driver``."""
+    gr = config.gripper
+    if gr.driver == "rg2_xmlrpc":
+        return RG2XmlRpcDriver(config.robot.host, gr.xmlrpc_port, timeout=gr.timeout, clock=clock, sleep=sleep)
+    if gr.driver == "tool_digital_output":
+        return ToolDigitalOutputDriver(set_tool_output, gr.digital_output, gr.open_width, gr.closed_width,
+                                       sleep=sleep)
+    raise GripperFault(f"gripper.driver {gr.driver!r} in {config.source} is not a real-cell driver; "
+                       f"expected 'rg2_xmlrpc' or 'tool_digital_output'")

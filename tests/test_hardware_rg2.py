@@ -1,0 +1,219 @@
+"""The RG2 drivers: XML-RPC against a loopback server speaking the URCap's functions, and the tool output."""
+
+from __future__ import annotations
+
+import socket
+import threading
+import time
+import xmlrpc.client
+from socketserver import ThreadingMixIn
+from xmlrpc.server import SimpleXMLRPCRequestHandler, SimpleXMLRPCServer
+
+import pytest
+
+from flgd.config import config_from_dict
+from flgd.hardware.rg2 import (GripperFault, GripperWidthUnavailable, RG2XmlRpcDriver, ToolDigitalOutputDriver,
+                               make_gripper_driver)
+
+
+class _QuietHandler(SimpleXMLRPCRequestHandler):
+    def log_message(self, *args) -> None:  # keep test output clean
+        pass
+
+
+class _ThreadingXMLRPCServer(ThreadingMixIn, SimpleXMLRPCServer):
+    daemon_threads = True
+
+
+class LoopbackRG2:
+    """An XML-RPC server on 127.0.0.1 implementing the OnRobot URCap's RG2 functions.
+
+    The fingers take ``move_time`` seconds to travel; closing stops at
+    ``object_width_mm`` when an object is between them.  ``delay`` makes every
+    reply slow, ``fault`` makes calls answer with an XML-RPC fault.
+    """
+
+    def __init__(self, move_time: float = 0.03):
+        self.calls: list[tuple] = []
+        self.width_mm = 100.0
+        self.object_width_mm: float | None = None
+        self.move_time = move_time
+        self.delay = 0.0
+        self.fault: str | None = None
+        self.safety_failed = False
+        self._target = self.width_mm
+        self._busy_until = 0.0
+        self._lock = threading.Lock()
+        self.server = _ThreadingXMLRPCServer(("127.0.0.1", 0), requestHandler=_QuietHandler, logRequests=False,
+                                             allow_none=False)
+        for name in ("rg_grip", "rg_get_busy", "rg_get_width", "rg_get_safety_failed", "rg_stop"):
+            self.server.register_function(self._wrap(name, getattr(self, "_" + name)), name)
+        self.port = self.server.server_address[1]
+        self._thread = threading.Thread(target=self.server.serve_forever, kwargs={"poll_interval": 0.05},
+                                        daemon=True)
+        self._thread.start()
+
+    def _wrap(self, name, fn):
+        def handler(*args):
+            self.calls.append((name, *args))
+            if self.delay:
+                time.sleep(self.delay)
+            if self.fault:
+                raise ValueError(self.fault)  # SimpleXMLRPCServer answers with an XML-RPC Fault
+            with self._lock:
+                self._settle()
+                return fn(*args)
+        return handler
+
+    def _settle(self) -> None:
+        if time.monotonic() >= self._busy_until:
+            self.width_mm = self._target
+
+    def _rg_grip(self, tool_index: int, width: float, force: float) -> int:
+        if not isinstance(tool_index, int) or not isinstance(width, float) or not isinstance(force, float):
+            raise TypeError(f"rg_grip(int, double, double) called with {tool_index!r}, {width!r}, {force!r}")
+        target = width
+        if self.object_width_mm is not None and width < self.object_width_mm:
+            target = self.object_width_mm
+        self._target = target
+        self._busy_until = time.monotonic() + self.move_time
+        return 0
+
+    def _rg_get_busy(self, tool_index: int) -> bool:
+        return time.monotonic() < self._busy_until
+
+    def _rg_get_width(self, tool_index: int) -> float:
+        return float(self.width_mm)
+
+    def _rg_get_safety_failed(self, tool_index: int) -> bool:
+        return self.safety_failed
+
+    def _rg_stop(self, tool_index: int) -> int:
+        self._busy_until = 0.0
+        return 0
+
+    def names(self) -> list[str]:
+        return [c[0] for c in self.calls]
+
+    def close(self) -> None:
+        self.server.shutdown()
+        self.server.server_close()
+        self._thread.join(timeout=5)
+
+
+@pytest.fixture
+def rg2():
+    server = LoopbackRG2()
+    yield server
+    server.close()
+
+
+def _driver(server: LoopbackRG2, timeout: float = 2.0) -> RG2XmlRpcDriver:
+    return RG2XmlRpcDriver("127.0.0.1", server.port, timeout=timeout, poll_interval=0.005)
+
+
+def test_grip_sends_mm_and_newton_waits_until_not_busy_and_reads_width(rg2):
+    drv = _driver(rg2)
+    drv.move(0.085, 40.0)
+    assert rg2.calls[0] == ("rg_grip", 0, pytest.approx(85.0), pytest.approx(40.0))
+    assert drv.width() == pytest.approx(0.085)
+    # Closing on a 32 mm object: the fingers stop on it and the measured width says "held".
+    rg2.object_width_mm = 32.0
+    drv.move(0.0, 20.0)
+    assert drv.width() == pytest.approx(0.032)
+    names = rg2.names()
+    last_grip = len(names) - 1 - names[::-1].index("rg_grip")
+    after = names[last_grip + 1:]
+    assert after.count("rg_get_busy") >= 1, "the driver must wait for the move to finish"
+    assert "rg_get_safety_failed" in after
+    # Closing on nothing: the width goes to zero, which the grasp reward reads as a miss.
+    rg2.object_width_mm = None
+    drv.move(0.0, 20.0)
+    assert drv.width() == 0.0
+
+
+def test_slow_reply_is_a_clear_timeout(rg2):
+    drv = _driver(rg2, timeout=0.2)
+    rg2.delay = 1.0
+    with pytest.raises(GripperFault, match=r"rg_get_width at 127\.0\.0\.1:\d+: no reply within 0\.2 s"):
+        drv.width()
+
+
+def test_fingers_that_never_stop_moving_time_out(rg2):
+    rg2.move_time = 30.0
+    drv = _driver(rg2, timeout=0.3)
+    with pytest.raises(GripperFault, match="still moving 0.3 s after rg_grip"):
+        drv.move(0.05, 20.0)
+    assert "rg_stop" in rg2.names(), "a stuck move is stopped before reporting"
+
+
+def test_xmlrpc_fault_is_reported_with_function_and_message(rg2):
+    drv = _driver(rg2)
+    rg2.fault = "RG2 not connected to the tool flange"
+    with pytest.raises(GripperFault, match=r"rg_grip at .*: fault \d+: .*RG2 not connected"):
+        drv.move(0.05, 20.0)
+
+
+def test_safety_switch_trip_is_a_fault(rg2):
+    drv = _driver(rg2)
+    rg2.safety_failed = True
+    with pytest.raises(GripperFault, match="safety switch tripped"):
+        drv.move(0.05, 20.0)
+
+
+def test_connection_refused_names_the_urcap():
+    with socket.socket() as s:  # a port that was free a moment ago and has no listener now
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    drv = RG2XmlRpcDriver("127.0.0.1", port, timeout=1.0)
+    with pytest.raises(GripperFault, match="connection refused .*URCap"):
+        drv.width()
+
+
+def test_bad_width_reply_and_bad_commands_are_refused(rg2):
+    drv = _driver(rg2)
+    rg2.width_mm = rg2._target = float("nan")
+    with pytest.raises(GripperFault, match="rg_get_width returned nan"):
+        drv.width()
+    n = len(rg2.calls)
+    for width, force in ((0.2, 20.0), (-0.01, 20.0), (0.05, 0.0), (0.05, 80.0), (float("nan"), 10.0)):
+        with pytest.raises(GripperFault):
+            drv.move(width, force)
+    assert len(rg2.calls) == n, "an out-of-range command never reaches the gripper"
+
+
+def test_tool_digital_output_driver_sets_the_output_and_cannot_measure_width():
+    sent = []
+    drv = ToolDigitalOutputDriver(lambda i, level: sent.append((i, level)), 1, 0.085, 0.0,
+                                  settle_time=0.0, sleep=lambda s: None)
+    drv.move(0.0, 40.0)
+    drv.move(0.085, 40.0)
+    assert sent == [(1, True), (1, False)]
+    assert drv.measures_width is False
+    with pytest.raises(GripperWidthUnavailable, match="grasp success needs another signal"):
+        drv.width()
+    with pytest.raises(GripperFault, match="expected 0 or 1"):
+        ToolDigitalOutputDriver(lambda i, level: None, 5, 0.085, 0.0)
+
+
+def test_driver_selected_by_config(rg2):
+    base = {"backend": "ur5e", "robot": {"host": "127.0.0.1"}, "state_dir": "/tmp/x"}
+    cfg = config_from_dict({**base, "gripper": {"driver": "rg2_xmlrpc", "xmlrpc_port": rg2.port}})
+    drv = make_gripper_driver(cfg, lambda i, level: None)
+    assert isinstance(drv, RG2XmlRpcDriver) and drv.port == rg2.port
+    assert drv.width() == pytest.approx(0.1)
+    cfg = config_from_dict({**base, "gripper": {"driver": "tool_digital_output", "digital_output": 0}})
+    assert isinstance(make_gripper_driver(cfg, lambda i, level: None), ToolDigitalOutputDriver)
+    cfg = config_from_dict({**base, "gripper": {"driver": "sim"}})
+    with pytest.raises(GripperFault, match="not a real-cell driver"):
+        make_gripper_driver(cfg, lambda i, level: None)
+
+
+def test_xmlrpc_wire_format_matches_the_urcap_signature(rg2):
+    """rg_grip takes (int, double, double): a Python int width would arrive as <int> and fail on the URCap."""
+    proxy = xmlrpc.client.ServerProxy(f"http://127.0.0.1:{rg2.port}/")
+    with pytest.raises(xmlrpc.client.Fault):
+        proxy.rg_grip(0, 50, 20)  # ints: the loopback server rejects them like the URCap's typed signature
+    drv = _driver(rg2)
+    drv.move(0.05, 20)  # the driver converts to floats
+    assert rg2.calls[-1][0] != "rg_grip" and any(c[0] == "rg_grip" and isinstance(c[2], float) for c in rg2.calls)
