@@ -56,6 +56,8 @@ class UpdateStats:
     batch_size: int
     beta: float
     seconds: float
+    indices: tuple[int, ...] = ()  # replay slots of the batch
+    td_errors: tuple[float, ...] = ()  # y - Q(s, a) per slot, before the step
 
 
 @dataclass
@@ -127,6 +129,7 @@ class Learner:
         """y = r + gamma * Q_target(s', argmax_a' online(s')) * (1 - done) for each transition."""
         gamma = self.config.learning.gamma
         ys = np.zeros(len(transitions), dtype=np.float64)
+        was_training = self.online.training
         self.online.eval()
         try:
             for k, t in enumerate(transitions):
@@ -144,7 +147,7 @@ class Learner:
                 q_t = q_maps(self.target, t.next_state, self.rotations, rotation_indices=[int(rot)])
                 ys[k] += gamma * float(q_t[0, ch, row, col])
         finally:
-            self.online.train()
+            self.online.train(was_training)
         return ys
 
     def loss_terms(self, transitions: Sequence[Transition], weights: np.ndarray) -> LossTerms:
@@ -203,7 +206,9 @@ class Learner:
                 self.target.load_state_dict(self.online.state_dict())
             stats = UpdateStats(update=self.updates, loss=float(terms.loss.detach()),
                                 mean_abs_td=float(np.mean(np.abs(terms.td_errors))),
-                                batch_size=len(transitions), beta=beta, seconds=time.perf_counter() - start)
+                                batch_size=len(transitions), beta=beta, seconds=time.perf_counter() - start,
+                                indices=tuple(int(i) for i in indices),
+                                td_errors=tuple(float(v) for v in terms.td_errors))
             self.last_stats = stats
             if self.checkpoint_callback is not None and self.updates % self.config.learning.checkpoint_every == 0:
                 try:

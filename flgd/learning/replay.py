@@ -52,9 +52,11 @@ class Transition:
 
 
 class SumTree:
-    """A complete binary tree over ``capacity`` leaves whose inner nodes hold the sum of their children.
+    """A complete binary tree whose inner nodes hold the sum of their children.
 
-    Leaves live at [capacity - 1, 2 * capacity - 1) of one flat array; node k has
+    The leaf count is ``capacity`` rounded up to a power of two (extra leaves
+    stay 0), so that all leaves sit at one depth and left-to-right leaf order is
+    index order.  Leaves live at [n - 1, 2n - 1) of one flat array; node k has
     children 2k + 1 and 2k + 2.  Updating a leaf and finding the leaf under a
     cumulative value are both O(log capacity).
     """
@@ -63,24 +65,25 @@ class SumTree:
         if not (isinstance(capacity, int) and capacity > 0):
             raise ValueError(f"SumTree capacity: got {capacity!r}, expected a positive integer")
         self.capacity = capacity
-        self._nodes = np.zeros(2 * capacity - 1, dtype=np.float64)
+        self._leaves = 1 << (capacity - 1).bit_length()
+        self._nodes = np.zeros(2 * self._leaves - 1, dtype=np.float64)
 
     @property
     def total(self) -> float:
         return float(self._nodes[0])
 
     def __getitem__(self, index: int) -> float:
-        return float(self._nodes[index + self.capacity - 1])
+        return float(self._nodes[index + self._leaves - 1])
 
     def leaves(self) -> np.ndarray:
-        return self._nodes[self.capacity - 1:]
+        return self._nodes[self._leaves - 1:self._leaves - 1 + self.capacity]
 
     def update(self, index: int, value: float) -> None:
         if not 0 <= index < self.capacity:
             raise IndexError(f"SumTree index {index} outside 0..{self.capacity - 1}")
         if not (np.isfinite(value) and value >= 0.0):
             raise ValueError(f"SumTree value: got {value!r}, expected a finite number >= 0")
-        node = index + self.capacity - 1
+        node = index + self._leaves - 1
         change = value - self._nodes[node]
         self._nodes[node] = value
         while node > 0:
@@ -100,7 +103,7 @@ class SumTree:
             else:
                 value -= self._nodes[left]
                 node = left + 1
-        return node - (self.capacity - 1)
+        return min(node - (self._leaves - 1), self.capacity - 1)
 
 
 # --------------------------------------------------------------------------- compact states

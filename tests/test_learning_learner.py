@@ -1,0 +1,183 @@
+"""The learner: where the loss puts gradient, the double-DQN target, priorities and importance weights,
+the target-network schedule, checkpoints, and the background thread publishing to the agent."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+import torch
+
+from flgd.actions import Action
+from flgd.config import CellConfig
+from flgd.learning.agent import Agent, masked_maps
+from flgd.learning.learner import Learner
+from flgd.learning.networks import build_network, q_maps
+from flgd.learning.replay import PrioritizedReplay, Transition
+from flgd.perception import Heightmaps
+
+N = 32
+
+
+@pytest.fixture(autouse=True)
+def one_thread():
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+def config(**learning) -> CellConfig:
+    cfg = CellConfig()
+    base = dict(batch_size=2, device="cpu")
+    base.update(learning)
+    return dataclasses.replace(cfg, learning=dataclasses.replace(cfg.learning, **base))
+
+
+def scene(seed: int) -> Heightmaps:
+    rng = np.random.default_rng(seed)
+    h = np.zeros((N, N), np.float32)
+    for _ in range(3):
+        r, c = rng.integers(2, N - 8, 2)
+        h[r:r + 6, c:c + 6] = rng.uniform(0.02, 0.05)
+    color = np.full((N, N, 3), 90, np.uint8)
+    color[h > 0] = rng.integers(0, 255, 3)
+    return Heightmaps(color, h)
+
+
+def learner(cfg: CellConfig | None = None, replay: PrioritizedReplay | None = None, **kw) -> Learner:
+    cfg = cfg or config()
+    return Learner(cfg, build_network("fast", 16, seed=0), replay or PrioritizedReplay.from_config(cfg.learning), **kw)
+
+
+def test_only_the_executed_pixel_and_the_grasp_twin_receive_gradient():
+    lrn = learner()
+    grasp = Transition(scene(1), Action("grasp", 9, 20, 3), 1.0, scene(2), False)
+    push = Transition(scene(3), Action("push", 25, 4, 13), 0.5, None, True)
+    terms = lrn.loss_terms([grasp, push], np.array([1.0, 0.5], np.float32))
+    assert terms.owners == [0, 0, 1] and terms.rotations == [3, 11, 13]
+    terms.maps.retain_grad()
+    terms.loss.backward()
+    grad = terms.maps.grad
+    nonzero = {tuple(int(v) for v in idx) for idx in torch.nonzero(grad)}
+    # rows of maps: (grasp, rot 3), (grasp, twin rot 11), (push, rot 13); channels 0 grasp, 1 move
+    assert nonzero == {(0, 0, 9, 20), (1, 0, 9, 20), (2, 1, 25, 4)}
+    # and the network's weights get gradient through it
+    assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in lrn.online.parameters())
+
+
+def test_double_dqn_target_uses_online_argmax_under_masks_and_target_value():
+    cfg = config(gamma=0.5)
+    lrn = learner(cfg)
+    lrn.target.load_state_dict(build_network("fast", 16, seed=5).state_dict())  # make them differ
+    s2 = scene(4)
+    t = Transition(scene(3), Action("grasp", 5, 5, 0), 0.25, s2, False)
+    done = Transition(scene(3), Action("grasp", 5, 5, 0), 1.0, s2, True)
+    agent = Agent(cfg, lrn.online)
+    gmask, mmask = agent.masks(s2.height)
+    lrn.online.eval()
+    with torch.no_grad():
+        online = q_maps(lrn.online, s2).numpy()
+        target = q_maps(lrn.target, s2).numpy()
+    lrn.online.train()
+    rot, ch, row, col = np.unravel_index(np.argmax(masked_maps(online, gmask, mmask)), online.shape)
+    assert gmask[row, col] if ch == 0 else mmask[row, col]
+    ys = lrn.targets([t, done])
+    assert ys[0] == pytest.approx(0.25 + 0.5 * target[rot, ch, row, col], abs=1e-5)
+    assert ys[1] == 1.0
+    # The target's own argmax is generally elsewhere: the value is not max(target).
+    assert target[rot, ch, row, col] != pytest.approx(target.max())
+
+
+def test_importance_weights_scale_the_loss_and_priorities_become_td_plus_epsilon():
+    lrn = learner()
+    batch = [Transition(scene(i), Action("shift", 10, 10 + i, i), 0.5, None, True) for i in range(2)]
+    lrn.online.eval()  # same BN statistics for both evaluations
+    one = lrn.loss_terms(batch, np.array([1.0, 1.0], np.float32))
+    weighted = lrn.loss_terms(batch, np.array([0.2, 0.6], np.float32))
+    per = [lrn.loss_terms([b], np.array([1.0], np.float32)).loss.item() for b in batch]
+    assert weighted.loss.item() == pytest.approx((0.2 * per[0] + 0.6 * per[1]) / 2, rel=1e-5)
+    assert one.loss.item() == pytest.approx((per[0] + per[1]) / 2, rel=1e-5)
+
+    replay = PrioritizedReplay(8, epsilon=0.01, seed=0)
+    for b in batch:
+        replay.add(b)
+    lrn = learner(replay=replay)
+    lrn.online.eval()
+    with torch.no_grad():
+        expected_td = {i: 0.5 - float(q_maps(lrn.online, b.state)[i, 1, 10, 10 + i]) for i, b in enumerate(batch)}
+    terms = lrn.loss_terms(batch, np.ones(2, np.float32))
+    assert np.allclose(terms.td_errors, [expected_td[0], expected_td[1]], atol=1e-5)
+    lrn.online.train()
+    stats = lrn.update()
+    assert stats.update == 1 and stats.batch_size == 2
+    latest = dict(zip(stats.indices, stats.td_errors))  # a slot drawn twice keeps its last TD error
+    for i, td in latest.items():
+        assert replay.priority(i) == pytest.approx(abs(td) + 0.01)
+
+
+def test_target_network_follows_its_schedule_and_checkpoints_are_called():
+    cfg = config(target_update_every=3, checkpoint_every=2, learning_rate=1e-3)
+    calls = []
+    lrn = learner(cfg, checkpoint_callback=lambda net, n: calls.append((n, net.variant)))
+    for i in range(3):
+        lrn.replay.add(Transition(scene(i), Action("grasp", 12, 12, i), float(i % 2), None, True))
+
+    def same() -> bool:
+        o, t = lrn.online.state_dict(), lrn.target.state_dict()
+        return all(torch.equal(o[k], t[k]) for k in o)
+
+    assert same()
+    lrn.update()
+    assert not same()
+    lrn.update()
+    assert not same()
+    lrn.update()
+    assert same()
+    lrn.update()
+    assert calls == [(2, "fast"), (4, "fast")]
+    assert lrn.updates == 4
+
+
+def test_background_learner_publishes_weights_that_the_agent_picks_up():
+    cfg = config(updates_per_action=2)
+    replay = PrioritizedReplay.from_config(cfg.learning)
+    agent = Agent(cfg, build_network("fast", 16, seed=0))
+    lrn = Learner(cfg, agent.network, replay, mailbox=agent.mailbox)
+    assert lrn.online is not agent.network  # the learner trains its own copy
+    lrn.start()
+    try:
+        hm = scene(0)
+        for step in range(3):
+            d = agent.decide(hm, step)
+            replay.add(Transition(hm, d.action, 0.0, scene(step + 1), False))
+            lrn.notify_new_transition()
+            assert lrn.wait_idle(timeout=120)
+            hm = scene(step + 1)
+        assert lrn.updates == 6 and lrn.failed_updates == 0
+        assert agent.mailbox.posted >= 1
+        agent.decide(hm, 3)
+        assert agent.weights_version == 6
+        trained = lrn.snapshot().state_dict()
+        for name, tensor in agent.network.state_dict().items():
+            assert torch.equal(tensor, trained[name]), name
+    finally:
+        lrn.stop(timeout=60)
+    assert not lrn.running
+
+
+def test_a_failing_update_is_reported_and_the_thread_keeps_running():
+    cfg = config(updates_per_action=1)
+    replay = PrioritizedReplay.from_config(cfg.learning)
+    # An action built for 8 rotations cannot be trained by a 16-rotation network.
+    replay.add(Transition(scene(0), Action("grasp", 3, 3, 1, rotations=8), 0.0, None, True))
+    lrn = learner(cfg, replay=replay)
+    lrn.start()
+    try:
+        lrn.notify_new_transition()
+        assert lrn.wait_idle(timeout=60)
+        assert lrn.failed_updates == 1 and "rotations" in lrn.last_error
+        assert lrn.running
+    finally:
+        lrn.stop(timeout=60)
