@@ -116,6 +116,34 @@ class StoredTransition:
     priority: float | None
 
 
+def _directory_problem(path: Path) -> str | None:
+    """What is wrong with the filesystem holding ``path``, if we can tell (read-only, full, no access)."""
+    d = path if path.is_dir() else path.parent
+    while not d.exists() and d != d.parent:
+        d = d.parent
+    try:
+        st = os.statvfs(d)
+    except OSError:
+        return None
+    if st.f_flag & os.ST_RDONLY:
+        return f"the state directory is on a read-only filesystem ({d})"
+    if not os.access(d, os.W_OK):
+        return f"the state directory is read-only for this user ({d})"
+    if st.f_bavail == 0 or st.f_favail == 0:
+        return f"the disk is full ({d})"
+    return None
+
+
+def _generic_cause(sqlite_name: str, code: int | None) -> str:
+    if sqlite_name.startswith("SQLITE_READONLY") or code in (errno.EROFS, errno.EACCES, errno.EPERM):
+        return "the state directory is read-only or not writable by this user"
+    if sqlite_name.startswith("SQLITE_CANTOPEN"):
+        return "the database file cannot be opened (missing directory or no permission)"
+    if code == errno.EFBIG or sqlite_name.startswith("SQLITE_IOERR"):
+        return "a write failed (disk full, file size limit or I/O error)"
+    return "an unexpected storage error"
+
+
 def _explain(exc: BaseException, path: Path) -> str:
     """A sentence a cell operator can act on, from an sqlite3 or OS error."""
     name = getattr(exc, "sqlite_errorname", "") or ""
@@ -123,17 +151,12 @@ def _explain(exc: BaseException, path: Path) -> str:
     text = str(exc)
     if name.startswith("SQLITE_FULL") or code == errno.ENOSPC or "disk is full" in text:
         why = "the disk is full"
-    elif name.startswith("SQLITE_READONLY") or code in (errno.EROFS, errno.EACCES, errno.EPERM) \
-            or "readonly" in text or "read-only" in text:
-        why = "the state directory is read-only or not writable by this user"
     elif name.startswith("SQLITE_CORRUPT") or name.startswith("SQLITE_NOTADB"):
         why = "the database file is damaged"
-    elif name.startswith("SQLITE_CANTOPEN"):
-        why = "the database file cannot be opened (missing directory or no permission)"
-    elif code == errno.EFBIG or name.startswith("SQLITE_IOERR"):
-        why = "a write failed (disk full, file size limit or I/O error)"
+    elif name.startswith("SQLITE_CONSTRAINT"):
+        why = "a write broke a database constraint"
     else:
-        why = "an unexpected storage error"
+        why = _directory_problem(path) or _generic_cause(name, code)
     return f"store {path}: {why} ({type(exc).__name__}: {text})"
 
 
@@ -364,7 +387,7 @@ def _sql_value(v: Any) -> Any:
     return v
 
 
-_CKPT_RE = re.compile(r"^checkpoint-(\d{10})\.flgp$")
+_CKPT_RE = re.compile(r"^checkpoint-(\d{10})\.safetensors$")
 
 
 class CheckpointDir:
@@ -377,7 +400,7 @@ class CheckpointDir:
         self.keep = keep
 
     def path_for(self, updates: int) -> Path:
-        return self.directory / f"checkpoint-{int(updates):010d}.flgp"
+        return self.directory / f"checkpoint-{int(updates):010d}.safetensors"
 
     def write(self, save: Callable[[Path], None], updates: int) -> Path:
         """Write a checkpoint with ``save(path)`` (which must write atomically), then prune."""

@@ -1,0 +1,195 @@
+"""The SQLite store: round trips, one state per row, atomic cycles under kill -9, clear storage errors."""
+
+from __future__ import annotations
+
+import os
+import random
+import signal
+import sqlite3
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from flgd.actions import Action
+from flgd.learning.replay import Transition
+from flgd.perception import Heightmaps
+from flgd.store import HEIGHT_QUANTUM, CheckpointDir, Store, StoreError
+
+from tests.test_daemon_harness import tmpfs
+
+
+def _hm(seed: int, shape=(32, 40)) -> Heightmaps:
+    rng = np.random.default_rng(seed)
+    height = np.zeros(shape, np.float32)
+    height[5:15, 8:20] = rng.uniform(0.01, 0.08, (10, 12)).astype(np.float32)
+    color = rng.integers(0, 255, shape + (3,), dtype=np.uint8)
+    return Heightmaps(color=color, height=height)
+
+
+def _row(step: int, **kw) -> dict:
+    row = {"step": step, "time": time.time(), "backend": "test", "outcome": "executed", "primitive": "grasp",
+           "kind": "grasp", "row": 1, "col": 2, "rotation": 3, "reward": 1.0, "success": 1, "duration": 0.5,
+           "t_capture": 0.01, "t_execute": 0.4}
+    row.update(kw)
+    return row
+
+
+def test_round_trip_and_states_stored_once(tmp_path):
+    store = Store(tmp_path)
+    states = [_hm(i) for i in range(5)]
+    for i in range(4):
+        t = Transition(states[i], Action("grasp" if i % 2 else "push", i, i + 1, i % 16), float(i % 2),
+                       states[i + 1], False)
+        store.commit_cycle(_row(i), t)
+    # A done transition: no next state.
+    store.commit_cycle(_row(4), Transition(states[4], Action("grasp", 3, 4, 5), 1.0, None, True))
+    assert store.transition_count() == 5
+    assert store.state_count() == 5  # s0..s4, each once, although 9 state references were written
+    assert store.next_step() == 5
+    read = list(store.iter_transitions())
+    assert [r.step for r in read] == [0, 1, 2, 3, 4]
+    for i, r in enumerate(read[:4]):
+        np.testing.assert_array_equal(r.state.color, states[i].color)
+        np.testing.assert_allclose(r.state.height, states[i].height, atol=HEIGHT_QUANTUM / 2 + 1e-7)
+        assert r.next_state is read[i + 1].state  # shared object, held once in memory
+        assert r.action == Action("grasp" if i % 2 else "push", i, i + 1, i % 16)
+    assert read[4].done and read[4].next_state is None
+    assert [r.step for r in store.iter_transitions(limit=2)] == [3, 4]
+    assert store.integrity_check() == "ok"
+    mode = sqlite3.connect(tmp_path / "flgd.sqlite").execute("PRAGMA journal_mode").fetchone()[0]
+    assert mode == "wal"
+
+
+def test_action_log_without_transition_and_store_time(tmp_path):
+    store = Store(tmp_path)
+    store.commit_cycle(_row(0, outcome="discarded", failure="unstable physics"), None)
+    store.note_store_time(0, 0.123)
+    store.commit_cycle(_row(1), Transition(_hm(0), Action("grasp", 0, 0, 0), 0.0, _hm(1), False))
+    log = store.action_log()
+    assert [r["outcome"] for r in log] == ["discarded", "executed"]
+    assert log[0]["transition_id"] is None and log[1]["transition_id"] == 1
+    assert log[0]["t_store"] == pytest.approx(0.123)  # written by the next commit
+    assert log[1]["t_store"] is None
+    with pytest.raises(ValueError, match="unknown action-log columns"):
+        store.commit_cycle({"step": 2, "time": 0.0, "outcome": "x", "bogus": 1}, None)
+
+
+def test_refused_action_reuses_its_state(tmp_path):
+    store = Store(tmp_path)
+    s = _hm(3)
+    store.commit_cycle(_row(0, outcome="refused"), Transition(s, Action("grasp", 1, 1, 0), 0.0, s, False))
+    store.commit_cycle(_row(1), Transition(s, Action("grasp", 2, 2, 0), 1.0, _hm(4), False))
+    assert store.state_count() == 2
+    first, second = store.iter_transitions()
+    assert first.next_state is first.state and second.state is first.state
+
+
+def test_duplicate_step_is_rejected_and_rolled_back(tmp_path):
+    store = Store(tmp_path)
+    store.commit_cycle(_row(0), Transition(_hm(0), Action("grasp", 0, 0, 0), 1.0, _hm(1), False))
+    with pytest.raises(StoreError, match="UNIQUE|constraint"):
+        store.commit_cycle(_row(0), Transition(_hm(2), Action("grasp", 0, 0, 0), 1.0, _hm(3), False))
+    # The whole failed cycle was rolled back: no orphan transition or state.
+    assert store.transition_count() == 1 and store.state_count() == 2
+
+
+def test_schema_version_mismatch_is_a_clear_error(tmp_path):
+    Store(tmp_path).close()
+    db = sqlite3.connect(tmp_path / "flgd.sqlite")
+    db.execute("UPDATE meta SET value='99' WHERE key='schema_version'")
+    db.commit()
+    db.close()
+    with pytest.raises(StoreError, match="schema version 99"):
+        Store(tmp_path)
+
+
+def test_checkpoint_dir_keeps_the_newest(tmp_path):
+    ck = CheckpointDir(tmp_path / "checkpoints", keep=2)
+    for u in (10, 20, 30):
+        ck.write(lambda p, u=u: p.write_text(str(u)), u)
+    names = [p.name for p in ck.checkpoints()]
+    assert names == ["checkpoint-0000000030.safetensors", "checkpoint-0000000020.safetensors"]
+    assert CheckpointDir.updates_of(ck.checkpoints()[0]) == 30
+
+
+_WRITER = textwrap.dedent("""
+    import sys, time
+    import numpy as np
+    from flgd.actions import Action
+    from flgd.learning.replay import Transition
+    from flgd.perception import Heightmaps
+    from flgd.store import Store
+    store = Store(sys.argv[1])
+    step = store.next_step()
+    rng = np.random.default_rng(step)
+    def hm():
+        return Heightmaps(rng.integers(0, 255, (96, 96, 3), dtype=np.uint8),
+                          rng.uniform(0, 0.1, (96, 96)).astype(np.float32))
+    state = hm()
+    print("ready", flush=True)
+    while True:
+        nxt = hm()
+        store.commit_cycle({"step": step, "time": time.time(), "outcome": "executed", "primitive": "push",
+                            "kind": "push", "reward": 0.5, "duration": 0.01},
+                           Transition(state, Action("push", 1, 2, 3), 0.5, nxt, False))
+        state, step = nxt, step + 1
+""")
+
+
+def test_kill_minus_9_never_corrupts_or_splits_a_cycle(tmp_path):
+    """A writer killed at random instants: every cycle is all-or-nothing and the file stays sound."""
+    rng = random.Random(5)
+    runs_with_commits = 0
+    for _run in range(6):
+        before = Store(tmp_path).next_step()
+        proc = subprocess.Popen([sys.executable, "-c", _WRITER, str(tmp_path)], stdout=subprocess.PIPE,
+                                cwd=Path(__file__).resolve().parents[1])
+        assert proc.stdout.readline().strip() == b"ready"
+        time.sleep(rng.uniform(0.05, 0.6))
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.wait()
+        store = Store(tmp_path)
+        assert store.integrity_check() == "ok"
+        n_actions = store.query("SELECT COUNT(*) FROM actions")[0][0]
+        assert n_actions == store.transition_count() == store.next_step()
+        assert store.query("SELECT COUNT(*) FROM actions WHERE transition_id IS NULL")[0][0] == 0
+        runs_with_commits += n_actions > before
+        # one state per transition, plus the first state of each writer run: no torn or orphan rows
+        assert store.state_count() == n_actions + runs_with_commits
+        for t in store.iter_transitions():
+            assert t.next_state is not None
+        store.close()
+    assert n_actions > 0
+
+
+def test_read_only_state_dir_is_a_clear_store_error(tmp_path):
+    with tmpfs(tmp_path / "ro", size="4m") as mnt:
+        store = Store(mnt)
+        store.commit_cycle(_row(0), Transition(_hm(0), Action("grasp", 0, 0, 0), 1.0, _hm(1), False))
+        store.close()
+        subprocess.run(["mount", "-o", "remount,ro", str(mnt)], check=True)
+        with pytest.raises(StoreError, match="read-only"):
+            Store(mnt)
+        with pytest.raises(StoreError, match="read-only"):
+            Store(mnt / "new")
+
+
+def test_full_disk_is_a_clear_store_error(tmp_path):
+    with tmpfs(tmp_path / "full", size="1m") as mnt:
+        store = Store(mnt)
+        with pytest.raises(StoreError, match="disk is full"):
+            for i in range(200):  # incompressible heightmaps: ~40 kB per cycle
+                rng = np.random.default_rng(i)
+                big = Heightmaps(rng.integers(0, 255, (96, 96, 3), dtype=np.uint8),
+                                 rng.uniform(0, 1, (96, 96)).astype(np.float32))
+                store.commit_cycle(_row(i), Transition(big, Action("grasp", 0, 0, 0), 0.0, big, False))
+        done = store.next_step()
+        assert 0 < done < 200
+        assert store.integrity_check() == "ok"
+        assert store.transition_count() == done  # the failed cycle left nothing behind
+        store.close()
