@@ -1,0 +1,119 @@
+"""A simulated RealSense D415: pinhole rendering from the config's intrinsics, plus a depth-noise model.
+
+The image is rendered headless with pybullet's TinyRenderer.  The OpenGL
+projection is built from fx, fy, cx, cy so that a point projects to the same
+pixel as with the OpenCV pinhole model the perception code inverts (pixel
+centres at integer coordinates); the view matrix is the inverse of the
+camera pose turned from the OpenCV optical frame (z forward, y down) to the
+OpenGL camera frame (z backward, y up).
+
+Depth noise, D415-like (stereo depth error grows with the square of the
+distance): per-pixel Gaussian with std = ``NOISE_AT_HALF_METRE`` * (z / 0.5 m)^2,
+1 mm quantisation (the uint16 unit), random dropouts, and holes along depth
+edges where stereo matching fails.  All draws come from the cell's seeded
+generator.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pybullet as p
+
+from flgd.config import CameraConfig
+from flgd.geometry import pose_matrix, rpy_to_matrix
+
+__all__ = ["CameraModel", "DepthNoise", "render", "add_depth_noise", "to_raw_depth"]
+
+NEAR, FAR = 0.05, 3.0
+NOISE_AT_HALF_METRE = 0.001   # m, std at 0.5 m
+DROPOUT_RATE = 0.002          # share of pixels with no reading
+EDGE_STEP = 0.008             # m; a larger depth step to a neighbour is an edge
+EDGE_HOLE_RATE = 0.5          # chance an edge pixel has no reading
+
+
+@dataclass(frozen=True)
+class CameraModel:
+    """Intrinsics, pose and the derived OpenGL matrices of one camera."""
+
+    width: int
+    height: int
+    intrinsics: np.ndarray   # 3x3
+    pose: np.ndarray         # 4x4 optical frame -> base
+    view: tuple[float, ...]
+    projection: tuple[float, ...]
+
+    @staticmethod
+    def from_config(cam: CameraConfig) -> "CameraModel":
+        ic = cam.intrinsics
+        k = np.array([[ic.fx, 0.0, ic.cx], [0.0, ic.fy, ic.cy], [0.0, 0.0, 1.0]])
+        pose = pose_matrix(cam.pose.position, rpy_to_matrix(*cam.pose.rpy))
+        gl_from_cv = np.diag([1.0, -1.0, -1.0, 1.0])
+        view = np.linalg.inv(pose @ gl_from_cv)
+        w, h = ic.width, ic.height
+        proj = np.zeros((4, 4))
+        proj[0, 0] = 2.0 * ic.fx / w
+        proj[0, 2] = 1.0 - 2.0 * (ic.cx + 0.5) / w
+        proj[1, 1] = 2.0 * ic.fy / h
+        proj[1, 2] = 2.0 * (ic.cy + 0.5) / h - 1.0
+        proj[2, 2] = -(FAR + NEAR) / (FAR - NEAR)
+        proj[2, 3] = -2.0 * FAR * NEAR / (FAR - NEAR)
+        proj[3, 2] = -1.0
+        # pybullet takes column-major 4x4 matrices
+        return CameraModel(width=w, height=h, intrinsics=k, pose=pose,
+                           view=tuple(view.T.reshape(-1).tolist()), projection=tuple(proj.T.reshape(-1).tolist()))
+
+
+def render(client: int, cam: CameraModel, light_direction=(0.3, -0.2, 1.0), shadow: bool = False,
+           ambient: float = 0.6, diffuse: float = 0.4) -> tuple[np.ndarray, np.ndarray]:
+    """(colour HxWx3 uint8, metric depth HxW float32 along the optical axis)."""
+    _, _, rgba, zbuf, _ = p.getCameraImage(cam.width, cam.height, viewMatrix=cam.view,
+                                           projectionMatrix=cam.projection, renderer=p.ER_TINY_RENDERER,
+                                           lightDirection=list(light_direction), shadow=int(shadow),
+                                           lightAmbientCoeff=ambient, lightDiffuseCoeff=diffuse,
+                                           lightSpecularCoeff=0.05,
+                                           flags=p.ER_NO_SEGMENTATION_MASK, physicsClientId=client)
+    rgba = np.asarray(rgba, dtype=np.uint8).reshape(cam.height, cam.width, 4)
+    zbuf = np.asarray(zbuf, dtype=np.float32).reshape(cam.height, cam.width)
+    depth = (FAR * NEAR / (FAR - (FAR - NEAR) * zbuf)).astype(np.float32)
+    depth[zbuf >= 1.0] = 0.0  # nothing hit
+    return np.ascontiguousarray(rgba[:, :, :3]), depth
+
+
+@dataclass(frozen=True)
+class DepthNoise:
+    """Parameters of the depth-noise model (defaults: D415 at short range)."""
+
+    std_at_half_metre: float = NOISE_AT_HALF_METRE
+    dropout_rate: float = DROPOUT_RATE
+    edge_step: float = EDGE_STEP
+    edge_hole_rate: float = EDGE_HOLE_RATE
+
+
+def add_depth_noise(depth: np.ndarray, rng: np.random.Generator, noise: DepthNoise = DepthNoise()) -> np.ndarray:
+    """Noisy metric depth (0 = no reading), before quantisation."""
+    z = depth.astype(np.float64)
+    valid = z > 0
+    std = noise.std_at_half_metre * (z / 0.5) ** 2
+    out = z + rng.standard_normal(z.shape) * std
+    # holes where the depth jumps between neighbours (occlusion edges)
+    step = np.zeros_like(z, dtype=bool)
+    dz_x = np.abs(np.diff(z, axis=1)) > noise.edge_step
+    dz_y = np.abs(np.diff(z, axis=0)) > noise.edge_step
+    step[:, 1:] |= dz_x
+    step[:, :-1] |= dz_x
+    step[1:, :] |= dz_y
+    step[:-1, :] |= dz_y
+    holes = step & (rng.random(z.shape) < noise.edge_hole_rate)
+    drops = rng.random(z.shape) < noise.dropout_rate
+    out[~valid | holes | drops] = 0.0
+    return out
+
+
+def to_raw_depth(depth_m: np.ndarray, depth_scale: float, depth_range: tuple[float, float]) -> np.ndarray:
+    """Metric depth -> uint16 raw units (rounded: 1 unit quantisation); out-of-range -> 0."""
+    raw = np.rint(depth_m / depth_scale)
+    ok = (depth_m >= depth_range[0]) & (depth_m <= depth_range[1])
+    raw[~ok] = 0
+    return np.clip(raw, 0, 65535).astype(np.uint16)

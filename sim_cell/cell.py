@@ -1,0 +1,570 @@
+"""SimCell: the PyBullet robot cell (UR5e + RG2 + D415) behind flgd's cell interface.
+
+Each instance owns one headless physics client, so several cells can live in
+one process.  A plan runs like on the real arm: every MoveL becomes a straight
+TCP line through closed-form IK and joint position control at the step's
+speed and acceleration, gripper commands drive force-limited fingers, and
+MeasureWidth reads the finger joints.
+
+Speed: moves that provably cannot touch anything are not stepped through the
+physics.  A MoveL is "free" when nothing is held and no object's bounding box
+comes within ``FREE_MARGIN`` of the box swept by the gripper (TCP line
+inflated by the gripper's half-size, from the TCP up).  Its whole line is
+still solved with IK (an unreachable free move fails like any other) and the
+arm is then placed at the end of the line.  Everything else -- descents,
+closing, lifts, pushes, shifts, any move carrying an object -- is simulated
+at ``sim.time_step`` with the motors following the line.
+
+Bookkeeping: an object measured as held (touching both pads at a MeasureWidth
+step) is carried out of the workspace: when the gripper opens outside the
+workspace (plan_release's place pose) it drops and is removed as soon as it is
+outside; if the gripper opens above the workspace (the caller skipped the
+place step) it is removed at once.  Any other object whose centre leaves the
+workspace or falls off the table is removed and counted.  An unstable
+simulation (NaNs, objects flying, deep interpenetration) resets the scene and
+fails the plan with a failure text starting with "unstable".
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pybullet as p
+
+from flgd.cell import Cell, CellFault, ExecutionResult, Frame
+from flgd.config import CellConfig
+from flgd.geometry import ToolPose
+from flgd.plans import GripperCommand, MeasureWidth, MoveL
+from flgd.safety import CheckedPlan
+from sim_cell import camera as simcam
+from sim_cell import kinematics, motion, objects, scenes, shapes
+from sim_cell.robot import GRIPPER_TCP_OFFSET, READY_JOINTS, SimRobot
+
+__all__ = ["SimCell", "ObjectState", "PRESET_DIR", "preset_scenes"]
+
+PRESET_DIR = Path(__file__).resolve().parent / "scenes"
+CONTROL_SUBSTEPS = 4        # physics steps per IK tick (60 Hz control at 240 Hz physics)
+FREE_MARGIN = 0.02          # m between the swept gripper box and any object for a free move
+GRIPPER_HALF_SIZE = 0.075   # m, gripper + open fingers around the TCP in x/y
+GRIPPER_TIMEOUT = 0.8       # s for a finger motion to come to rest
+MAX_OBJECT_SPEED = 4.0      # m/s; faster = unstable
+MAX_PENETRATION = 0.015     # m
+PRESS_DEPTH = 0.006           # m an object may be squeezed into the table/another object
+PROTECTIVE_STOP_FORCE = 100.0  # N of vertical push on the gripper that stops the arm (UR: 150 N at the TCP)
+TABLE_MARGIN = 0.15         # m of table beyond the workspace on each side
+DROP_MARGIN = 0.05          # m inside the workspace edge where random objects are dropped
+
+# VPG-like block colours (tableau), jittered per object
+_PALETTE = np.array([[78, 121, 167], [89, 161, 79], [156, 117, 95], [242, 142, 43], [237, 201, 72],
+                     [186, 176, 172], [255, 87, 89], [176, 122, 161], [118, 183, 178], [255, 157, 167]]) / 255.0
+
+
+@dataclass(frozen=True)
+class ObjectState:
+    """One object as the simulator knows it (for oracles, tests and curricula, never for the policy)."""
+
+    body: int
+    label: str
+    position: tuple[float, float, float]
+    orientation: tuple[float, float, float, float]
+    points: np.ndarray   # corner points in the base frame
+    top: float           # highest point, m in the base frame
+
+
+def preset_scenes() -> list[Path]:
+    """The highly cluttered scenes shipped in sim_cell/scenes/."""
+    return sorted(PRESET_DIR.glob("*.yaml"))
+
+
+class SimCell(Cell):
+    """PyBullet cell; see the module docstring for what is simulated and what is shortened."""
+
+    name = "sim"
+
+    def __init__(self, config: CellConfig):
+        super().__init__(config)
+        off = np.asarray(config.robot.tcp_offset, dtype=float)
+        if np.max(np.abs(off - np.asarray(GRIPPER_TCP_OFFSET))) > 1e-3:
+            raise ValueError(f"{config.source}: robot.tcp_offset: got {list(config.robot.tcp_offset)!r}, "
+                             f"expected {list(GRIPPER_TCP_OFFSET)!r} for the simulated RG2 (urdf/rg2.urdf)")
+        self._tcp_offset = off
+        self._dt = config.sim.time_step
+        self._client = p.connect(p.DIRECT)
+        if self._client < 0:
+            raise CellFault("pybullet: cannot open a physics client")
+        seeds = np.random.SeedSequence(config.sim.seed).spawn(2)
+        self._scene_rng = np.random.default_rng(seeds[0])
+        self._noise_rng = np.random.default_rng(seeds[1])
+        self._object_count = config.sim.objects
+        self._object_kinds = objects.resolve_object_set(config.sim.object_set)
+        self._natural_sizes: dict[str, float] = {}
+        self._objects: dict[int, objects.SpawnedObject] = {}
+        self._held: set[int] = set()
+        self.stats = {"grasped_out": 0, "left_workspace": 0, "unstable_resets": 0, "scenes": 0}
+        self._sim_time = 0.0
+        self._steps = 0
+        self._light = ((0.3, -0.2, 1.0), 0.6, 0.4)
+        self._camera = simcam.CameraModel.from_config(config.camera)
+        ws = config.workspace
+        self._ws = ws
+        c = self._client
+        p.resetSimulation(physicsClientId=c)
+        p.setGravity(0, 0, -9.81, physicsClientId=c)
+        p.setPhysicsEngineParameter(fixedTimeStep=self._dt, numSolverIterations=60, deterministicOverlappingPairs=1,
+                                    physicsClientId=c)
+        half = [(ws.x[1] - ws.x[0]) / 2 + TABLE_MARGIN, (ws.y[1] - ws.y[0]) / 2 + TABLE_MARGIN, 0.05]
+        centre = scenes.workspace_origin(ws)
+        self._table = p.createMultiBody(
+            0, p.createCollisionShape(p.GEOM_BOX, halfExtents=half, physicsClientId=c),
+            p.createVisualShape(p.GEOM_BOX, halfExtents=half, rgbaColor=[0.45, 0.45, 0.45, 1], physicsClientId=c),
+            [centre[0], centre[1], ws.z[0] - half[2]], physicsClientId=c)
+        p.changeDynamics(self._table, -1, lateralFriction=0.6, physicsClientId=c)
+        self._robot = SimRobot(c)
+        home = config.robot.home
+        self._home_pose = ToolPose.top_down(*home.position, home.yaw)
+        q = kinematics.nearest_solution(
+            kinematics.inverse(motion.tcp_to_flange(self._pose_matrix(self._home_pose), off)), READY_JOINTS)
+        if q is None:
+            raise ValueError(f"{config.source}: robot.home: {list(home.position)!r} is out of the UR5e's reach")
+        self._home_joints = q
+        self._robot.teleport(q, config.gripper.open_width)
+        self._closed = False
+        if config.sim.scene:
+            self.load_scene(config.sim.scene)
+        else:
+            self.reset_scene()
+
+    # ================================================================== public API
+    def capture(self) -> Frame:
+        """Render a D415 frame (raw colour + uint16 depth) of the current scene."""
+        with self._lock:
+            self._check_open()
+            cfg = self.config.camera
+            direction, ambient, diffuse = self._light
+            color, depth = simcam.render(self._client, self._camera, direction, ambient=ambient, diffuse=diffuse)
+            if self.config.sim.depth_noise:
+                depth = simcam.add_depth_noise(depth, self._noise_rng)
+            raw = simcam.to_raw_depth(depth, cfg.depth_scale, cfg.depth_range)
+            return Frame(color=color, depth=raw, depth_scale=cfg.depth_scale,
+                         intrinsics=self._camera.intrinsics.copy(), camera_pose=self._camera.pose.copy(),
+                         timestamp=self._sim_time)
+
+    def execute(self, plan: CheckedPlan) -> ExecutionResult:
+        """Run a checked plan; ``duration`` is the simulated time the motions took."""
+        steps = plan.verify(self.config).steps
+        with self._lock:
+            self._check_open()
+            t0 = self._sim_time
+            try:
+                lines = self._plan_lines(steps)
+            except motion.Unreachable as exc:
+                return ExecutionResult(completed=False, failure=f"unreachable: {exc}; the arm did not move",
+                                       duration=0.0)
+            widths: list[float] = []
+            try:
+                for i, step in enumerate(steps):
+                    if isinstance(step, MoveL):
+                        self._run_line(lines[i])
+                    elif isinstance(step, GripperCommand):
+                        self._run_gripper(step.width, step.force)
+                    elif isinstance(step, MeasureWidth):
+                        widths.append(self.gripper_width())
+                        self._note_held()
+            except _CollisionStop as exc:
+                self._go_home()
+                return ExecutionResult(completed=False, widths=widths,
+                                       failure=f"collision stop: {exc}; the arm retreated home",
+                                       duration=self._sim_time - t0)
+            except _Unstable as exc:
+                self.stats["unstable_resets"] += 1
+                self.reset_scene()
+                return ExecutionResult(completed=False, widths=widths,
+                                       failure=f"unstable simulation ({exc}); scene reset",
+                                       duration=self._sim_time - t0)
+            self._remove_outside()
+            return ExecutionResult(completed=True, widths=widths, duration=self._sim_time - t0)
+
+    def gripper_width(self) -> float:
+        """Distance between the finger pads, from the finger joint positions (m)."""
+        with self._lock:
+            self._check_open()
+            return self._robot.width()
+
+    def reset_scene(self) -> None:
+        """New clutter: ``sim.objects`` random objects (see set_object_count), or the config's scene file."""
+        with self._lock:
+            self._check_open()
+            if self.config.sim.scene:
+                self.load_scene(self.config.sim.scene)
+            else:
+                self._clear_objects()
+                self._randomise_domain()
+                self._drop_random_objects(self._object_count)
+                self.stats["scenes"] += 1
+
+    def recover(self) -> None:
+        """Bring the arm home with the gripper open (a held object is carried out)."""
+        with self._lock:
+            self._check_open()
+            self._go_home()
+
+    def workspace_empty_hint(self) -> bool:
+        """True when no object is left in the workspace."""
+        with self._lock:
+            self._check_open()
+            self._remove_outside()
+            return len(self._objects) == 0
+
+    def close(self) -> None:
+        with self._lock:
+            if self._client is not None:
+                try:
+                    p.disconnect(physicsClientId=self._client)
+                except p.error:
+                    pass
+                self._client = None
+
+    # -- for curricula, tests and benchmarks
+    def set_object_count(self, n: int) -> None:
+        """Number of random objects for the next ``reset_scene`` (the curriculum's 10 -> 20)."""
+        if not isinstance(n, int) or isinstance(n, bool) or not 0 <= n <= 60:
+            raise ValueError(f"object count: got {n!r}, expected an integer 0..60")
+        self._object_count = n
+
+    def load_scene(self, scene: "str | Path | scenes.Scene", vpg_meshes: str | Path | None = None) -> int:
+        """Replace the objects by a scene (a Scene, a scene YAML file, or a VPG test case .txt);
+        returns the number of objects placed.  Relative names are looked up in sim_cell/scenes/ too."""
+        with self._lock:
+            self._check_open()
+            if not isinstance(scene, scenes.Scene):
+                path = Path(scene)
+                if not path.exists() and (PRESET_DIR / path).exists():
+                    path = PRESET_DIR / path
+                scene = scenes.load_scene(path, vpg_meshes)
+            self._clear_objects()
+            origin = scenes.workspace_origin(self._ws)
+            for spec in scene.objects:
+                placed = spec.moved(np.asarray(spec.position) + origin, spec.orientation)
+                self._add(placed)
+            self._settle(0.25)
+            self.stats["scenes"] += 1
+            return len(self._objects)
+
+    def save_scene(self, path: str | Path) -> None:
+        """Write the current objects and poses as a scene file (workspace frame)."""
+        with self._lock:
+            self._check_open()
+            scenes.save_scene(self.current_scene(), path)
+
+    def current_scene(self) -> scenes.Scene:
+        origin = scenes.workspace_origin(self._ws)
+        out = []
+        for obj in self._objects.values():
+            pos, orn = p.getBasePositionAndOrientation(obj.body, physicsClientId=self._client)
+            out.append(obj.spec.moved(np.asarray(pos) - origin, orn))
+        return scenes.Scene(objects=tuple(out))
+
+    def object_states(self) -> list[ObjectState]:
+        """Ground truth of every object in the scene, in the base frame."""
+        with self._lock:
+            self._check_open()
+            out = []
+            for obj in self._objects.values():
+                pos, orn = p.getBasePositionAndOrientation(obj.body, physicsClientId=self._client)
+                pts = obj.world_points(self._client)
+                out.append(ObjectState(body=obj.body, label=obj.spec.label, position=tuple(pos),
+                                       orientation=tuple(orn), points=pts, top=float(pts[:, 2].max())))
+            return out
+
+    def add_object(self, spec: objects.ObjectSpec, settle: float = 0.25) -> int:
+        """Put one object (pose in the base frame) into the scene; returns its body id."""
+        with self._lock:
+            self._check_open()
+            body = self._add(spec)
+            self._settle(settle)
+            return body
+
+    def simulate(self, seconds: float) -> None:
+        """Let the world run for ``seconds`` with the arm holding still."""
+        with self._lock:
+            self._check_open()
+            self._step(int(round(seconds / self._dt)))
+
+    @property
+    def object_count(self) -> int:
+        return len(self._objects)
+
+    @property
+    def sim_time(self) -> float:
+        return self._sim_time
+
+    # ================================================================== internals
+    def _check_open(self) -> None:
+        if self._client is None:
+            raise CellFault("the simulated cell is closed")
+
+    @staticmethod
+    def _pose_matrix(pose: ToolPose) -> np.ndarray:
+        t = np.eye(4)
+        t[:3, :3] = pose.matrix
+        t[:3, 3] = pose.position
+        return t
+
+    def _tcp(self) -> np.ndarray:
+        return self._robot.tcp_pose(self._tcp_offset)
+
+    def _plan_lines(self, steps) -> dict[int, motion.Trajectory]:
+        """IK for every MoveL of the plan before anything moves."""
+        q, pose = self._robot.joints(), self._tcp()
+        out = {}
+        tick = CONTROL_SUBSTEPS * self._dt
+        for i, step in enumerate(steps):
+            if isinstance(step, MoveL):
+                goal = self._pose_matrix(step.pose)
+                try:
+                    traj = motion.plan_line(q, pose, goal, step.speed, step.acceleration, tick, self._tcp_offset)
+                except motion.Unreachable as exc:
+                    raise motion.Unreachable(f"step {i} ({step.label or 'move'}): {exc}") from None
+                out[i] = traj
+                q, pose = traj.joints[-1], goal
+        return out
+
+    # -- stepping and safety of the simulation
+    def _step(self, n: int, before_step=None) -> None:
+        c = self._client
+        for k in range(n):
+            if before_step is not None:
+                before_step(k)
+            p.stepSimulation(physicsClientId=c)
+            self._sim_time += self._dt
+            self._steps += 1
+            if self._steps % 8 == 0:
+                self._check_stable(deep=(self._steps % 48 == 0))
+
+    def _check_stable(self, deep: bool) -> None:
+        c = self._client
+        for body in list(self._objects):
+            pos, _ = p.getBasePositionAndOrientation(body, physicsClientId=c)
+            lin, _ = p.getBaseVelocity(body, physicsClientId=c)
+            if not all(map(math.isfinite, (*pos, *lin))):
+                raise _Unstable(f"object {body} has a non-finite state")
+            speed = math.sqrt(sum(v * v for v in lin))
+            if speed > MAX_OBJECT_SPEED:
+                raise _Unstable(f"object {body} flies at {speed:.1f} m/s")
+            if pos[2] > self._ws.z[0] + 1.0:
+                raise _Unstable(f"object {body} thrown {pos[2]:.2f} m up")
+        if deep:
+            for cp in p.getContactPoints(physicsClientId=c):
+                if cp[8] < -MAX_PENETRATION and (cp[1] in self._objects or cp[2] in self._objects):
+                    raise _Unstable(f"bodies {cp[1]} and {cp[2]} interpenetrate by {-cp[8] * 1000:.0f} mm")
+
+    def _settle(self, seconds: float) -> None:
+        try:
+            self._step(int(round(seconds / self._dt)))
+        except _Unstable:
+            self.stats["unstable_resets"] += 1
+            raise
+
+    # -- motions
+    def _is_free(self, traj: motion.Trajectory) -> bool:
+        if self._held or self._touching_gripper():
+            return False
+        pts = traj.tcp[:, :3, 3]
+        lo = pts.min(axis=0) - np.array([GRIPPER_HALF_SIZE, GRIPPER_HALF_SIZE, 0.0]) - FREE_MARGIN
+        hi = pts.max(axis=0) + np.array([GRIPPER_HALF_SIZE, GRIPPER_HALF_SIZE, 0.0]) + FREE_MARGIN
+        lowest = pts[:, 2].min()
+        for body in self._objects:
+            a, b = objects.body_aabb(body, self._client)
+            if a[0] < hi[0] and b[0] > lo[0] and a[1] < hi[1] and b[1] > lo[1] and b[2] + FREE_MARGIN > lowest:
+                return False
+        return True
+
+    def _touching_gripper(self) -> bool:
+        for link in self._robot.gripper_links:
+            for cp in p.getContactPoints(bodyA=self._robot.body, linkIndexA=link, physicsClientId=self._client):
+                if cp[2] in self._objects:
+                    return True
+        return False
+
+    def _run_line(self, traj: motion.Trajectory) -> None:
+        if self._is_free(traj):
+            self._robot.teleport(traj.joints[-1])
+            self._sim_time += traj.duration
+            return
+        joints = traj.joints
+        n = len(joints) - 1
+        vel = np.diff(joints, axis=0) / traj.tick
+        for i in range(n):
+            for sub in range(CONTROL_SUBSTEPS):
+                a = (sub + 1) / CONTROL_SUBSTEPS
+                self._robot.command_arm(joints[i] * (1 - a) + joints[i + 1] * a, vel[i])
+                self._step(1)
+            force, depth = self._pressing()
+            if force > PROTECTIVE_STOP_FORCE or depth > PRESS_DEPTH:
+                self._robot.command_arm(self._robot.joints())
+                raise _CollisionStop(f"the gripper pressed down with {force:.0f} N, squeezing an object "
+                                     f"{depth * 1000:.0f} mm into what it rests on")
+        self._robot.command_arm(joints[-1])
+        # let the servos close the last tracking error
+        for _ in range(10):
+            if np.max(np.abs(self._robot.joints() - joints[-1])) < 2e-4:
+                break
+            self._step(2)
+
+    def _pressing(self) -> tuple[float, float]:
+        """(vertical force on the gripper N, deepest object penetration m while the gripper
+        touches an object).  Rigid blocks squeezed between gripper and table would stop a
+        real arm at once; pybullet's soft contacts let them sink instead, so depth counts too."""
+        total = 0.0
+        touching = False
+        for cp in p.getContactPoints(bodyA=self._robot.body, physicsClientId=self._client):
+            if cp[3] in self._robot.gripper_links:
+                total += abs(cp[7][2]) * cp[9]
+                touching = touching or cp[2] in self._objects
+        depth = 0.0
+        if touching:
+            for cp in p.getContactPoints(physicsClientId=self._client):
+                if cp[1] != self._robot.body and cp[2] != self._robot.body:
+                    depth = max(depth, -cp[8])
+        return total, depth
+
+    def _run_gripper(self, width: float, force: float) -> None:
+        opening = width > self._robot.finger_target_width() + 1e-4 or width > self._robot.width() + 1e-3
+        if opening and self._held:
+            self._release_held()
+        self._robot.command_gripper(width, force)
+        steps = int(GRIPPER_TIMEOUT / self._dt)
+        for k in range(0, steps, 4):
+            self._step(4)
+            if k >= 12 and self._robot.finger_speed() < 2e-3:
+                break
+
+    def _release_held(self) -> None:
+        tcp = self._tcp()[:3, 3]
+        over_workspace = self._ws.x[0] <= tcp[0] <= self._ws.x[1] and self._ws.y[0] <= tcp[1] <= self._ws.y[1]
+        if over_workspace:
+            for body in list(self._held):
+                if body in self._objects:
+                    self._remove(body, "grasped_out")
+            self._held.clear()
+        # outside the workspace the object drops and _remove_outside takes it
+
+    def _note_held(self) -> None:
+        c, rb = self._client, self._robot
+        left = {cp[2] for cp in p.getContactPoints(bodyA=rb.body, linkIndexA=rb.finger_links[0], physicsClientId=c)}
+        right = {cp[2] for cp in p.getContactPoints(bodyA=rb.body, linkIndexA=rb.finger_links[1], physicsClientId=c)}
+        self._held = {b for b in left & right if b in self._objects}
+
+    def _go_home(self) -> None:
+        gr = self.config.gripper
+        try:
+            self._run_gripper(gr.open_width, gr.force)
+            pose = self._tcp()
+            up = pose.copy()
+            up[2, 3] = max(pose[2, 3], self._ws.z[0] + self.config.robot.lift_height)
+            tick = CONTROL_SUBSTEPS * self._dt
+            rb = self.config.robot
+            first = motion.plan_line(self._robot.joints(), pose, up, rb.speed, rb.acceleration, tick, self._tcp_offset)
+            second = motion.plan_line(first.joints[-1], up, self._pose_matrix(self._home_pose), rb.speed,
+                                      rb.acceleration, tick, self._tcp_offset)
+            self._run_line(first)
+            self._run_line(second)
+        except (motion.Unreachable, _Unstable, _CollisionStop):
+            self._robot.teleport(self._home_joints, gr.open_width)
+        self._held.clear()
+        self._remove_outside()
+
+    # -- objects
+    def _add(self, spec: objects.ObjectSpec) -> int:
+        obj = objects.spawn(self._client, spec)
+        self._objects[obj.body] = obj
+        return obj.body
+
+    def _remove(self, body: int, reason: str) -> None:
+        p.removeBody(body, physicsClientId=self._client)
+        self._objects.pop(body, None)
+        self._held.discard(body)
+        self.stats[reason] += 1
+
+    def _clear_objects(self) -> None:
+        for body in list(self._objects):
+            p.removeBody(body, physicsClientId=self._client)
+        self._objects.clear()
+        self._held.clear()
+        if self._client is not None:
+            self._robot.teleport(self._home_joints, self.config.gripper.open_width)
+
+    def _remove_outside(self) -> None:
+        ws = self._ws
+        for body in list(self._objects):
+            pos, _ = p.getBasePositionAndOrientation(body, physicsClientId=self._client)
+            inside = ws.x[0] <= pos[0] <= ws.x[1] and ws.y[0] <= pos[1] <= ws.y[1] and pos[2] > ws.z[0] - 0.05
+            if not inside:
+                self._remove(body, "grasped_out" if body in self._held else "left_workspace")
+
+    def _randomise_domain(self) -> None:
+        rng = self._scene_rng
+        if self.config.sim.domain_randomization:
+            shade = rng.uniform(0.25, 0.6)
+            tint = rng.uniform(-0.05, 0.05, 3)
+            p.changeVisualShape(self._table, -1, rgbaColor=[*np.clip(shade + tint, 0, 1), 1.0],
+                                physicsClientId=self._client)
+            p.changeDynamics(self._table, -1, lateralFriction=float(rng.uniform(0.4, 0.8)),
+                             physicsClientId=self._client)
+            direction = (float(rng.uniform(-0.5, 0.5)), float(rng.uniform(-0.5, 0.5)), 1.0)
+            self._light = (direction, float(rng.uniform(0.45, 0.75)), float(rng.uniform(0.25, 0.5)))
+
+    def _random_spec(self) -> objects.ObjectSpec:
+        rng = self._scene_rng
+        kind = self._object_kinds[int(rng.integers(len(self._object_kinds)))]
+        colour = tuple(np.clip(_PALETTE[int(rng.integers(len(_PALETTE)))] + rng.uniform(-0.06, 0.06, 3), 0, 1).tolist())
+        dr = self.config.sim.domain_randomization
+        friction = float(rng.uniform(0.4, 0.9)) if dr else 0.6
+        if kind.startswith("block:"):
+            shape = kind.split(":", 1)[1]
+            dims = shapes.random_block_dims(shape, rng)
+            density = float(rng.uniform(400, 900)) if dr else 600.0
+            geom = shapes.make_block(shape, dims)
+            volume = float(np.prod(geom.extents)) * 0.7
+            return objects.ObjectSpec(shape=shape, size=dims, color=colour, mass=max(volume * density, 0.02),
+                                      friction=friction)
+        if kind not in self._natural_sizes:
+            self._natural_sizes[kind] = objects.natural_size(kind, self._client)
+        scale = float(rng.uniform(0.05, 0.09)) / self._natural_sizes[kind]
+        mass = float(rng.uniform(0.03, 0.15)) if dr else None
+        return objects.ObjectSpec(urdf=kind, scale=scale, color=colour, mass=mass, friction=friction)
+
+    def _drop_random_objects(self, n: int) -> None:
+        """Drop ``n`` objects one after another at random places, VPG-style, and let them settle."""
+        rng, ws = self._scene_rng, self._ws
+        attempts = 0
+        while len(self._objects) < n and attempts < 3:
+            attempts += 1
+            for _ in range(n - len(self._objects)):
+                spec = self._random_spec()
+                x = rng.uniform(ws.x[0] + DROP_MARGIN, ws.x[1] - DROP_MARGIN)
+                y = rng.uniform(ws.y[0] + DROP_MARGIN, ws.y[1] - DROP_MARGIN)
+                top = max([self._ws.z[0]] + [objects.body_aabb(b, self._client)[1][2] for b in self._objects])
+                z = top + 0.06
+                q = p.getQuaternionFromEuler([float(v) for v in rng.uniform(-math.pi, math.pi, 3)])
+                self._add(spec.moved((x, y, z), q))
+                self._step(int(0.12 / self._dt))
+            try:
+                self._step(int(0.5 / self._dt))
+            except _Unstable:
+                self.stats["unstable_resets"] += 1
+                self._clear_objects()
+                continue
+            self._remove_outside()
+
+
+class _CollisionStop(Exception):
+    """The arm stopped on contact, like the UR's protective stop."""
+
+
+class _Unstable(Exception):
+    """The physics went wrong; the scene must not be learned from."""

@@ -1,0 +1,134 @@
+"""Straight TCP lines as joint trajectories: trapezoidal timing plus analytic IK per control tick.
+
+A MoveL on the real UR runs the TCP along a straight line with a trapezoidal
+speed profile; here the same line is sampled at the control rate, each sample
+solved with the closed-form IK, and the joint vectors are handed to the
+simulated joint position controllers.  The whole line is solved before the arm
+moves, so an unreachable pose or a configuration flip on the way stops the
+plan before any motion, the way the UR controller refuses a moveL it cannot do.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from flgd.geometry import matrix_to_rotvec, rotvec_to_matrix
+from sim_cell import kinematics
+
+__all__ = ["Trajectory", "Unreachable", "trapezoid_duration", "trapezoid_fraction", "plan_line",
+           "tcp_to_flange", "flange_to_tcp"]
+
+# Tool rotation rate used to time moves that mostly turn the wrist (UR's default tool speed is
+# given per translation only; a real moveL still takes time to turn).
+ANGULAR_SPEED = 1.5      # rad/s
+ANGULAR_ACCELERATION = 4.0  # rad/s^2
+# Largest joint step allowed between two control ticks; more means a flip through a singularity.
+MAX_JOINT_STEP = 0.25    # rad
+# IK residual above which a pose counts as unreachable.
+MAX_POSITION_ERROR = 1e-4  # m
+MAX_ROTATION_ERROR = 1e-3  # rad
+
+
+class Unreachable(Exception):
+    """A line cannot be followed: no IK solution, a residual too large, or a flip on the way."""
+
+
+@dataclass(frozen=True)
+class Trajectory:
+    """Joint targets (ticks x 6) at the control rate and their TCP poses (ticks x 4 x 4)."""
+
+    joints: np.ndarray
+    tcp: np.ndarray
+    tick: float
+
+    @property
+    def duration(self) -> float:
+        return self.tick * max(len(self.joints) - 1, 0)
+
+
+def trapezoid_duration(distance: float, speed: float, acceleration: float) -> float:
+    """Time of a rest-to-rest move with a trapezoidal (or triangular) speed profile."""
+    if distance <= 0.0:
+        return 0.0
+    ramp = speed / acceleration
+    if distance >= speed * ramp:
+        return distance / speed + ramp
+    return 2.0 * math.sqrt(distance / acceleration)
+
+
+def trapezoid_fraction(t: float, distance: float, speed: float, acceleration: float) -> float:
+    """Fraction of ``distance`` covered at time ``t`` of the trapezoidal profile."""
+    if distance <= 0.0:
+        return 1.0
+    total = trapezoid_duration(distance, speed, acceleration)
+    t = min(max(t, 0.0), total)
+    v_peak = min(speed, math.sqrt(distance * acceleration))
+    ramp = v_peak / acceleration
+    if t < ramp:
+        s = 0.5 * acceleration * t * t
+    elif t <= total - ramp:
+        s = 0.5 * acceleration * ramp * ramp + v_peak * (t - ramp)
+    else:
+        rest = total - t
+        s = distance - 0.5 * acceleration * rest * rest
+    return min(max(s / distance, 0.0), 1.0)
+
+
+def tcp_to_flange(tcp: np.ndarray, tcp_offset: np.ndarray) -> np.ndarray:
+    """Flange pose for a TCP pose; the TCP sits at ``tcp_offset`` in the flange frame."""
+    out = tcp.copy()
+    out[:3, 3] = tcp[:3, 3] - tcp[:3, :3] @ tcp_offset
+    return out
+
+
+def flange_to_tcp(flange: np.ndarray, tcp_offset: np.ndarray) -> np.ndarray:
+    out = flange.copy()
+    out[:3, 3] = flange[:3, 3] + flange[:3, :3] @ tcp_offset
+    return out
+
+
+def plan_line(q_start: np.ndarray, start: np.ndarray, goal: np.ndarray, speed: float, acceleration: float,
+              tick: float, tcp_offset: np.ndarray) -> Trajectory:
+    """Joint trajectory moving the TCP from pose ``start`` to ``goal`` (4x4) along a straight line.
+
+    Raises Unreachable with the reason when some sample has no exact IK solution
+    or the arm would have to flip configuration between two ticks.
+    """
+    p0, p1 = start[:3, 3], goal[:3, 3]
+    r0, r1 = start[:3, :3], goal[:3, :3]
+    rel = matrix_to_rotvec(r0.T @ r1)
+    distance = float(np.linalg.norm(p1 - p0))
+    angle = float(np.linalg.norm(rel))
+    t_lin = trapezoid_duration(distance, speed, acceleration)
+    t_rot = trapezoid_duration(angle, ANGULAR_SPEED, ANGULAR_ACCELERATION)
+    if t_lin >= t_rot:
+        total, prof = t_lin, (distance, speed, acceleration)
+    else:
+        total, prof = t_rot, (angle, ANGULAR_SPEED, ANGULAR_ACCELERATION)
+    ticks = max(int(math.ceil(total / tick)), 1)
+    joints = np.empty((ticks + 1, 6))
+    poses = np.empty((ticks + 1, 4, 4))
+    q_prev = np.asarray(q_start, dtype=float)
+    for i in range(ticks + 1):
+        s = trapezoid_fraction(i * tick, *prof) if i < ticks else 1.0
+        pose = np.eye(4)
+        pose[:3, 3] = p0 + s * (p1 - p0)
+        pose[:3, :3] = r0 @ rotvec_to_matrix(rel * s)
+        flange = tcp_to_flange(pose, tcp_offset)
+        q = kinematics.nearest_solution(kinematics.inverse(flange), q_prev)
+        where = f"TCP ({pose[0, 3]:.3f}, {pose[1, 3]:.3f}, {pose[2, 3]:.3f}) m"
+        if q is None:
+            raise Unreachable(f"no inverse-kinematics solution at {where}")
+        dp, dr = kinematics.pose_error(q, flange)
+        if dp > MAX_POSITION_ERROR or dr > MAX_ROTATION_ERROR:
+            raise Unreachable(f"inverse-kinematics residual {dp * 1000:.2f} mm / {dr:.4f} rad at {where}")
+        if np.max(np.abs(q - q_prev)) > MAX_JOINT_STEP:
+            raise Unreachable(f"the straight line passes a singularity near {where} "
+                              f"(joint jump {np.max(np.abs(q - q_prev)):.2f} rad in one tick)")
+        joints[i] = q
+        poses[i] = pose
+        q_prev = q
+    return Trajectory(joints=joints, tcp=poses, tick=tick)
