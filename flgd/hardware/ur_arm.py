@@ -1,0 +1,441 @@
+"""The UR5e arm through ur_rtde: checked linear moves, fault detection and the documented recovery.
+
+ur_rtde reports most failures by returning False (or by raising from deep in
+C++), so every call goes through one wrapper and every return value is
+checked.  Any fault -- protective stop, emergency stop, lost connection, a
+control script that stopped, an unexplained False -- is *latched*: no motion
+command is sent again until :meth:`URArm.recover` has run the recovery
+sequence and succeeded.
+
+Moves are sent asynchronously (``moveL(..., asynchronous=True)``) and watched
+by polling, so the motion runs on the controller while the calling thread
+stays free to notice faults, and :meth:`URArm.stop_motion` (from a SIGTERM
+handler or another thread) can send ``stopL`` at once.
+
+Recovery sequence (:meth:`URArm.recover`), in this order:
+  1. reconnect the RTDE receive interface if it dropped;
+  2. refuse while an emergency stop is engaged (or a safeguard stop, a safety
+     violation/fault, recovery mode, or the arm is not powered on): those need
+     a person at the cell;
+  3. after a protective stop, wait until at least 5 s have passed since it
+     happened (the controller refuses to unlock sooner), then
+     ``unlockProtectiveStop`` on the dashboard server;
+  4. ``closeSafetyPopup``;
+  5. confirm the safety mode is NORMAL;
+  6. reconnect the RTDE control (and IO) interfaces if needed;
+  7. re-upload the control script if it is not running, and confirm it runs;
+  8. set the TCP again (a new script starts with the installation's TCP).
+Moving home is the cell's job (a checked ``plan_home``).
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from typing import Any, Callable, Protocol, Sequence
+
+import numpy as np
+
+from flgd.cell import CellFault
+from flgd.geometry import rotvec_to_matrix
+from flgd.hardware import hardware_library
+
+__all__ = [
+    "URArm",
+    "RTDEFactory",
+    "URRTDEFactory",
+    "PoseUnreachable",
+    "MotionStopped",
+    "SAFETY_MODES",
+    "PROTECTIVE_STOP_UNLOCK_DELAY",
+]
+
+# RTDE safety_mode values (UR RTDE guide; same numbers as the primary interface).
+SAFETY_MODES = {
+    1: "NORMAL", 2: "REDUCED", 3: "PROTECTIVE_STOP", 4: "RECOVERY", 5: "SAFEGUARD_STOP",
+    6: "SYSTEM_EMERGENCY_STOP", 7: "ROBOT_EMERGENCY_STOP", 8: "VIOLATION", 9: "FAULT",
+    10: "VALIDATE_JOINT_ID", 11: "UNDEFINED_SAFETY_MODE", 12: "AUTOMATIC_MODE_SAFEGUARD_STOP",
+    13: "SYSTEM_THREE_POSITION_ENABLING_STOP",
+}
+_NORMAL, _REDUCED, _PROTECTIVE = 1, 2, 3
+_EMERGENCY = {6, 7}
+_NEEDS_A_PERSON = {
+    4: "the arm is in RECOVERY mode (a joint is outside its limits): move it back on the pendant",
+    5: "a safeguard stop is active (safety input open: door, light curtain?)",
+    8: "the safety system reports a VIOLATION: inspect the cell and restart safety on the pendant",
+    9: "the safety system reports a FAULT: inspect the cell and restart safety on the pendant",
+    12: "an automatic-mode safeguard stop is active",
+    13: "the three-position enabling device stopped the arm",
+}
+# RTDE robot_mode values.
+ROBOT_MODES = {-1: "NO_CONTROLLER", 0: "DISCONNECTED", 1: "CONFIRM_SAFETY", 2: "BOOTING", 3: "POWER_OFF",
+               4: "POWER_ON", 5: "IDLE", 6: "BACKDRIVE", 7: "RUNNING", 8: "UPDATING_FIRMWARE"}
+_ROBOT_RUNNING = 7
+
+PROTECTIVE_STOP_UNLOCK_DELAY = 5.0  # s; the controller refuses "unlock protective stop" sooner
+_UNLOCK_MARGIN = 0.2                # s on top of it, for clock differences with the controller
+STOP_DECELERATION = 10.0            # m/s^2 for stopL (ur_rtde's default)
+POSITION_TOLERANCE = 0.002          # m between a finished move and its target
+ORIENTATION_TOLERANCE = 0.02        # rad
+START_GRACE = 0.5                   # s for an accepted move to show up as running
+MOVE_TIMEOUT_MARGIN = 5.0           # s beyond twice the trapezoidal move time
+CONFIRM_TIMEOUT = 3.0               # s to see NORMAL safety mode / a running script after recovery
+DASHBOARD_TIMEOUT_MS = 2000
+
+
+class PoseUnreachable(Exception):
+    """The controller says a target is outside its safety limits or reach; nothing was sent."""
+
+
+class MotionStopped(Exception):
+    """A move was halted on request (``stop_motion``)."""
+
+
+class RTDEFactory(Protocol):
+    """Builds the four ur_rtde interfaces; tests pass a fake with the same methods."""
+
+    def control(self, host: str) -> Any: ...
+
+    def receive(self, host: str) -> Any: ...
+
+    def io(self, host: str) -> Any: ...
+
+    def dashboard(self, host: str) -> Any: ...
+
+
+class URRTDEFactory:
+    """The real ur_rtde classes, imported on first use."""
+
+    def control(self, host: str) -> Any:
+        return hardware_library("rtde_control").RTDEControlInterface(host)
+
+    def receive(self, host: str) -> Any:
+        return hardware_library("rtde_receive").RTDEReceiveInterface(host)
+
+    def io(self, host: str) -> Any:
+        return hardware_library("rtde_io").RTDEIOInterface(host)
+
+    def dashboard(self, host: str) -> Any:
+        return hardware_library("dashboard_client").DashboardClient(host)
+
+
+def pose_error(actual: Sequence[float], target: Sequence[float]) -> tuple[float, float]:
+    """(position error m, rotation error rad) between two UR poses [x, y, z, rx, ry, rz]."""
+    dp = float(np.linalg.norm(np.asarray(actual[:3], float) - np.asarray(target[:3], float)))
+    r = rotvec_to_matrix(actual[3:6]).T @ rotvec_to_matrix(target[3:6])
+    angle = math.acos(max(-1.0, min(1.0, (float(np.trace(r)) - 1.0) / 2.0)))
+    return dp, angle
+
+
+def move_duration(distance: float, speed: float, acceleration: float) -> float:
+    """Time of a trapezoidal (or triangular) speed profile over ``distance``."""
+    if distance <= 0:
+        return 0.0
+    ramp = speed * speed / acceleration
+    if distance < ramp:
+        return 2.0 * math.sqrt(distance / acceleration)
+    return distance / speed + speed / acceleration
+
+
+class URArm:
+    """One UR arm: connections, checked moves, fault latch, recovery."""
+
+    def __init__(self, host: str, tcp_offset: Sequence[float], *, factory: RTDEFactory | None = None,
+                 use_io: bool = False, clock: Callable[[], float] = time.monotonic,
+                 sleep: Callable[[float], None] = time.sleep, poll_interval: float = 0.008):
+        if not host:
+            raise CellFault("robot.host is empty: set the UR controller's address in the cell config")
+        self.host = host
+        self.tcp = [float(v) for v in tcp_offset] + [0.0, 0.0, 0.0]
+        self._factory = factory or URRTDEFactory()
+        self._use_io = use_io
+        self._clock = clock
+        self._sleep = sleep
+        self._poll = poll_interval
+        self._lock = threading.RLock()  # ur_rtde interfaces are not thread-safe
+        self._stop_requested = threading.Event()
+        self._fault: str | None = None
+        self._protective_since: float | None = None
+        self.control: Any = None
+        self.receive: Any = None
+        self.io: Any = None
+        self.dashboard: Any = None
+
+    # ------------------------------------------------------------------ plumbing
+    def _call(self, iface: Any, method: str, *args: Any) -> Any:
+        """One ur_rtde call under the lock; an exception becomes a CellFault naming the call."""
+        if iface is None:
+            raise CellFault(f"UR {self.host}: not connected (needed for {method})")
+        with self._lock:
+            try:
+                return getattr(iface, method)(*args)
+            except Exception as exc:  # ur_rtde raises RuntimeError and friends from C++
+                raise CellFault(f"UR {self.host}: {method} failed: {type(exc).__name__}: {exc}") from exc
+
+    def _require(self, ok: Any, what: str) -> None:
+        """ur_rtde signals failure by returning False: turn that into a latched fault."""
+        if ok is not True:
+            reason = self.fault_reason()
+            detail = f" ({reason})" if reason else ""
+            self._latch(f"{what} returned {ok!r}{detail}")
+
+    def _latch(self, reason: str) -> None:
+        self._fault = self._fault or reason
+        raise CellFault(f"UR {self.host}: {reason}; no further motion until recovery (flgctl reset)")
+
+    @property
+    def fault(self) -> str | None:
+        """Why the arm is faulted, or None."""
+        return self._fault
+
+    def latch(self, reason: str) -> None:
+        """Latch a fault found elsewhere (e.g. the gripper): the arm will not move until recovery."""
+        self._fault = self._fault or reason
+
+    # ------------------------------------------------------------------ connection
+    def connect(self) -> None:
+        """Open the interfaces; a robot that is not ready leaves a latched fault, not an exception.
+
+        The receive interface and dashboard are opened first: they work whatever
+        the robot's state, so a cell can start (and report) while the arm is
+        protective-stopped.  The control interface uploads its script and needs
+        a running, unlocked arm; it is opened now if possible, else by recover().
+        """
+        try:
+            self.receive = self._factory.receive(self.host)
+        except Exception as exc:
+            raise CellFault(f"UR {self.host}: cannot open the RTDE receive interface: {exc}") from exc
+        try:
+            self.dashboard = self._factory.dashboard(self.host)
+            self._call(self.dashboard, "connect", DASHBOARD_TIMEOUT_MS)
+        except CellFault:
+            raise
+        except Exception as exc:
+            raise CellFault(f"UR {self.host}: cannot open the dashboard client: {exc}") from exc
+        reason = self._state_problem()
+        if reason:
+            self._fault = reason
+            return
+        self._open_control()
+
+    def _open_control(self) -> None:
+        try:
+            self.control = self._factory.control(self.host)
+            if self._use_io:
+                self.io = self._factory.io(self.host)
+        except Exception as exc:
+            self._latch(f"cannot open the RTDE control interface (remote control enabled on the pendant?): {exc}")
+        self._require(self._call(self.control, "setTcp", list(self.tcp)), "setTcp")
+
+    def close(self) -> None:
+        """Stop the control script and drop every connection; safe to call twice."""
+        for iface, methods in ((self.control, ("stopScript", "disconnect")), (self.io, ("disconnect",)),
+                               (self.receive, ("disconnect",)), (self.dashboard, ("disconnect",))):
+            for m in methods:
+                if iface is not None:
+                    try:
+                        self._call(iface, m)
+                    except CellFault:
+                        pass  # closing: the connection may already be gone
+        self.control = self.io = self.receive = self.dashboard = None
+
+    # ------------------------------------------------------------------ state
+    def _state_problem(self) -> str | None:
+        """What keeps the arm from moving right now (robot state only), or None."""
+        rcv = self.receive
+        try:
+            if rcv is None or not self._call(rcv, "isConnected"):
+                return "lost the RTDE receive connection"
+            if self._call(rcv, "isEmergencyStopped"):
+                return "emergency stop engaged"
+            if self._call(rcv, "isProtectiveStopped"):
+                if self._protective_since is None:
+                    self._protective_since = self._clock()
+                return "protective stop"
+            mode = int(self._call(rcv, "getSafetyMode"))
+            if mode == _PROTECTIVE and self._protective_since is None:
+                self._protective_since = self._clock()
+            if mode not in (_NORMAL, _REDUCED):
+                return f"safety mode {SAFETY_MODES.get(mode, mode)}"
+            robot_mode = int(self._call(rcv, "getRobotMode"))
+            if robot_mode != _ROBOT_RUNNING:
+                return (f"robot mode {ROBOT_MODES.get(robot_mode, robot_mode)} (expected RUNNING: power on and "
+                        f"release the brakes on the pendant)")
+        except CellFault as exc:
+            return str(exc)
+        return None
+
+    def fault_reason(self) -> str | None:
+        """Why motion is impossible now: robot state, connections, control script; or None."""
+        problem = self._state_problem()
+        if problem:
+            return problem
+        try:
+            if self.control is None or not self._call(self.control, "isConnected"):
+                return "lost the RTDE control connection"
+            if not self._call(self.control, "isProgramRunning"):
+                return "the ur_rtde control script is not running on the controller"
+        except CellFault as exc:
+            return str(exc)
+        return None
+
+    def check(self) -> None:
+        """Raise CellFault if a fault is latched or present now (and latch it)."""
+        if self._fault:
+            raise CellFault(f"UR {self.host}: in FAULT ({self._fault}); run recovery (flgctl reset) first")
+        reason = self.fault_reason()
+        if reason:
+            self._latch(reason)
+
+    def tcp_pose(self) -> list[float]:
+        pose = self._call(self.receive, "getActualTCPPose")
+        if pose is None or len(pose) != 6 or not all(map(math.isfinite, pose)):
+            self._latch(f"getActualTCPPose returned {pose!r}")
+        return [float(v) for v in pose]
+
+    # ------------------------------------------------------------------ motion
+    def begin(self) -> None:
+        """Forget an earlier stop request (a new plan starts)."""
+        self._stop_requested.clear()
+
+    @property
+    def stop_requested(self) -> bool:
+        return self._stop_requested.is_set()
+
+    def stop_motion(self) -> None:
+        """Halt the arm now (any thread, a signal handler too): stopL and make the running move return."""
+        self._stop_requested.set()
+        self._halt()
+
+    def _halt(self) -> None:
+        if self.control is None:
+            return
+        try:
+            self._call(self.control, "stopL", STOP_DECELERATION)
+        except CellFault:
+            pass  # the arm is already stopped by the controller, or the link is gone
+
+    def move_linear(self, pose: Sequence[float], speed: float, acceleration: float, label: str = "") -> None:
+        """moveL to ``pose`` [x, y, z, rx, ry, rz] and wait until it is there.
+
+        Raises PoseUnreachable (nothing sent), MotionStopped, or CellFault (latched).
+        """
+        what = f"move '{label}'" if label else "move"
+        target = [float(v) for v in pose]
+        if len(target) != 6 or not all(map(math.isfinite, target)):
+            raise PoseUnreachable(f"{what}: target {pose!r} is not six finite numbers")
+        if self._stop_requested.is_set():
+            raise MotionStopped(f"{what}: stop requested")
+        self.check()
+        if self._call(self.control, "isPoseWithinSafetyLimits", target) is not True:
+            self.check()  # a dropped link also answers False
+            raise PoseUnreachable(f"{what}: the controller reports {np.round(target, 4).tolist()} outside its "
+                                  f"safety limits or reach")
+        start_pose = self.tcp_pose()
+        distance = pose_error(start_pose, target)[0]
+        timeout = 2.0 * move_duration(distance, speed, acceleration) + MOVE_TIMEOUT_MARGIN
+        self._require(self._call(self.control, "moveL", target, float(speed), float(acceleration), True),
+                      f"moveL ({what})")
+        self._wait_for_move(target, what, timeout)
+
+    def _async_running(self) -> bool:
+        status = self._call(self.control, "getAsyncOperationProgressEx")
+        return bool(status.isAsyncOperationRunning())
+
+    def _wait_for_move(self, target: list[float], what: str, timeout: float) -> None:
+        start = self._clock()
+        seen_running = False
+        while True:
+            if self._stop_requested.is_set():
+                self._halt()
+                raise MotionStopped(f"{what}: stopped on request")
+            reason = self.fault_reason()
+            if reason:
+                self._halt()
+                self._latch(f"{reason} during {what}")
+            running = self._async_running()
+            seen_running = seen_running or running
+            dp, dr = pose_error(self.tcp_pose(), target)
+            elapsed = self._clock() - start
+            if not running:
+                if dp <= POSITION_TOLERANCE and dr <= ORIENTATION_TOLERANCE:
+                    return
+                if seen_running or elapsed > START_GRACE:
+                    self._latch(f"{what} ended {dp * 1000:.1f} mm / {math.degrees(dr):.1f} deg from its target")
+            if elapsed > timeout:
+                self._halt()
+                self._latch(f"{what} did not finish within {timeout:.1f} s")
+            self._sleep(self._poll)
+
+    def set_tool_output(self, index: int, level: bool) -> None:
+        """Tool digital output through RTDEIOInterface (the RG2's digital-output wiring)."""
+        self.check()
+        self._require(self._call(self.io, "setToolDigitalOut", int(index), bool(level)),
+                      f"setToolDigitalOut({index}, {level})")
+
+    # ------------------------------------------------------------------ recovery
+    def recover(self) -> None:
+        """Run the recovery sequence (module docstring); raise CellFault if it cannot complete."""
+        with self._lock:
+            self._reconnect("receive", self.receive)
+            if self._call(self.receive, "isEmergencyStopped"):
+                raise CellFault(f"UR {self.host}: emergency stop engaged: release it at the cell and "
+                                f"reset again (recovery refused)")
+            mode = int(self._call(self.receive, "getSafetyMode"))
+            if mode in _EMERGENCY:
+                raise CellFault(f"UR {self.host}: safety mode {SAFETY_MODES[mode]}: release the emergency stop "
+                                f"and reset again (recovery refused)")
+            if mode in _NEEDS_A_PERSON:
+                raise CellFault(f"UR {self.host}: {_NEEDS_A_PERSON[mode]} (recovery refused)")
+            if not self._call(self.dashboard, "isConnected"):
+                self._call(self.dashboard, "connect", DASHBOARD_TIMEOUT_MS)
+            if mode == _PROTECTIVE or self._call(self.receive, "isProtectiveStopped"):
+                if self._protective_since is None:
+                    self._protective_since = self._clock()
+                wait = self._protective_since + PROTECTIVE_STOP_UNLOCK_DELAY + _UNLOCK_MARGIN - self._clock()
+                if wait > 0:
+                    self._sleep(wait)
+                try:
+                    self._call(self.dashboard, "unlockProtectiveStop")
+                except CellFault as exc:
+                    raise CellFault(f"UR {self.host}: the dashboard refused to unlock the protective stop: "
+                                    f"{exc}") from exc
+            self._call(self.dashboard, "closeSafetyPopup")
+            self._confirm(lambda: int(self._call(self.receive, "getSafetyMode")) == _NORMAL,
+                          lambda: f"safety mode is "
+                                  f"{SAFETY_MODES.get(int(self._call(self.receive, 'getSafetyMode')))}, "
+                                  f"expected NORMAL after recovery")
+            robot_mode = int(self._call(self.receive, "getRobotMode"))
+            if robot_mode != _ROBOT_RUNNING:
+                raise CellFault(f"UR {self.host}: robot mode {ROBOT_MODES.get(robot_mode, robot_mode)}: power on "
+                                f"and release the brakes on the pendant, then reset again")
+            if self.control is None:
+                self._open_control()
+            else:
+                self._reconnect("control", self.control)
+                if self._use_io:
+                    self._reconnect("io", self.io)
+            if not self._call(self.control, "isProgramRunning"):
+                self._require(self._call(self.control, "reuploadScript"), "reuploadScript")
+            self._confirm(lambda: bool(self._call(self.control, "isProgramRunning")),
+                          lambda: "the ur_rtde control script does not run after re-upload")
+            self._require(self._call(self.control, "setTcp", list(self.tcp)), "setTcp")
+            self._fault = None
+            self._protective_since = None
+            self._stop_requested.clear()
+
+    def _reconnect(self, name: str, iface: Any) -> None:
+        if iface is None:
+            raise CellFault(f"UR {self.host}: the RTDE {name} interface was never opened")
+        if not self._call(iface, "isConnected"):
+            if self._call(iface, "reconnect") is not True:
+                raise CellFault(f"UR {self.host}: cannot reconnect the RTDE {name} interface "
+                                f"(controller unreachable?)")
+
+    def _confirm(self, condition: Callable[[], bool], message: Callable[[], str]) -> None:
+        deadline = self._clock() + CONFIRM_TIMEOUT
+        while not condition():
+            if self._clock() > deadline:
+                raise CellFault(f"UR {self.host}: {message()}")
+            self._sleep(self._poll)
