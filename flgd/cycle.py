@@ -251,20 +251,20 @@ class CycleRunner:
             with timer.phase("execute"):
                 result = self.cell.execute(checked)
                 held = False
-                width = math.nan
                 if action.primitive == "grasp" and result.completed:
                     width = float(result.widths[-1]) if result.widths else math.nan
                     held = grasp_reward(width, self.config.gripper) > 0
-                if result.completed or UNSTABLE_MARK not in result.failure.lower():
-                    if action.primitive == "grasp":
-                        released = self._run_checked(plan_release(held, self.config), "release")
-                        if not released.completed:
-                            raise CellFault(f"could not release after the grasp: {released.failure}")
-                    if not result.completed:
-                        home = self._run_checked(plan_home(self.config), "home")
-                        if not home.completed:
-                            raise CellFault(f"could not return home after a failed {record.kind}: "
-                                            f"{home.failure}")
+                unstable = _unstable(result)
+                if not unstable and action.primitive == "grasp":
+                    released = self._run_checked(plan_release(held, self.config), "release")
+                    unstable = _unstable(released)
+                    if not released.completed and not unstable:
+                        raise CellFault(f"could not release after the grasp: {released.failure}")
+                if not unstable and not result.completed:
+                    home = self._run_checked(plan_home(self.config), "home")
+                    unstable = _unstable(home)
+                    if not home.completed and not unstable:
+                        raise CellFault(f"could not return home after a failed {record.kind}: {home.failure}")
         except CellFault as exc:
             record.outcome = "fault"
             record.failure = str(exc)
@@ -276,9 +276,9 @@ class CycleRunner:
                     pass
             raise
 
-        if not result.completed and UNSTABLE_MARK in result.failure.lower():
+        if unstable:
             record.outcome = "discarded"
-            record.failure = result.failure
+            record.failure = unstable
             self._reset_scene(timer)
             self._commit(finish(), None, timer)
             return finish()
@@ -304,6 +304,11 @@ class CycleRunner:
         else:
             self.current = after
         return finish()
+
+
+def _unstable(result: ExecutionResult) -> str:
+    """The failure text if the cell reported an unstable simulation, else ''."""
+    return result.failure if not result.completed and UNSTABLE_MARK in result.failure.lower() else ""
 
 
 def _float_or_none(v: Any) -> float | None:
