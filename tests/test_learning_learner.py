@@ -181,3 +181,18 @@ def test_a_failing_update_is_reported_and_the_thread_keeps_running():
         assert lrn.running
     finally:
         lrn.stop(timeout=60)
+
+
+def test_learning_is_deterministic_for_a_fixed_seed():
+    def run() -> dict[str, torch.Tensor]:
+        cfg = config(learning_rate=1e-3, seed=3)
+        replay = PrioritizedReplay.from_config(cfg.learning)
+        for i in range(4):
+            replay.add(Transition(scene(i), Action("grasp", 8 + i, 12, i), float(i % 2), scene(i + 1), False))
+        lrn = Learner(cfg, build_network("fast", 16, seed=3), replay)
+        for _ in range(3):
+            lrn.update()
+        return lrn.snapshot().state_dict()
+
+    a, b = run(), run()
+    assert all(torch.equal(a[k], b[k]) for k in a)

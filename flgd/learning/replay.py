@@ -12,7 +12,7 @@ new transition gets the largest raw priority currently stored (1 when empty),
 so it is replayed at least once soon.
 
 Memory: states are stored once and shared (s' of one transition is s of the
-next, detected by identity and content digest), as uint8 colour + float16
+next, detected by a content digest), as uint8 colour + float16
 height (metres; about 0.1 mm resolution at 0.3 m), each zlib-compressed (level
 1).  Raw that is 224*224*(3+2) = 245 KiB per state instead of 2 x 784 KiB per
 transition for float32 s and s'.  Measured with ``state_bytes`` on synthetic
@@ -141,18 +141,15 @@ class _StateStore:
     def __init__(self) -> None:
         self._blobs: dict[bytes, bytes] = {}
         self._refs: dict[bytes, int] = {}
-        self._last: tuple[int, bytes] | None = None  # (id of the last object, its key): skips re-hashing s'
 
     def put(self, hm: Heightmaps) -> bytes:
-        if self._last is not None and self._last[0] == id(hm):
-            key = self._last[1]
-        else:
-            key = _digest(hm)
+        # Always hash the content (about 0.3 ms for 224 x 224): arrays are mutable, so object identity
+        # would not prove equal content.
+        key = _digest(hm)
         if key not in self._blobs:
             self._blobs[key] = pack_heightmaps(hm)
             self._refs[key] = 0
         self._refs[key] += 1
-        self._last = (id(hm), key)
         return key
 
     def get(self, key: bytes) -> Heightmaps:
@@ -163,8 +160,6 @@ class _StateStore:
         if self._refs[key] == 0:
             del self._refs[key]
             del self._blobs[key]
-            if self._last is not None and self._last[1] == key:
-                self._last = None
 
     @property
     def nbytes(self) -> int:
