@@ -14,6 +14,7 @@ import sys
 _COMMANDS: dict[str, tuple[str, str]] = {
     "check-config": ("flgd.check_config:main", "validate a cell config and print the effective values"),
     "bench": ("flgd.cli:bench_main", "run a benchmark: flgd bench NAME [options]"),
+    "calibrate": ("flgd.hardware.calibration:main", "camera-to-base calibration on the real cell"),
     "run": ("flgd.daemon.run:main", "run the cell-controller daemon (foreground; systemd: Type=notify)"),
 }
 
