@@ -1,9 +1,9 @@
 """The D415 backend read through pyrealsense2 itself: a software_device, and a .db3 recording of one.
 
-Frames are rendered by the simulated cell when ``sim_cell.cell`` is present,
-else by the analytic box renderer of ``tests.synthetic_scene``; either way
-the heightmap that comes out of librealsense must match the one made from
-the same frame directly.
+Frames are rendered by the simulated cell (``sim_cell.cell.SimCell``); the
+alignment test, which needs the depth seen from a second imager, uses the
+analytic box renderer of ``tests.synthetic_scene``.  The heightmap that comes
+out of librealsense must match the one made from the same frame directly.
 """
 
 from __future__ import annotations
@@ -11,7 +11,6 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import gc
-import importlib.util
 import threading
 import time
 from pathlib import Path
@@ -43,13 +42,11 @@ def sim_config(**camera_changes) -> CellConfig:
 
 
 def scene_frame(cfg: CellConfig) -> Frame:
-    """A frame of cluttered objects: the simulated cell's camera if it exists, else analytic boxes."""
-    if importlib.util.find_spec("sim_cell.cell") is not None:
-        from sim_cell.cell import SimCell
+    """A frame of clutter rendered by the simulated cell (D415-like noise and holes included)."""
+    from sim_cell.cell import SimCell
 
-        with SimCell(cfg) as cell:
-            return cell.capture()
-    return synthetic_frame(cfg)
+    with SimCell(cfg) as cell:
+        return cell.capture()
 
 
 def synthetic_frame(cfg: CellConfig, camera_pose: np.ndarray | None = None, intrinsics: np.ndarray | None = None,
