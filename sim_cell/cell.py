@@ -247,10 +247,14 @@ class SimCell(Cell):
                 scene = scenes.load_scene(path, vpg_meshes)
             self._clear_objects()
             origin = scenes.workspace_origin(self._ws)
-            for spec in scene.objects:
-                placed = spec.moved(np.asarray(spec.position) + origin, spec.orientation)
-                self._add(placed)
-            self._settle(0.25)
+            try:
+                for spec in scene.objects:
+                    placed = spec.moved(np.asarray(spec.position) + origin, spec.orientation)
+                    self._add(placed)
+                self._settle(0.25)
+            except (_Unstable, ValueError) as exc:
+                self._clear_objects()
+                raise scenes.SceneError(f"scene {scene.source or '<in memory>'}: {exc}") from None
             self.stats["scenes"] += 1
             return len(self._objects)
 
@@ -538,16 +542,32 @@ class SimCell(Cell):
         mass = float(rng.uniform(0.03, 0.15)) if dr else None
         return objects.ObjectSpec(urdf=kind, scale=scale, color=colour, mass=mass, friction=friction)
 
-    def _drop_random_objects(self, n: int) -> None:
+    def make_clutter(self, n: int, spread: float | None = None) -> int:
+        """Replace the objects by ``n`` random ones dropped within +-``spread`` m of the workspace
+        centre (None = the whole workspace); a small spread piles them up.  Returns the count."""
+        with self._lock:
+            self._check_open()
+            self._clear_objects()
+            self._randomise_domain()
+            self._drop_random_objects(n, spread)
+            self.stats["scenes"] += 1
+            return len(self._objects)
+
+    def _drop_random_objects(self, n: int, spread: float | None = None) -> None:
         """Drop ``n`` objects one after another at random places, VPG-style, and let them settle."""
         rng, ws = self._scene_rng, self._ws
+        centre = scenes.workspace_origin(ws)
         attempts = 0
         while len(self._objects) < n and attempts < 3:
             attempts += 1
             for _ in range(n - len(self._objects)):
                 spec = self._random_spec()
-                x = rng.uniform(ws.x[0] + DROP_MARGIN, ws.x[1] - DROP_MARGIN)
-                y = rng.uniform(ws.y[0] + DROP_MARGIN, ws.y[1] - DROP_MARGIN)
+                if spread is None:
+                    x = rng.uniform(ws.x[0] + DROP_MARGIN, ws.x[1] - DROP_MARGIN)
+                    y = rng.uniform(ws.y[0] + DROP_MARGIN, ws.y[1] - DROP_MARGIN)
+                else:
+                    x = centre[0] + rng.uniform(-spread, spread)
+                    y = centre[1] + rng.uniform(-spread, spread)
                 top = max([self._ws.z[0]] + [objects.body_aabb(b, self._client)[1][2] for b in self._objects])
                 z = top + 0.06
                 q = p.getQuaternionFromEuler([float(v) for v in rng.uniform(-math.pi, math.pi, 3)])

@@ -238,7 +238,7 @@ def _urdf_path(name: str) -> Path:
 
 def _urdf_body(client: int, spec: ObjectSpec) -> tuple[int, np.ndarray]:
     path = _urdf_path(spec.urdf)
-    body = p.loadURDF(str(path), list(spec.position), list(spec.orientation), globalScaling=float(spec.scale),
+    body = p.loadURDF(str(path), list(spec.position), [0, 0, 0, 1], globalScaling=float(spec.scale),
                       physicsClientId=client)
     if body < 0:
         raise ValueError(f"object URDF {spec.urdf!r}: pybullet could not load {path}")
@@ -251,6 +251,7 @@ def _urdf_body(client: int, spec: ObjectSpec) -> tuple[int, np.ndarray]:
     pos, orn = p.getBasePositionAndOrientation(body, physicsClientId=client)
     r = np.asarray(p.getMatrixFromQuaternion(orn)).reshape(3, 3)
     corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+    p.resetBasePositionAndOrientation(body, list(spec.position), list(spec.orientation), physicsClientId=client)
     return body, (corners - np.asarray(pos)) @ r
 
 

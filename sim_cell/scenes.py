@@ -216,7 +216,7 @@ def _rz(a: float) -> np.ndarray:
 # the file; the others are axis permutations.  Meshes not listed need no fix.
 VPG_MESH_FRAMES = {
     "0.obj": np.array([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]]),
-    "1.obj": np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [1.0, 0.0, 0.0]]),
+    "1.obj": np.array([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]]),
     "2.obj": _rx(math.radians(-15.4)),
     "7.obj": np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]),
     "8.obj": np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]),

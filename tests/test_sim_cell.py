@@ -1,0 +1,197 @@
+"""The simulated cell: grasps, pushes, bookkeeping, camera conventions, determinism, isolation."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from pathlib import Path
+
+import numpy as np
+import pybullet as p
+import pytest
+
+from flgd.clutter import grasp_reward
+from flgd.config import load_config
+from flgd.geometry import ToolPose
+from flgd.perception import base_to_pixel, frame_heightmaps
+from flgd.plans import MoveL, Plan, plan_grasp, plan_home, plan_push
+from flgd.safety import CheckedPlan, PlanRefused, check_plan
+from sim_cell.cell import SimCell
+from sim_cell.objects import ObjectSpec
+
+REPO = Path(__file__).resolve().parents[1]
+BASE_CFG = load_config(REPO / "cell_config" / "sim.yaml")
+
+
+def make_config(**sim):
+    return dataclasses.replace(BASE_CFG, sim=dataclasses.replace(BASE_CFG.sim, **sim))
+
+
+@pytest.fixture
+def empty_cell():
+    cell = SimCell(make_config(objects=0, depth_noise=False, domain_randomization=False))
+    yield cell
+    cell.close()
+
+
+def cube_at(cell: SimCell, x: float, y: float, size=(0.06, 0.03, 0.03), yaw: float = 0.0) -> int:
+    q = p.getQuaternionFromEuler([0.0, 0.0, yaw])
+    return cell.add_object(ObjectSpec(shape="bar", size=size, color=(0.9, 0.2, 0.1),
+                                      position=(x, y, size[2] / 2 + 0.001), orientation=q))
+
+
+def state(cell: SimCell, body: int):
+    return next((s for s in cell.object_states() if s.body == body), None)
+
+
+def test_grasp_at_centre_across_short_axis_succeeds_and_carries_the_block_out(empty_cell):
+    cfg = empty_cell.config
+    body = cube_at(empty_cell, -0.52, 0.04, yaw=0.3)
+    s = state(empty_cell, body)
+    short_axis = 0.3 + math.pi / 2          # the bar is 6 cm along yaw 0.3, 3 cm across
+    plan = plan_grasp(s.position[0], s.position[1], s.top - cfg.workspace.table_z, short_axis, cfg)
+    result = empty_cell.execute(check_plan(plan, cfg))
+    assert result.completed, result.failure
+    assert len(result.widths) == 1
+    assert abs(result.widths[0] - 0.03) < 0.006          # the fingers rest on the 3 cm faces
+    assert grasp_reward(result.widths[0], cfg.gripper) == 1.0
+    assert empty_cell.gripper_width() == pytest.approx(result.widths[0], abs=1e-3)
+    # opening over the workspace (no place step) carries the held block out
+    empty_cell.execute(check_plan(plan_home(cfg), cfg))
+    assert empty_cell.object_count == 0
+    assert empty_cell.stats["grasped_out"] == 1
+    assert empty_cell.workspace_empty_hint() is True
+
+
+def test_grasp_on_empty_table_fails_by_width(empty_cell):
+    cfg = empty_cell.config
+    result = empty_cell.execute(check_plan(plan_grasp(-0.5, 0.0, 0.0, 0.0, cfg), cfg))
+    assert result.completed, result.failure
+    assert result.widths[0] < cfg.gripper.success_threshold
+    assert grasp_reward(result.widths[0], cfg.gripper) == 0.0
+
+
+def test_grasp_along_the_long_axis_of_a_too_long_bar_fails(empty_cell):
+    cfg = empty_cell.config
+    body = cube_at(empty_cell, -0.5, 0.0, size=(0.10, 0.03, 0.03))
+    s = state(empty_cell, body)
+    result = empty_cell.execute(check_plan(plan_grasp(s.position[0], s.position[1],
+                                                      s.top - cfg.workspace.table_z, 0.0, cfg), cfg))
+    # 10 cm does not fit between 8.5 cm fingers: the fingers land on it (collision stop) or miss
+    assert not result.completed or grasp_reward(result.widths[0], cfg.gripper) == 0.0
+
+
+def test_push_moves_a_free_block_along_theta_and_leaves_distant_blocks(empty_cell):
+    cfg = empty_cell.config
+    target = cube_at(empty_cell, -0.55, -0.05, size=(0.04, 0.04, 0.04))
+    far = cube_at(empty_cell, -0.40, 0.15, size=(0.04, 0.04, 0.04))
+    before_t, before_f = np.array(state(empty_cell, target).position), np.array(state(empty_cell, far).position)
+    theta = math.pi / 4
+    u = np.array([math.cos(theta), math.sin(theta)])
+    start = before_t[:2] - 0.05 * u                    # 5 cm behind the block centre
+    result = empty_cell.execute(check_plan(plan_push(start[0], start[1], theta, cfg), cfg))
+    assert result.completed, result.failure
+    moved = np.array(state(empty_cell, target).position) - before_t
+    along = float(moved[:2] @ u)
+    across = abs(float(moved[0] * -u[1] + moved[1] * u[0]))
+    assert 0.05 <= along <= 0.12
+    assert across < 0.03
+    assert np.linalg.norm(np.array(state(empty_cell, far).position) - before_f) < 0.002
+
+
+def test_unreachable_plan_fails_cleanly_without_moving(empty_cell):
+    cfg = dataclasses.replace(BASE_CFG, safety=dataclasses.replace(BASE_CFG.safety, envelope_x=(-1.5, -0.2)))
+    cell = SimCell(dataclasses.replace(cfg, sim=dataclasses.replace(cfg.sim, objects=0)))
+    try:
+        q0 = cell._robot.joints()
+        far = ToolPose.top_down(-1.2, 0.0, 0.10, 0.0)     # beyond the UR5e's 0.85 m reach
+        plan = Plan("push", (MoveL(far, 0.2, 0.5, "too far"),))
+        result = cell.execute(check_plan(plan, cell.config))
+        assert not result.completed
+        assert "unreachable" in result.failure and "too far" in result.failure
+        assert np.allclose(cell._robot.joints(), q0)
+    finally:
+        cell.close()
+
+
+def test_execute_refuses_a_plan_checked_against_another_envelope(empty_cell):
+    wide = dataclasses.replace(BASE_CFG, safety=dataclasses.replace(BASE_CFG.safety, envelope_x=(-1.5, -0.2)))
+    plan = Plan("push", (MoveL(ToolPose.top_down(-1.0, 0.0, 0.2, 0.0), 0.2, 0.5),))
+    checked = check_plan(plan, wide)
+    with pytest.raises(PlanRefused):
+        empty_cell.execute(checked)
+    with pytest.raises(PlanRefused):
+        empty_cell.execute(CheckedPlan(plan, 0))
+
+
+def test_heightmap_of_a_rendered_block_is_at_the_right_place_and_height(empty_cell):
+    cfg = empty_cell.config
+    cube_at(empty_cell, -0.60, 0.10, size=(0.06, 0.04, 0.05))
+    hm = frame_heightmaps(empty_cell.capture(), cfg.workspace, cfg.camera.depth_range)
+    rows, cols = np.nonzero(hm.height > 0.025)
+    r0, c0 = base_to_pixel(-0.63, 0.08, cfg.workspace)
+    r1, c1 = base_to_pixel(-0.57, 0.12, cfg.workspace)
+    assert abs(cols.min() - c0) <= 2 and abs(cols.max() - c1) <= 2     # 2 px = 4 mm
+    assert abs(rows.min() - r0) <= 2 and abs(rows.max() - r1) <= 2
+    top = float(np.median(hm.height[rows, cols]))
+    assert abs(top - 0.05) < 0.003
+    # the arm at home is out of view: nothing else stands on the table
+    assert np.count_nonzero(hm.height > 0.01) < 1.3 * (0.06 * 0.04) / cfg.workspace.resolution ** 2
+
+
+def test_depth_noise_model_changes_depth_by_millimetres_and_drops_pixels():
+    clean = SimCell(make_config(objects=3, depth_noise=False))
+    noisy = SimCell(make_config(objects=3, depth_noise=True))
+    try:
+        a, b = clean.capture().depth.astype(float), noisy.capture().depth.astype(float)
+        both = (a > 0) & (b > 0)
+        diff = np.abs(a - b)[both]
+        assert 0.5 < np.std(diff) < 5.0                # mm at ~0.7 m
+        assert np.count_nonzero(b == 0) > np.count_nonzero(a == 0) + 200
+    finally:
+        clean.close()
+        noisy.close()
+
+
+def test_same_seed_same_scene_and_frames_two_cells_independent():
+    a = SimCell(make_config(objects=8, seed=7))
+    b = SimCell(make_config(objects=8, seed=7))
+    c = SimCell(make_config(objects=8, seed=8))
+    try:
+        sa, sb = a.object_states(), b.object_states()
+        assert [s.label for s in sa] == [s.label for s in sb]
+        assert np.allclose([s.position for s in sa], [s.position for s in sb])
+        fa, fb = a.capture(), b.capture()
+        assert np.array_equal(fa.color, fb.color) and np.array_equal(fa.depth, fb.depth)
+        assert not np.array_equal(fa.depth, c.capture().depth)
+        # acting in one cell leaves the other untouched
+        cfg = a.config
+        a.execute(check_plan(plan_push(-0.6, -0.1, 0.0, cfg), cfg))
+        assert np.allclose([s.position for s in b.object_states()], [s.position for s in sb])
+        a.close()
+        assert b.capture().depth.shape == (480, 640)
+    finally:
+        for cell in (a, b, c):
+            cell.close()
+
+
+def test_reset_scene_respects_the_object_count_and_unstable_physics_is_reported(empty_cell):
+    empty_cell.set_object_count(12)
+    empty_cell.reset_scene()
+    assert empty_cell.object_count == 12
+    assert not empty_cell.workspace_empty_hint()
+    with pytest.raises(ValueError):
+        empty_cell.set_object_count(-1)
+    # two blocks forced into each other explode; the cell must notice and reset
+    s = empty_cell.object_states()[0]
+    other = empty_cell.object_states()[1]
+    p.resetBasePositionAndOrientation(other.body, s.position, s.orientation, physicsClientId=empty_cell._client)
+    cfg = empty_cell.config
+    result = empty_cell.execute(check_plan(plan_home(cfg), cfg))
+    if result.completed:                       # the overlap was resolved gently: provoke a flying object
+        p.resetBaseVelocity(s.body, [0, 0, 30.0], physicsClientId=empty_cell._client)
+        result = empty_cell.execute(check_plan(plan_push(-0.5, 0.0, 0.0, cfg), cfg))
+    assert not result.completed
+    assert result.failure.startswith("unstable")
+    assert empty_cell.stats["unstable_resets"] >= 1
+    assert empty_cell.object_count == 12      # a fresh scene

@@ -1,0 +1,114 @@
+"""Scene files and VPG test cases in the simulated cell."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+import pybullet
+import pytest
+
+from flgd.config import load_config
+from sim_cell.cell import SimCell, preset_scenes
+from sim_cell.scenes import SceneError, load_scene, load_vpg_test_case, workspace_origin
+
+REPO = Path(__file__).resolve().parents[1]
+VPG = REPO.parent / "shared" / "external" / "vpg"
+CFG = load_config(REPO / "cell_config" / "sim.yaml")
+# Objects of each VPG file whose centre lies in VPG's workspace (not parked at z = -726 and
+# alike, not beside the workspace), counted from the files by hand.
+VPG_COUNTS = {0: 4, 1: 5, 2: 3, 3: 5, 4: 5, 5: 6, 6: 3, 7: 6, 8: 6, 9: 5, 10: 4}
+
+needs_vpg = pytest.mark.skipif(not (VPG / "test-cases").is_dir(), reason=f"VPG data not at {VPG}")
+
+
+@pytest.fixture(scope="module")
+def cell():
+    c = SimCell(dataclasses.replace(CFG, sim=dataclasses.replace(CFG.sim, objects=0, depth_noise=False)))
+    yield c
+    c.close()
+
+
+@needs_vpg
+@pytest.mark.parametrize("case", sorted(VPG_COUNTS))
+def test_vpg_test_case_imports_inside_the_workspace_and_settles(cell, case):
+    path = VPG / "test-cases" / f"test-10-obj-{case:02d}.txt"
+    scene = load_vpg_test_case(path, VPG / "objects" / "blocks")
+    assert len(scene.objects) == VPG_COUNTS[case]
+    assert len(scene.objects) + scene.skipped == 10
+    assert cell.load_scene(scene) == VPG_COUNTS[case]
+    origin = workspace_origin(cell.config.workspace)
+    file_pos = np.array([o.position for o in scene.objects]) + origin
+    start = np.array([s.position for s in cell.object_states()])
+    cell.simulate(1.0)
+    end = np.array([s.position for s in cell.object_states()])
+    assert np.max(np.linalg.norm(end - start, axis=1)) < 0.005
+    assert np.max(np.linalg.norm(end - file_pos, axis=1)) < 0.005
+    ws = cell.config.workspace
+    assert np.all((end[:, 0] > ws.x[0]) & (end[:, 0] < ws.x[1]) & (end[:, 1] > ws.y[0]) & (end[:, 1] < ws.y[1]))
+
+
+def test_save_and_load_round_trip_keeps_objects_and_poses(cell, tmp_path):
+    cell.set_object_count(6)
+    cell.reset_scene()
+    cell.simulate(0.5)
+    before = cell.object_states()
+    path = tmp_path / "scene.yaml"
+    cell.save_scene(path)
+    scene = load_scene(path)
+    assert len(scene.objects) == 6
+    assert cell.load_scene(path) == 6
+    after = cell.object_states()
+    assert [s.label for s in after] == [s.label for s in before]
+    assert np.max(np.linalg.norm(np.array([s.position for s in after]) -
+                                 np.array([s.position for s in before]), axis=1)) < 0.005
+
+
+def test_preset_scenes_are_highly_cluttered_and_stable(cell):
+    presets = preset_scenes()
+    assert len(presets) >= 3
+    for path in presets:
+        n = cell.load_scene(path.name)
+        assert n >= 15
+        start = np.array([s.position for s in cell.object_states()])
+        cell.simulate(0.5)
+        end = np.array([s.position for s in cell.object_states()])
+        assert cell.object_count == n
+        assert np.max(np.linalg.norm(end - start, axis=1)) < 0.01
+
+
+@pytest.mark.parametrize("text, key", [
+    ("format: flgd-scene\nversion: 1\nobjects:\n  - shape: pyramid\n    size: [0.03]\n    position: [0, 0, 0.02]\n",
+     "objects[0].shape"),
+    ("format: flgd-scene\nversion: 1\nobjects:\n  - shape: cube\n    size: [0.03]\n    position: [0, 0]\n",
+     "objects[0].position"),
+    ("format: flgd-scene\nversion: 1\nobjects:\n  - shape: cube\n    size: [0.03]\n    position: [0, 0, 0.02]\n"
+     "    orientation: [0, 0, 0, 2]\n", "objects[0].orientation"),
+    ("format: other\nversion: 1\nobjects: []\n", "format"),
+    ("format: flgd-scene\nversion: 1\nobjects:\n  - mesh: missing.obj\n    position: [0, 0, 0.02]\n",
+     "objects[0].mesh"),
+])
+def test_bad_scene_files_name_the_key(tmp_path, text, key):
+    path = tmp_path / "bad.yaml"
+    path.write_text(text)
+    with pytest.raises(SceneError) as err:
+        load_scene(path)
+    assert key in str(err.value) and str(path) in str(err.value)
+
+
+def test_novel_objects_from_pybullet_data(tmp_path):
+    cfg = dataclasses.replace(CFG, sim=dataclasses.replace(CFG.sim, objects=5, object_set="duck,mug,random_urdfs/00[0-4]/*.urdf"))
+    c = SimCell(cfg)
+    try:
+        assert c.object_count == 5
+        for s in c.object_states():
+            r = np.asarray(pybullet.getMatrixFromQuaternion(s.orientation)).reshape(3, 3)
+            local = (s.points - np.asarray(s.position)) @ r          # back into the object frame
+            ext = local.max(axis=0) - local.min(axis=0)
+            assert 0.02 < ext.max() < 0.11
+    finally:
+        c.close()
+    bad = dataclasses.replace(CFG, sim=dataclasses.replace(CFG.sim, object_set="no_such_thing_*.urdf"))
+    with pytest.raises(ValueError, match="sim.object_set"):
+        SimCell(bad)
