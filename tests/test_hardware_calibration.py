@@ -12,7 +12,7 @@ import pytest
 
 from flgd.cell import ExecutionResult, Frame
 from flgd.config import load_config
-from flgd.geometry import matrix_to_rpy, pose_matrix, rotvec_to_matrix, rpy_to_matrix
+from flgd.geometry import pose_matrix, rpy_to_matrix
 from flgd.hardware.calibration import (CalibrationOptions, check_fit, find_marker, grid_poses, main,
                                        write_calibration)
 from flgd.hardware.calibration_math import CalibrationError, CalibrationFit, fit_camera_pose

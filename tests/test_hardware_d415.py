@@ -12,7 +12,6 @@ import contextlib
 import dataclasses
 import gc
 import threading
-import time
 from pathlib import Path
 
 import numpy as np

@@ -76,7 +76,7 @@ class _FrameSource(abc.ABC):
         """Stop streaming; safe to call twice."""
 
 
-def _has_depth_and_color(rs, frames) -> bool:
+def _has_depth_and_color(frames) -> bool:
     return bool(frames) and bool(frames.get_depth_frame()) and bool(frames.get_color_frame())
 
 
@@ -92,10 +92,9 @@ class _PipelineSource(_FrameSource):
         self.description = description
 
     def wait(self, timeout_s: float):
-        rs = _rs()
         deadline_ms = max(1, int(timeout_s * 1000))
         ok, frames = self._pipeline.try_wait_for_frames(deadline_ms)
-        if ok and _has_depth_and_color(rs, frames):
+        if ok and _has_depth_and_color(frames):
             frames.keep()
             return frames
         return None
@@ -154,14 +153,13 @@ class _SensorSource(_FrameSource):
             raise CameraFault(f"{description}: cannot start streaming: {exc}") from exc
 
     def wait(self, timeout_s: float):
-        rs = _rs()
         remaining_ms = max(1, int(timeout_s * 1000))
         # The syncer may hand out a lone frame before its partner arrives; wait on for the pair.
         while remaining_ms > 0:
             step = min(remaining_ms, 100)
             ok, frames = self._syncer.try_wait_for_frames(step)
             remaining_ms -= step
-            if ok and _has_depth_and_color(rs, frames):
+            if ok and _has_depth_and_color(frames):
                 frames.keep()
                 return frames
         return None
@@ -319,8 +317,8 @@ class D415Camera:
     def from_device(cls, config: CellConfig, device: Any, *, discard_queued: bool = True,
                     warmup_frames: int = 0) -> "D415Camera":
         """Stream an existing ``rs.device`` (a software_device, an ``rs.recorder`` around one, ...)."""
-        cam = config.camera
-        name = device.get_info(_rs().camera_info.name) if device.supports(_rs().camera_info.name) else "device"
+        cam, info = config.camera, _rs().camera_info
+        name = device.get_info(info.name) if device.supports(info.name) else "device"
         source = _SensorSource(device, cam.intrinsics.width, cam.intrinsics.height, cam.fps, f"RealSense {name}")
         return cls(config, source, discard_queued=discard_queued, warmup_frames=warmup_frames)
 
