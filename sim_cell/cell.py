@@ -42,12 +42,14 @@ from flgd.plans import GripperCommand, MeasureWidth, MoveL
 from flgd.safety import CheckedPlan
 from sim_cell import camera as simcam
 from sim_cell import kinematics, motion, objects, scenes, shapes
-from sim_cell.robot import GRIPPER_TCP_OFFSET, READY_JOINTS, SimRobot
+from sim_cell.robot import FINGER_SPEED, GRIPPER_TCP_OFFSET, READY_JOINTS, SimRobot
 
 __all__ = ["SimCell", "ObjectState", "PRESET_DIR", "preset_scenes"]
 
 PRESET_DIR = Path(__file__).resolve().parent / "scenes"
-CONTROL_SUBSTEPS = 4        # physics steps per IK tick (60 Hz control at 240 Hz physics)
+CONTROL_SUBSTEPS = 8        # physics steps per IK tick (30 Hz line samples at 240 Hz physics)
+SOLVER_ITERATIONS = 20      # enough for resting piles, pushes and free fingers
+GRIP_SOLVER_ITERATIONS = 60  # while fingers squeeze an object; fewer let pads sink into it
 FREE_MARGIN = 0.02          # m between the swept gripper box and any object for a free move
 GRIPPER_HALF_SIZE = 0.075   # m, gripper + open fingers around the TCP in x/y
 GRIPPER_TIMEOUT = 0.8       # s for a finger motion to come to rest
@@ -107,6 +109,7 @@ class SimCell(Cell):
         self.stats = {"grasped_out": 0, "left_workspace": 0, "unstable_resets": 0, "scenes": 0}
         self._sim_time = 0.0
         self._steps = 0
+        self._iterations = SOLVER_ITERATIONS
         self._light = ((0.3, -0.2, 1.0), 0.6, 0.4)
         self._camera = simcam.CameraModel.from_config(config.camera)
         ws = config.workspace
@@ -114,7 +117,7 @@ class SimCell(Cell):
         c = self._client
         p.resetSimulation(physicsClientId=c)
         p.setGravity(0, 0, -9.81, physicsClientId=c)
-        p.setPhysicsEngineParameter(fixedTimeStep=self._dt, numSolverIterations=60, deterministicOverlappingPairs=1,
+        p.setPhysicsEngineParameter(fixedTimeStep=self._dt, numSolverIterations=SOLVER_ITERATIONS, deterministicOverlappingPairs=1,
                                     physicsClientId=c)
         half = [(ws.x[1] - ws.x[0]) / 2 + TABLE_MARGIN, (ws.y[1] - ws.y[0]) / 2 + TABLE_MARGIN, 0.05]
         centre = scenes.workspace_origin(ws)
@@ -374,35 +377,94 @@ class SimCell(Cell):
             raise
 
     # -- motions
-    def _is_free(self, traj: motion.Trajectory) -> bool:
-        if self._held or self._touching_gripper():
-            return False
-        pts = traj.tcp[:, :3, 3]
-        lo = pts.min(axis=0) - np.array([GRIPPER_HALF_SIZE, GRIPPER_HALF_SIZE, 0.0]) - FREE_MARGIN
-        hi = pts.max(axis=0) + np.array([GRIPPER_HALF_SIZE, GRIPPER_HALF_SIZE, 0.0]) + FREE_MARGIN
-        lowest = pts[:, 2].min()
-        for body in self._objects:
-            a, b = objects.body_aabb(body, self._client)
-            if a[0] < hi[0] and b[0] > lo[0] and a[1] < hi[1] and b[1] > lo[1] and b[2] + FREE_MARGIN > lowest:
+    def _obstacles(self) -> list[tuple[np.ndarray, np.ndarray]]:
+        """Bounding boxes of every object not held by the gripper."""
+        return [objects.body_aabb(b, self._client) for b in self._objects if b not in self._held]
+
+    def _carry_extent(self, tcp: np.ndarray) -> tuple[float, float]:
+        """(xy half-size around the TCP, depth below the TCP) of the gripper with what it holds."""
+        half, below = GRIPPER_HALF_SIZE, 0.0
+        for body in self._held:
+            lo, hi = objects.body_aabb(body, self._client)
+            half = max(half, float(np.max(np.abs(np.concatenate([lo[:2], hi[:2]]) - np.tile(tcp[:2], 2)))))
+            below = max(below, float(tcp[2] - lo[2]))
+        return half, below
+
+    def _clear(self, pts: np.ndarray, half: float, below: float, boxes) -> bool:
+        """Whether the box swept by the gripper (+ held objects) along ``pts`` keeps FREE_MARGIN to all ``boxes``."""
+        lo = pts.min(axis=0) - (half + FREE_MARGIN)
+        hi = pts.max(axis=0) + (half + FREE_MARGIN)
+        lowest = pts[:, 2].min() - below - FREE_MARGIN
+        for a, b in boxes:
+            if a[0] < hi[0] and b[0] > lo[0] and a[1] < hi[1] and b[1] > lo[1] and b[2] > lowest:
                 return False
         return True
+
+    def _free_span(self, traj: motion.Trajectory, from_end: bool) -> int:
+        """Number of ticks at the start (or end) of a line that cannot touch anything."""
+        pts = traj.tcp[:, :3, 3]
+        half, below = self._carry_extent(self._tcp()[:3, 3])
+        boxes = self._obstacles()
+        n = len(pts)
+        order = range(n - 1, -1, -1) if from_end else range(n)
+        count = 0
+        lo = np.full(3, np.inf)
+        hi = np.full(3, -np.inf)
+        for i in order:
+            lo, hi = np.minimum(lo, pts[i]), np.maximum(hi, pts[i])
+            if not self._clear(np.stack([lo, hi]), half, below, boxes):
+                break
+            count += 1
+        return count
 
     def _touching_gripper(self) -> bool:
         for link in self._robot.gripper_links:
             for cp in p.getContactPoints(bodyA=self._robot.body, linkIndexA=link, physicsClientId=self._client):
-                if cp[2] in self._objects:
+                if cp[2] in self._objects and cp[2] not in self._held:
                     return True
         return False
 
+    def _jump(self, q: np.ndarray, seconds: float) -> None:
+        """Put the arm at ``q`` without physics; held objects move rigidly with the TCP."""
+        c = self._client
+        before = self._tcp()
+        carried = []
+        for body in self._held:
+            pos, orn = p.getBasePositionAndOrientation(body, physicsClientId=c)
+            t = np.eye(4)
+            t[:3, :3] = np.asarray(p.getMatrixFromQuaternion(orn)).reshape(3, 3)
+            t[:3, 3] = pos
+            carried.append((body, np.linalg.inv(before) @ t))
+        self._robot.teleport(q)
+        after = self._tcp()
+        for body, rel in carried:
+            t = after @ rel
+            p.resetBasePositionAndOrientation(body, t[:3, 3].tolist(), objects.quaternion_from_matrix(t[:3, :3]),
+                                              physicsClientId=c)
+            p.resetBaseVelocity(body, [0, 0, 0], [0, 0, 0], physicsClientId=c)
+        self._sim_time += seconds
+
     def _run_line(self, traj: motion.Trajectory) -> None:
-        if self._is_free(traj):
-            self._robot.teleport(traj.joints[-1])
-            self._sim_time += traj.duration
-            return
         joints = traj.joints
         n = len(joints) - 1
+        if n <= 0:
+            return
+        first = 0
+        if not self._touching_gripper():
+            free_head = self._free_span(traj, from_end=False)
+            if free_head >= len(joints):
+                self._jump(joints[-1], traj.duration)
+                return
+            first = max(free_head - 1, 0)
+            if first > 0:
+                self._jump(joints[first], first * traj.tick)
+        last = n - max(self._free_span(traj, from_end=True) - 1, 0)
+        self._set_solver()
         vel = np.diff(joints, axis=0) / traj.tick
-        for i in range(n):
+        for i in range(first, n):
+            if i >= last and i > first and not self._touching_gripper():
+                self._jump(joints[-1], (n - i) * traj.tick)
+                return
             for sub in range(CONTROL_SUBSTEPS):
                 a = (sub + 1) / CONTROL_SUBSTEPS
                 self._robot.command_arm(joints[i] * (1 - a) + joints[i + 1] * a, vel[i])
@@ -440,22 +502,36 @@ class SimCell(Cell):
         opening = width > self._robot.finger_target_width() + 1e-4 or width > self._robot.width() + 1e-3
         if opening and self._held:
             self._release_held()
+        if not self._held and not self._touching_gripper() and self._clear(
+                self._tcp()[None, :3, 3], GRIPPER_HALF_SIZE, 0.0, self._obstacles()):
+            # nothing within reach of the fingers: set them without stepping the physics
+            travel = abs(width - self._robot.width()) / 2.0
+            self._robot.set_fingers(width, force)
+            self._sim_time += travel / FINGER_SPEED
+            return
         self._robot.command_gripper(width, force)
+        self._set_solver(squeeze=width < self._robot.width() - 1e-3)
         steps = int(GRIPPER_TIMEOUT / self._dt)
         for k in range(0, steps, 4):
             self._step(4)
             if k >= 12 and self._robot.finger_speed() < 2e-3:
                 break
 
+    def _set_solver(self, squeeze: bool | None = None) -> None:
+        """More solver iterations only while the fingers press on something (costly otherwise)."""
+        if squeeze is None:
+            squeeze = self._robot.finger_target_width() < self._robot.width() - 2e-3
+        iterations = GRIP_SOLVER_ITERATIONS if squeeze else SOLVER_ITERATIONS
+        if iterations != self._iterations:
+            p.setPhysicsEngineParameter(numSolverIterations=iterations, physicsClientId=self._client)
+            self._iterations = iterations
+
     def _release_held(self) -> None:
-        tcp = self._tcp()[:3, 3]
-        over_workspace = self._ws.x[0] <= tcp[0] <= self._ws.x[1] and self._ws.y[0] <= tcp[1] <= self._ws.y[1]
-        if over_workspace:
-            for body in list(self._held):
-                if body in self._objects:
-                    self._remove(body, "grasped_out")
-            self._held.clear()
-        # outside the workspace the object drops and _remove_outside takes it
+        """Opening the gripper on a held object hands it out of the cell (carried out)."""
+        for body in list(self._held):
+            if body in self._objects:
+                self._remove(body, "grasped_out")
+        self._held.clear()
 
     def _note_held(self) -> None:
         c, rb = self._client, self._robot

@@ -39,6 +39,15 @@ def _dh(theta: float, d: float, a: float, alpha: float) -> np.ndarray:
                      [0.0, 0.0, 0.0, 1.0]])
 
 
+def _rigid_inverse(t: np.ndarray) -> np.ndarray:
+    out = np.empty((4, 4))
+    r = t[:3, :3].T
+    out[:3, :3] = r
+    out[:3, 3] = -r @ t[:3, 3]
+    out[3] = (0.0, 0.0, 0.0, 1.0)
+    return out
+
+
 def forward(q) -> np.ndarray:
     """4x4 flange pose in the base frame for joint angles ``q`` (6 radians)."""
     t = np.eye(4)
@@ -81,7 +90,7 @@ def inverse(target: np.ndarray) -> list[np.ndarray]:
             t01 = _dh(th1, d1, 0.0, _ALPHA[0])
             t45 = _dh(th5, d5, 0.0, _ALPHA[4])
             t56 = _dh(th6, d6, 0.0, _ALPHA[5])
-            t14 = np.linalg.inv(t01) @ t @ np.linalg.inv(t45 @ t56)
+            t14 = _rigid_inverse(t01) @ t @ _rigid_inverse(t45 @ t56)
             # Frame 4 sits d4 along its -y from the end of the planar two-link chain (joints 2, 3).
             p13 = t14 @ np.array([0.0, -d4, 0.0, 1.0])
             px, py = p13[0], p13[1]  # the planar chain lies in frame 1's x-y plane
@@ -95,7 +104,7 @@ def inverse(target: np.ndarray) -> list[np.ndarray]:
                 th2 = math.atan2(py, px) - math.atan2(a3 * math.sin(th3), a2 + a3 * math.cos(th3))
                 t12 = _dh(th2, 0.0, a2, 0.0)
                 t23 = _dh(th3, 0.0, a3, 0.0)
-                t34 = np.linalg.inv(t12 @ t23) @ t14
+                t34 = _rigid_inverse(t12 @ t23) @ t14
                 th4 = math.atan2(t34[1, 0], t34[0, 0])
                 q = np.array([th1, th2, th3, th4, th5, th6])
                 out.append(np.remainder(q + math.pi, 2 * math.pi) - math.pi)

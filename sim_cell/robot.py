@@ -119,6 +119,13 @@ class SimRobot:
         self.command_arm(q)
         self.command_gripper(self._finger_target * 2.0, self._finger_force)
 
+    def set_fingers(self, width: float, force: float) -> None:
+        """Put the fingers at ``width`` at rest and hold them there (nothing in between them)."""
+        half = min(max(width / 2.0, 0.0), 0.055)
+        for j in self.finger_joints:
+            p.resetJointState(self.body, j, half, 0.0, physicsClientId=self.client)
+        self.command_gripper(width, force)
+
     def command_arm(self, q: np.ndarray, qd: np.ndarray | None = None) -> None:
         if qd is None:
             qd = np.zeros(6)
