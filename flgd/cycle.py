@@ -237,7 +237,8 @@ class CycleRunner:
                 checked = check_plan(plan, self.config)
             except PlanRefused as exc:
                 checked = None
-                record.refused = str(exc)
+                # check_plan reports an empty refused plan as "no steps"; the builder's reason says more
+                record.refused = plan.refusal or str(exc)
         if checked is None:
             record.outcome = "refused"
             record.reward = 0.0

@@ -24,6 +24,10 @@ Schema (``SCHEMA_VERSION`` 1), file ``<state_dir>/flgd.sqlite``:
 * ``counters(name PRIMARY KEY, value)`` -- e.g. learner updates.
 * ``meta(key PRIMARY KEY, value)`` -- schema version.
 
+Retention: with ``keep_transitions`` (the daemon passes the replay capacity)
+only the newest transitions and their states are kept, so the file stops
+growing; the action log, events and counters are kept whole.
+
 The step counter is not stored separately: it is ``max(actions.step) + 1``, so
 it can never disagree with the log.
 
@@ -178,9 +182,21 @@ def decode_heightmaps(rows: int, cols: int, color: bytes, height: bytes) -> Heig
 
 
 class Store:
-    """The SQLite store of one state directory.  Thread-safe (one connection behind a lock)."""
+    """The SQLite store of one state directory.  Thread-safe (one connection behind a lock).
 
-    def __init__(self, state_dir: str | os.PathLike):
+    ``keep_transitions``: when set, transitions older than the newest N (the
+    replay capacity) and the states only they used are deleted every
+    ``PRUNE_EVERY`` commits, so a daemon running for weeks does not fill the
+    disk; the action log is kept whole (its ``transition_id`` becomes NULL).
+    """
+
+    PRUNE_EVERY = 64
+
+    def __init__(self, state_dir: str | os.PathLike, keep_transitions: int | None = None):
+        if keep_transitions is not None and keep_transitions < 1:
+            raise ValueError(f"Store.keep_transitions: got {keep_transitions!r}, expected >= 1 or None")
+        self.keep_transitions = keep_transitions
+        self._commits = 0
         self.state_dir = Path(state_dir)
         self.path = self.state_dir / DB_NAME
         self._lock = threading.RLock()
@@ -279,12 +295,29 @@ class Store:
                        [_sql_value(values[c]) for c in cols])
             if pending is not None:
                 db.execute("UPDATE actions SET t_store=? WHERE step=?", (pending[1], pending[0]))
+            if self.keep_transitions is not None and (self._commits + 1) % self.PRUNE_EVERY == 0:
+                self._prune(db, self.keep_transitions)
             self._last_state = new_last
             return tid
 
         out = self._write(write)
         self._pending_store_time = None
+        self._commits += 1
         return out
+
+    @staticmethod
+    def _prune(db: sqlite3.Connection, keep: int) -> None:
+        row = db.execute("SELECT id FROM transitions ORDER BY id DESC LIMIT 1 OFFSET ?", (keep,)).fetchone()
+        if row is None:
+            return
+        cutoff = row[0]
+        db.execute("UPDATE actions SET transition_id=NULL WHERE transition_id <= ?", (cutoff,))
+        db.execute("DELETE FROM transitions WHERE id <= ?", (cutoff,))
+        db.execute("DELETE FROM states WHERE id < (SELECT COALESCE(MIN(state_id), 0) FROM transitions)")
+
+    def prune(self, keep: int) -> None:
+        """Keep only the newest ``keep`` transitions (and their states) now."""
+        self._write(lambda db: self._prune(db, keep))
 
     def note_store_time(self, step: int, seconds: float) -> None:
         """The measured store time of ``step``; written with the next commit."""
@@ -413,6 +446,15 @@ class CheckpointDir:
             return path
         except OSError as exc:
             raise StoreError(_explain(exc, self.directory)) from exc
+
+    def remove_temporary(self) -> int:
+        """Delete temporary files of checkpoint writes interrupted by a kill (never a finished checkpoint)."""
+        if not self.directory.is_dir():
+            return 0
+        stale = [p for p in self.directory.iterdir() if p.name.startswith(".checkpoint-") and p.name.endswith(".tmp")]
+        for p in stale:
+            p.unlink(missing_ok=True)
+        return len(stale)
 
     def checkpoints(self) -> list[Path]:
         """Existing checkpoints, newest first."""

@@ -108,6 +108,25 @@ def test_schema_version_mismatch_is_a_clear_error(tmp_path):
         Store(tmp_path)
 
 
+def test_retention_keeps_the_newest_transitions_and_the_whole_log(tmp_path, monkeypatch):
+    monkeypatch.setattr(Store, "PRUNE_EVERY", 5)
+    store = Store(tmp_path, keep_transitions=7)
+    states = [_hm(i) for i in range(31)]
+    for i in range(30):
+        store.commit_cycle(_row(i), Transition(states[i], Action("grasp", 0, 0, 0), 1.0, states[i + 1], False))
+    assert store.transition_count() == 7  # pruned at commit 30 down to the newest 7
+    read = list(store.iter_transitions())
+    assert [t.step for t in read] == list(range(23, 30))
+    np.testing.assert_array_equal(read[0].state.color, states[23].color)
+    assert store.state_count() == 8  # s23..s30, older ones deleted with their transitions
+    assert len(store.action_log()) == 30 and store.next_step() == 30
+    assert store.query("SELECT COUNT(*) FROM actions WHERE transition_id IS NOT NULL")[0][0] == 7
+    # a state still in use as the next start survives the pruning: the chain continues without a copy
+    store.commit_cycle(_row(30), Transition(states[30], Action("grasp", 0, 0, 0), 1.0, _hm(99), False))
+    assert store.state_count() == 9
+    assert store.integrity_check() == "ok"
+
+
 def test_checkpoint_dir_keeps_the_newest(tmp_path):
     ck = CheckpointDir(tmp_path / "checkpoints", keep=2)
     for u in (10, 20, 30):
@@ -115,6 +134,9 @@ def test_checkpoint_dir_keeps_the_newest(tmp_path):
     names = [p.name for p in ck.checkpoints()]
     assert names == ["checkpoint-0000000030.safetensors", "checkpoint-0000000020.safetensors"]
     assert CheckpointDir.updates_of(ck.checkpoints()[0]) == 30
+    (ck.directory / ".checkpoint-0000000040.safetensors.abc123.tmp").write_text("torn")
+    assert ck.remove_temporary() == 1
+    assert len(list(ck.directory.iterdir())) == 2
 
 
 _WRITER = textwrap.dedent("""

@@ -87,6 +87,12 @@ class Controller:
         """Store, policy, learning stack, cell.  Raises StartupError for what an operator must fix."""
         self._take_state_dir_lock()
         self._open_store()
+        try:
+            removed = self.checkpoints.remove_temporary()
+            if removed:
+                log.info("removed %d unfinished checkpoint file(s) of an interrupted run", removed)
+        except OSError as exc:
+            log.warning("cannot clean %s: %s", self.checkpoints.directory, exc)
         network = self._initial_network()
         self._build_learning(network)
         try:
@@ -118,7 +124,7 @@ class Controller:
 
     def _open_store(self) -> bool:
         try:
-            self.store = Store(self.state_dir)
+            self.store = Store(self.state_dir, keep_transitions=self.config.learning.replay_capacity)
             self.store_problem = ""
             return True
         except StoreError as exc:

@@ -1,0 +1,206 @@
+"""The one cycle on the real simulated cell, the real agent and the store, with injected faults.
+
+``FaultInjectingCell`` wraps a real SimCell and, on request, makes one
+execution fail the way a cell can fail (unstable physics, a CellFault); it
+also counts captures.  ``ScriptedAgent`` wraps the real Agent and replaces
+the decision of chosen steps (to force a refused plan or a push).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from flgd.actions import Action
+from flgd.cell import Cell, CellFault, ExecutionResult, make_cell
+from flgd.clutter import judge_move
+from flgd.config import load_config
+from flgd.cycle import CycleRunner
+from flgd.learning.agent import Agent
+from flgd.learning.networks import build_network
+from flgd.learning.replay import PrioritizedReplay
+from flgd.store import Store
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+class FaultInjectingCell(Cell):
+    """A real SimCell behind a wrapper that can fail the next execution (a fake of the failure modes only)."""
+
+    def __init__(self, inner: Cell):
+        super().__init__(inner.config)
+        self.inner = inner
+        self.captures = 0
+        self.executions = 0
+        self.resets = 0
+        self.fail_next: str | None = None  # "unstable" or "fault"
+
+    def capture(self):
+        self.captures += 1
+        return self.inner.capture()
+
+    def execute(self, plan):
+        self.executions += 1
+        mode, self.fail_next = self.fail_next, None
+        if mode == "fault":
+            raise CellFault("protective stop (injected)")
+        result = self.inner.execute(plan)
+        if mode == "unstable":
+            return ExecutionResult(completed=False, widths=result.widths,
+                                   failure="unstable simulation (injected)", duration=result.duration)
+        return result
+
+    def gripper_width(self):
+        return self.inner.gripper_width()
+
+    def reset_scene(self):
+        self.resets += 1
+        self.inner.reset_scene()
+
+    def recover(self):
+        self.inner.recover()
+
+    def workspace_empty_hint(self):
+        return self.inner.workspace_empty_hint()
+
+    def close(self):
+        self.inner.close()
+
+
+class ScriptedAgent:
+    """The real agent, except that ``script[step]`` builds the action of that step from the heightmap."""
+
+    def __init__(self, agent: Agent, script: dict):
+        self.agent = agent
+        self.script = script
+
+    def decide(self, heightmaps, step):
+        d = self.agent.decide(heightmaps, step)
+        if d is not None and step in self.script:
+            d = dataclasses.replace(d, action=self.script[step](heightmaps), rule="scripted")
+        return d
+
+    def record_outcome(self, action, grasp_success):
+        self.agent.record_outcome(action, grasp_success)
+
+    def maybe_swap_weights(self):
+        return self.agent.maybe_swap_weights()
+
+
+def _setup(tmp_path, objects=3, script=None):
+    cfg = load_config(REPO / "cell_config" / "sim.yaml")
+    cfg = dataclasses.replace(cfg, state_dir=str(tmp_path), sim=dataclasses.replace(cfg.sim, objects=objects, seed=3))
+    cell = FaultInjectingCell(make_cell(cfg))
+    agent = Agent(cfg, build_network(cfg.learning.network, rotations=16, seed=0), seed=0)
+    store = Store(tmp_path)
+    replay = PrioritizedReplay.from_config(cfg.learning)
+    runner = CycleRunner(cfg, cell, ScriptedAgent(agent, script or {}), store=store, replay=replay)
+    return cfg, cell, store, replay, runner
+
+
+def _object_pixel(hm) -> tuple[int, int]:
+    rows, cols = np.nonzero(hm.height > 0.02)
+    k = len(rows) // 2
+    return int(rows[k]), int(cols[k])
+
+
+def test_cycles_chain_states_with_one_capture_each(tmp_path):
+    cfg, cell, store, replay, runner = _setup(tmp_path)
+    try:
+        records = [runner.run_once() for _ in range(5)]
+    finally:
+        cell.close()
+    executed = [r for r in records if r.outcome == "executed"]
+    assert executed, [r.outcome for r in records]
+    for r in executed:
+        assert set(r.timings) >= {"capture", "perceive", "decide", "plan", "execute", "judge", "store"}
+        assert r.reward in (0.0, 0.5, 1.0) and r.step is not None
+    # one capture per executed cycle (its "after", which the next cycle decides on), plus one fresh
+    # capture for the first cycle and after each scene reset
+    fresh = 1 + sum(1 for r in records[:-1] if r.done or r.outcome in ("empty", "discarded"))
+    assert cell.captures == fresh + len(executed)
+    assert len(replay) == store.transition_count() == len(executed)
+    rows = store.query("SELECT state_id, next_state_id, done FROM transitions ORDER BY id")
+    for (s0, n0, done), (s1, _, _) in zip(rows, rows[1:]):
+        if not done:
+            assert n0 == s1  # the next state of t is the state of t+1, stored once
+    log = store.action_log()
+    assert [r["step"] for r in log] == [r.step for r in records if r.step is not None]
+
+
+def test_refused_plan_is_recorded_and_never_sent(tmp_path):
+    off_map = lambda hm: Action("grasp", -5, 10, 0)  # noqa: E731  (outside the heightmap)
+    cfg, cell, store, replay, runner = _setup(tmp_path, script={1: off_map})
+    try:
+        first = runner.run_once()
+        executions = cell.executions
+        rec = runner.run_once()
+    finally:
+        cell.close()
+    assert first.outcome == "executed"
+    assert rec.outcome == "refused" and "outside" in rec.refused and rec.reward == 0.0
+    assert cell.executions == executions  # nothing reached the cell
+    t = list(store.iter_transitions())[-1]
+    assert t.next_state is t.state and t.reward == 0.0  # taught as a no-op failure
+    assert store.action_log()[-1]["refused"] == rec.refused
+
+
+def test_push_is_judged_between_this_frame_and_the_next(tmp_path):
+    def push_at_object(hm):
+        r, c = _object_pixel(hm)
+        return Action("push", r, max(c - 20, 0), 0)
+    cfg, cell, store, replay, runner = _setup(tmp_path, script={0: push_at_object})
+    try:
+        rec = runner.run_once()
+    finally:
+        cell.close()
+    assert rec.outcome == "executed" and rec.kind in ("push", "shift")
+    t = list(store.iter_transitions())[0]
+    j = judge_move(t.state.height, t.next_state.height, cfg.rewards)
+    # the stored heights are quantized to 0.1 mm; the judgement on them agrees with the live one
+    assert (j.mu, j.eta, j.reward) == pytest.approx((rec.mu, rec.eta, rec.reward), abs=3)
+    assert rec.reward == j.reward
+
+
+def test_unstable_execution_is_discarded_and_the_scene_reset(tmp_path):
+    cfg, cell, store, replay, runner = _setup(tmp_path)
+    try:
+        runner.run_once()
+        n_before, resets = store.transition_count(), cell.resets
+        cell.fail_next = "unstable"
+        rec = runner.run_once()
+        assert rec.outcome == "discarded" and "unstable" in rec.failure
+        assert store.transition_count() == n_before and len(replay) == n_before  # never learned from
+        assert cell.resets == resets + 1 and runner.current is None
+        captures = cell.captures
+        runner.run_once()
+        assert cell.captures >= captures + 1  # a fresh capture after the reset
+    finally:
+        cell.close()
+    assert store.action_log()[1]["outcome"] == "discarded"
+
+
+def test_cell_fault_is_logged_and_propagated_without_a_transition(tmp_path):
+    cfg, cell, store, replay, runner = _setup(tmp_path)
+    try:
+        cell.fail_next = "fault"
+        with pytest.raises(CellFault, match="protective stop"):
+            runner.run_once()
+    finally:
+        cell.close()
+    log = store.action_log()
+    assert len(log) == 1 and log[0]["outcome"] == "fault" and "protective stop" in log[0]["failure"]
+    assert store.transition_count() == 0 and len(replay) == 0 and runner.current is None
+
+
+def test_empty_workspace_resets_the_scene_without_a_step(tmp_path):
+    cfg, cell, store, replay, runner = _setup(tmp_path, objects=0)
+    try:
+        rec = runner.run_once()
+    finally:
+        cell.close()
+    assert rec.outcome == "empty" and rec.step is None and runner.step == 0
+    assert cell.resets == 1 and store.action_log() == []
