@@ -94,9 +94,10 @@ class _StatusLine(logging.Handler):
 
 def _terminal_width() -> int:
     try:
-        return os.get_terminal_size(sys.stderr.fileno()).columns
+        columns = os.get_terminal_size(sys.stderr.fileno()).columns
     except OSError:
-        return 100
+        columns = 0
+    return columns if columns > 0 else 100
 
 
 def _parser() -> argparse.ArgumentParser:
