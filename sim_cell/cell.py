@@ -6,29 +6,42 @@ TCP line through closed-form IK and joint position control at the step's
 speed and acceleration, gripper commands drive force-limited fingers, and
 MeasureWidth reads the finger joints.
 
-Speed: moves that provably cannot touch anything are not stepped through the
-physics.  A MoveL is "free" when nothing is held and no object's bounding box
-comes within ``FREE_MARGIN`` of the box swept by the gripper (TCP line
-inflated by the gripper's half-size, from the TCP up).  Its whole line is
-still solved with IK (an unreachable free move fails like any other) and the
-arm is then placed at the end of the line.  Everything else -- descents,
-closing, lifts, pushes, shifts, any move carrying an object -- is simulated
-at ``sim.time_step`` with the motors following the line.
+Speed -- exactly what is shortened (everything else is stepped at ``sim.time_step``):
+  * Free spans of a MoveL.  Every line is solved with IK tick by tick before the
+    arm moves (an unreachable free move fails like any other).  The leading and
+    trailing ticks whose swept box -- TCP path inflated by the gripper's
+    half-size (7.5 cm) and by what it holds, from the TCP (or the held object's
+    bottom) up -- keeps ``FREE_MARGIN`` (2 cm) from every other object's bounding
+    box are not simulated: the arm is placed at the end of that span, and a held
+    object moves rigidly with the TCP.  So the high part of an approach or of a
+    descent, the part of a lift after the object has cleared its neighbours, and
+    the carry home are jumps; the contact part of descend, lift, push, shift and
+    retreat is simulated.  A line that starts with the gripper touching an
+    object is simulated from its start.
+  * Free gripper motions: opening/closing while nothing is held and no object is
+    within the gripper's reach sets the fingers directly.
+  * Solver iterations: 20 normally, 60 while the fingers squeeze something
+    (fewer let the pads sink into a held block and falsify the width).
+  Skipped spans still advance ``sim_time`` by their real duration.
+
+Protective stop: a line that presses the gripper down on an object (> 100 N, or
+an object squeezed > 6 mm into the table or another object -- pybullet's soft
+contacts let a block sink where a real one would stop the arm) stops; the arm
+retreats home and the plan fails with a "collision stop" failure.
 
 Bookkeeping: an object measured as held (touching both pads at a MeasureWidth
-step) is carried out of the workspace: when the gripper opens outside the
-workspace (plan_release's place pose) it drops and is removed as soon as it is
-outside; if the gripper opens above the workspace (the caller skipped the
-place step) it is removed at once.  Any other object whose centre leaves the
-workspace or falls off the table is removed and counted.  An unstable
-simulation (NaNs, objects flying, deep interpenetration) resets the scene and
-fails the plan with a failure text starting with "unstable".
+step) is carried out of the workspace: when the gripper next opens (at the
+place pose of plan_release, or anywhere if the caller skips the place step) it
+is removed and counted in ``stats["grasped_out"]``.  Any other object whose
+centre leaves the workspace or falls off the table is removed and counted in
+``stats["left_workspace"]``.  An unstable simulation (NaNs, objects faster than
+4 m/s or thrown up, interpenetration > 15 mm) resets the scene and fails the
+plan with a failure text starting with "unstable" (``stats["unstable_resets"]``).
 """
 
 from __future__ import annotations
 
 import math
-import time
 from dataclasses import dataclass
 from pathlib import Path
 
