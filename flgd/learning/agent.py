@@ -30,7 +30,6 @@ The returned ``Decision`` carries the masks that were applied.
 
 from __future__ import annotations
 
-import copy
 import threading
 from dataclasses import dataclass
 
