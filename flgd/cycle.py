@@ -143,8 +143,9 @@ class CycleRunner:
         self.backend = backend or config.backend
         self.on_phase = on_phase
         self.current: Heightmaps | None = None
-        self.last_decision: Any = None
-        self.last_heightmaps: Heightmaps | None = None
+        # (heightmaps, decision, step) of the newest decision, replaced as one object so another
+        # thread (a snapshot request) never pairs a decision with the wrong heightmaps
+        self.last_decided: tuple[Heightmaps, Any, int] | None = None
 
     # ------------------------------------------------------------------ helpers
     def forget_state(self) -> None:
@@ -212,7 +213,6 @@ class CycleRunner:
         if self.current is None:
             self.current = self.perceive(timer)
         state = self.current
-        self.last_heightmaps = state
 
         with timer.phase("decide"):
             if hasattr(self.agent, "maybe_swap_weights"):
@@ -221,7 +221,7 @@ class CycleRunner:
         if decision is None:
             self._reset_scene(timer)
             return finish()
-        self.last_decision = decision
+        self.last_decided = (state, decision, self.step)
         action: Action = decision.action
         record.step = self.step
         record.action = action

@@ -53,7 +53,7 @@ def _heat(values: np.ndarray, lo: float, hi: float, mask: np.ndarray, base: np.n
     v = np.nan_to_num((values - lo) / span, nan=0.0, posinf=1.0, neginf=0.0)
     heat = cv2.applyColorMap(np.clip(v * 255.0, 0, 255).astype(np.uint8), cv2.COLORMAP_JET)
     blended = cv2.addWeighted(base, 0.4, heat, 0.6, 0.0)
-    dim = (base.astype(np.float32) * 0.35).astype(np.uint8)
+    dim = (base.astype(np.float32) * 0.6).astype(np.uint8)
     return np.where(mask[..., None] > 0, blended, dim)
 
 

@@ -540,20 +540,18 @@ class Controller:
 
         runner = self.runner
         assert runner is not None
-        decision, hm = runner.last_decision, runner.last_heightmaps
+        last = runner.last_decided
         note = "last decision"
-        if decision is None:
+        if last is None:
             if self.state.state is State.FAULT:
                 raise ProtocolError("failed", "snapshot: no decision yet and the cell is in FAULT")
             return self._in_loop(self._fresh_snapshot)
+        hm, decision, step = last
         image = qmap_picture(hm.color, hm.height, decision.q_maps, decision.grasp_mask, decision.move_mask,
-                             decision.action, caption=f"{note}: step {self._decision_step()} rule {decision.rule}")
-        return {"png_base64": base64.b64encode(encode_png(image)).decode("ascii"), "source": note,
+                             decision.action, caption=f"{note}: step {step}, rule {decision.rule}, "
+                                                  f"Q {decision.q_value:.3f}")
+        return {"png_base64": base64.b64encode(encode_png(image)).decode("ascii"), "source": note, "step": step,
                 "action": dataclasses.asdict(decision.action), "q_value": decision.q_value}
-
-    def _decision_step(self) -> int | None:
-        rec = self.last_record
-        return rec.step if rec is not None else None
 
     def _fresh_snapshot(self) -> dict:
         """Run loop: capture and evaluate the network without acting (no decision state changes)."""
