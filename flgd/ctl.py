@@ -13,6 +13,7 @@ import base64
 import datetime as _dt
 import json
 import os
+import shutil
 import socket
 import sys
 from pathlib import Path
@@ -177,7 +178,8 @@ def _human(command: str, reply: dict, extra: dict) -> str:
     if command == "policy load":
         return f"policy loaded: {r['loaded']}"
     if command == "policy save":
-        return f"policy saved: {r['saved']} ({r['learner_updates']} learner updates)"
+        where = f"{r['copied_to']} (copy of {r['saved']})" if r.get("copied_to") else r["saved"]
+        return f"policy saved: {where} ({r['learner_updates']} learner updates)"
     if command == "backend":
         return f"backend {r['previous']} -> {r['backend']}"
     if command == "stop":
@@ -205,7 +207,7 @@ def main(argv: list[str] | None = None) -> int:
     if command == "policy":
         command = f"policy {args.policy_command}"
         cmd = f"policy_{args.policy_command}"
-        if args.file is not None:
+        if args.policy_command == "load":
             call_args["path"] = os.path.abspath(args.file)
     elif command == "backend":
         call_args["name"] = args.name
@@ -222,6 +224,16 @@ def main(argv: list[str] | None = None) -> int:
         else:
             print(f"flgctl: {exc}", file=sys.stderr)
         return exc.code
+
+    if reply.get("ok") and command == "policy save" and args.file is not None:
+        # the daemon saved inside its state directory; copy it out with this user's permissions
+        try:
+            shutil.copyfile(reply["result"]["saved"], args.file)
+            reply["result"]["copied_to"] = os.path.abspath(args.file)
+        except OSError as exc:
+            print(f"flgctl: the daemon saved {reply['result']['saved']}, but copying it to {args.file} "
+                  f"failed: {exc}", file=sys.stderr)
+            return EXIT_FAILED
 
     if reply.get("ok") and command == "snapshot":
         try:

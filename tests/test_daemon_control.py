@@ -205,6 +205,13 @@ def test_policy_save_then_load_and_a_bad_policy_keeps_the_running_one(idle_daemo
     assert Path(default["saved"]).exists()
     r = idle_daemon.call("policy_load", path="relative.safetensors")
     assert r["error"]["code"] == "bad_request"
+    # the daemon never writes outside its state directory, even when asked directly
+    for outside in (str(tmp_path / "evil.safetensors"), str(idle_daemon.state_dir / ".." / "escape.safetensors")):
+        r = idle_daemon.call("policy_save", path=outside)
+        assert r["error"]["code"] == "bad_request" and "outside the state directory" in r["error"]["message"]
+        assert not Path(outside).exists()
+    inside = idle_daemon.state_dir / "mine.safetensors"
+    assert idle_daemon.ok("policy_save", path=str(inside))["saved"] == str(inside) and inside.exists()
 
 
 def test_backend_swap_failure_keeps_the_old_cell(idle_daemon):

@@ -142,11 +142,15 @@ class Controller:
         from flgd.learning.policy_file import PolicyFileError, load_policy
 
         variant = self.config.learning.network
-        for path in self.checkpoints.checkpoints():
+        existing = self.checkpoints.checkpoints()
+        if existing:
+            # numbering continues above any checkpoint we skip, so pruning never removes the new ones
+            self.resumed_from_updates = CheckpointDir.updates_of(existing[0])
+        for path in existing:
             try:
                 loaded = load_policy(path, expected_variant=variant)
             except PolicyFileError as exc:
-                log.warning("skipping unreadable checkpoint: %s", exc)
+                log.warning("skipping unusable checkpoint: %s", exc)
                 continue
             self.resumed_from_updates = CheckpointDir.updates_of(path)
             self.policy_source = f"checkpoint {path}"
@@ -497,11 +501,18 @@ class Controller:
     def _policy_save(self, path: str | None) -> dict:
         from flgd.learning.policy_file import PolicyFileError, save_policy
 
+        # The daemon writes only inside its state directory: a client of another uid must not be able
+        # to make it overwrite arbitrary files.  flgctl copies a saved policy out with the user's rights.
         if path is None:
-            stamp = _dt.datetime.now(_dt.timezone.utc).strftime("%Y%m%dT%H%M%SZ")
+            stamp = _dt.datetime.now(_dt.timezone.utc).strftime("%Y%m%dT%H%M%S%fZ")
             path = str(self.state_dir / "policies" / f"policy-{stamp}-u{self.learner.updates}.safetensors")
         elif not os.path.isabs(path):
             raise ProtocolError("bad_request", f"policy_save: path must be absolute, got {path!r}")
+        else:
+            real, root = os.path.realpath(path), os.path.realpath(self.state_dir)
+            if os.path.commonpath([real, root]) != root or real == root:
+                raise ProtocolError("bad_request", f"policy_save: {path} is outside the state directory {root}; "
+                                                   "omit the path (flgctl policy save FILE copies the file out)")
         stats = self.summary()
         meta = {"training_steps": int(self.runner.step if self.runner else 0),
                 "cell": self.config.name or self.backend,

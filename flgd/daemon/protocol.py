@@ -45,7 +45,9 @@ stop           --                     any state but STOPPING: stop after the cyc
                                       flush the store and exit
 policy_load    path: str              any state but STOPPING: validate the policy file, then
                                       swap it in between cycles; on failure nothing changes
-policy_save    path: str (optional)   any state but STOPPING: write the acting policy
+policy_save    path: str (optional)   any state but STOPPING: write the acting policy (the
+                                      path must lie inside the state directory; default
+                                      <state_dir>/policies/policy-<time>-u<updates>.safetensors)
 backend        name: str              any state but STOPPING: connect the new cell between
                                       cycles; if it fails, the old cell stays
 snapshot       --                     any state but STOPPING: PNG (base64) of the last
@@ -53,7 +55,9 @@ snapshot       --                     any state but STOPPING: PNG (base64) of th
 =============  =====================  ======================================================
 
 Paths are read and written by the daemon, so they must be absolute and
-accessible to the daemon's user (under systemd: the state directory).
+accessible to the daemon's user; the daemon writes only inside its state
+directory (``flgctl policy save FILE`` lets the daemon save there and copies
+the file out with the caller's own permissions).
 """
 
 from __future__ import annotations
