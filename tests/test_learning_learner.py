@@ -4,6 +4,8 @@ the target-network schedule, checkpoints, and the background thread publishing t
 from __future__ import annotations
 
 import dataclasses
+import os
+import threading
 
 import numpy as np
 import pytest
@@ -141,10 +143,16 @@ def test_target_network_follows_its_schedule_and_checkpoints_are_called():
 
 
 def test_background_learner_publishes_weights_that_the_agent_picks_up():
-    cfg = config(updates_per_action=2)
+    cfg = config(updates_per_action=2, checkpoint_every=1)
     replay = PrioritizedReplay.from_config(cfg.learning)
     agent = Agent(cfg, build_network("fast", 16, seed=0))
-    lrn = Learner(cfg, agent.network, replay, mailbox=agent.mailbox)
+    niceness = []  # of the thread running the updates, seen from the checkpoint callback
+
+    def record_niceness(net, n):
+        niceness.append(os.getpriority(os.PRIO_PROCESS, threading.get_native_id()))
+
+    lrn = Learner(cfg, agent.network, replay, mailbox=agent.mailbox, checkpoint_callback=record_niceness,
+                  thread_nice=5)
     assert lrn.online is not agent.network  # the learner trains its own copy
     lrn.start()
     try:
@@ -156,6 +164,8 @@ def test_background_learner_publishes_weights_that_the_agent_picks_up():
             assert lrn.wait_idle(timeout=120)
             hm = scene(step + 1)
         assert lrn.updates == 6 and lrn.failed_updates == 0
+        main_nice = os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
+        assert niceness == [min(19, main_nice + 5)] * 6  # training yields the CPU to decisions
         assert agent.mailbox.posted >= 1
         agent.decide(hm, 3)
         assert agent.weights_version == 6

@@ -173,3 +173,14 @@ def test_save_is_atomic_a_failed_write_keeps_the_old_file(tmp_path, monkeypatch)
     with pytest.raises(PolicyFileError, match="training_steps"):
         save_policy(path, old, {"training_steps": -1})
     assert os.path.getsize(path) > 0
+
+
+@pytest.mark.parametrize("variant", ["densenet121", "rho-fcn"])
+def test_the_densenet_variants_round_trip_too(tmp_path, variant):
+    net = build_network(variant, 16, seed=1).eval()
+    path = tmp_path / f"{variant}.safetensors"
+    save_policy(path, net, {"training_steps": 5})
+    loaded = load_policy(path, expected_variant=variant)
+    assert loaded.network.variant == variant
+    state = loaded.network.state_dict()
+    assert all(torch.equal(state[k], v) for k, v in net.state_dict().items())

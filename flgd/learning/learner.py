@@ -18,13 +18,16 @@ One update (``update``):
 
 The learner trains its own copy of the network given to it, so the acting
 network is never touched mid-decision; after each run of updates it posts the
-new weights to the agent's ``WeightsMailbox``.
+new weights to the agent's ``WeightsMailbox``.  The background thread lowers
+its own CPU priority (``thread_nice``, Linux per-thread nice) so that on a
+small cell PC a decision preempts training instead of sharing the cores.
 """
 
 from __future__ import annotations
 
 import copy
 import logging
+import os
 import threading
 import time
 from dataclasses import dataclass
@@ -84,7 +87,7 @@ def resolve_device(device: str | torch.device | None) -> torch.device:
 class Learner:
     def __init__(self, config: CellConfig, network: QMapNetwork, replay: PrioritizedReplay,
                  device: str | torch.device | None = None, mailbox: WeightsMailbox | None = None,
-                 checkpoint_callback: CheckpointCallback | None = None) -> None:
+                 checkpoint_callback: CheckpointCallback | None = None, thread_nice: int = 10) -> None:
         lc = config.learning
         if lc.threads > 0:
             torch.set_num_threads(lc.threads)
@@ -100,6 +103,7 @@ class Learner:
                                           weight_decay=lc.weight_decay)
         self.mailbox = mailbox
         self.checkpoint_callback = checkpoint_callback
+        self.thread_nice = thread_nice
         self.updates = 0
         self.failed_updates = 0
         self.last_error: str | None = None
@@ -285,7 +289,18 @@ class Learner:
                 self._cond.wait(remaining)
         return True
 
+    def _lower_priority(self) -> None:
+        """Renice the learner thread (Linux nice values are per thread) so a decision preempts training."""
+        if self.thread_nice <= 0 or not hasattr(os, "setpriority"):
+            return
+        try:
+            tid = threading.get_native_id()
+            os.setpriority(os.PRIO_PROCESS, tid, min(19, os.getpriority(os.PRIO_PROCESS, tid) + self.thread_nice))
+        except OSError as exc:  # not permitted or not supported: train at normal priority
+            log.warning("could not lower the learner thread's priority: %s", exc)
+
     def _run(self) -> None:
+        self._lower_priority()
         while True:
             with self._cond:
                 while not self._stop and self._pending == 0:

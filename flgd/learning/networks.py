@@ -45,13 +45,28 @@ Variants (``VARIANTS``):
   encoder feature (skip), 3x3 conv + ReLU + BN, 1x1 conv to two maps and x4
   bilinear up to the input size.
 
-How ``fast`` was chosen (``flgd bench latency --learning``; 2-core shared CPU,
-medians of 5 runs, same run for all rows; learning = a synthetic "grasp the bar
-across its narrow side" task on 64 x 64 maps, accuracy of the greedy masked
-grasp on 32 held-out scenes after a fixed number of updates, see
-``benchmarks/latency.py``):
+How ``fast`` was chosen (``flgd bench latency --learning --threads 1``, 2-core
+CPU shared with other jobs; the fast rows from one run, densenet121 from a
+second run straight after).  Learning = a synthetic
+task on 64 x 64 maps (one bar per scene at a random multiple of 22.5 deg; a
+grasp succeeds only on the bar's middle with the fingers closing across it),
+64 training scenes x 12 labelled grasps, the real Learner (prioritized replay,
+Huber, Adam, lr 5e-4, batch 4); score = greedy masked grasp success on 32
+held-out scenes, mean of 2 seeds (densenet121: 1 seed).  Decision = 16
+rotations x 2 maps x 224 x 224 incl. masks and argmax, one torch thread.
 
-    see FAST_SELECTION below; the numbers are filled from that benchmark.
+    network       success @100  @200  @300 updates   ms/update (64 px)   decision (224 px)
+    fast w=8          0.13      0.42  0.59               19                0.116 s
+    fast w=12         0.50      0.75  0.89               20                0.200 s
+    fast w=16         0.42      0.72  0.84               37                0.353 s
+    fast w=24         0.58      0.73  0.92               53                0.495 s
+    densenet121       0.69      0.53  0.84              564                4.76 s
+
+Width 12 learns almost as fast per update as width 24 and as the DenseNet,
+at a fraction of the cost per update, and is the widest that stays inside the
+0.25 s decision budget with margin on a loaded machine; width 8 learns
+clearly slower.  (The machine was loaded during that run; see the latency
+benchmark for quiet-machine numbers.)
 """
 
 from __future__ import annotations
