@@ -238,7 +238,7 @@ class CycleRunner:
             except PlanRefused as exc:
                 checked = None
                 # check_plan reports an empty refused plan as "no steps"; the builder's reason says more
-                record.refused = plan.refusal or str(exc)
+                record.refused = str(exc)
         if checked is None:
             record.outcome = "refused"
             record.reward = 0.0

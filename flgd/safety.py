@@ -90,10 +90,10 @@ def check_plan(plan: Plan, config: CellConfig) -> CheckedPlan:
     """Check every step of ``plan``; return it wrapped as checked or raise PlanRefused."""
     if not isinstance(plan, Plan):
         raise PlanRefused(f"not a Plan: {type(plan).__name__}")
-    if not plan.steps:
-        raise PlanRefused("the plan has no steps")
     if plan.refusal:
         raise PlanRefused(plan.refusal)
+    if not plan.steps:
+        raise PlanRefused("the plan has no steps")
     for i, step in enumerate(plan.steps):
         if isinstance(step, MoveL):
             why = _check_move(step, config)
