@@ -10,6 +10,13 @@ so a shared, noisy machine still compares with itself.  One learner update
 online network, one through the target network, the executed rotation(s)
 forward and backward) is timed for the default network.
 
+A third timing repeats the decision while the learner thread trains in the
+same process, the daemon's steady state.  Threads: on a 2-core machine that
+other work shares, one torch thread (``--threads 1``, config
+``learning.threads: 1``) gives stable latencies; two threads are faster on an
+idle machine but collapse when a core is taken (OpenMP workers wait for a
+descheduled peer): 0.57 s instead of 0.09 s per decision in one measurement.
+
 ``--learning`` adds the comparison used to choose the fast network's width:
 a synthetic grasping task on 64 x 64 maps -- one 3 cm bar per scene, at a
 random multiple of 22.5 deg and a random position; a grasp succeeds only on

@@ -162,6 +162,10 @@ class Learner:
             a = t.action
             if a.rotations != self.rotations:
                 raise ValueError(f"transition {k}: action has {a.rotations} rotations, network {self.rotations}")
+            rows_px, cols_px = np.asarray(t.state.height).shape
+            if not (0 <= a.row < rows_px and 0 <= a.col < cols_px):
+                raise ValueError(f"transition {k}: pixel ({a.row}, {a.col}) is outside the {rows_px}x{cols_px} "
+                                 "heightmap")
             these = [a.rotation]
             if not a.is_move:
                 these.append((a.rotation + self.rotations // 2) % self.rotations)
