@@ -226,3 +226,19 @@ def test_posted_weights_are_picked_up_at_the_next_decision():
     for name, tensor in other.state_dict().items():
         assert torch.equal(a.network.state_dict()[name], tensor)
     assert a.maybe_swap_weights() is False  # nothing new
+
+
+def test_the_three_compared_methods_map_to_network_and_masks():
+    from flgd.learning.methods import METHODS, configure_method
+
+    base = CellConfig()
+    flg, dpen, rho = (configure_method(base, m) for m in METHODS)
+    assert (flg.learning.network, flg.exploration.masks) == ("fast", True)
+    assert (dpen.learning.network, dpen.exploration.masks) == ("fast", False)
+    assert (rho.learning.network, rho.exploration.masks) == ("rho-fcn", True)
+    dense = dataclasses.replace(base, learning=dataclasses.replace(base.learning, network="densenet121"))
+    assert configure_method(dense, "DPEN").learning.network == "densenet121"
+    with pytest.raises(ValueError, match="method"):
+        configure_method(base, "VPG")
+    with pytest.raises(ValueError, match="FLG head"):
+        configure_method(rho, "FLG")
