@@ -197,6 +197,7 @@ class ExplorationConfig:
     curriculum_move_probability: float = param(0.2, ge=0.0, le=1.0,
                                                help="chance a chosen move is kept during the curriculum")
     masks: bool = param(True, help="use the grasp/move masks (false = DPEN ablation)")
+    grasp_only: bool = param(False, help="never choose a move (paper's Grasping-only mode, Table II)")
 
 
 @dataclass(frozen=True)

@@ -242,3 +242,22 @@ def test_the_three_compared_methods_map_to_network_and_masks():
         configure_method(base, "VPG")
     with pytest.raises(ValueError, match="FLG head"):
         configure_method(rho, "FLG")
+
+
+def test_grasp_only_never_moves_even_after_failures_or_exploration():
+    height = scene_height()
+    a = agent(config(grasp_only=True, epsilon_start=0.5, epsilon_end=0.5))
+    q = np.zeros((R, 2, N, N), np.float32)
+    q[3, 1, 16, 16] = 5.0  # a move that greedy would take
+    grasp = Action("grasp", 10, 10, 0)
+    rules = set()
+    for step in range(200):
+        a.record_outcome(grasp, False)  # failures keep coming: the two-failures rule must not fire
+        d = a.select(q, height, step)
+        rules.add(d.rule)
+        assert d.action.primitive == "grasp", d
+        a.previous = None
+    assert "epsilon" in rules and "two-failures" not in rules
+    # The same agent without grasp_only takes the move.
+    b = agent(config())
+    assert b.select(q, height, 0).action.is_move

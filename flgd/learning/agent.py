@@ -162,14 +162,16 @@ class Agent:
         if not gmask.any():
             return None
         masked = masked_maps(q, gmask, mmask)
+        if ex.grasp_only:
+            masked[:, 1] = -np.inf
         eps = epsilon_at(step, ex)
         greedy_choice = True
 
-        if self.failed_grasps >= ex.failed_grasps_trigger:
+        if self.failed_grasps >= ex.failed_grasps_trigger and not ex.grasp_only:
             channel, rule = 1, "two-failures"
             index = self._best(masked, 1)
         elif self.rng.random() < eps:
-            channel, rule = int(self.rng.integers(2)), "epsilon"
+            channel, rule = (0 if ex.grasp_only else int(self.rng.integers(2))), "epsilon"
             index = self._random_inside(gmask if channel == 0 else mmask, channel)
             greedy_choice = False
         else:
