@@ -26,6 +26,7 @@ __all__ = [
     "ExecutionResult",
     "Cell",
     "CellFault",
+    "STOPPED_ON_REQUEST",
     "register_cell",
     "make_cell",
     "available_cells",
@@ -75,6 +76,10 @@ class ExecutionResult:
     duration: float = 0.0
 
 
+# ExecutionResult.failure of a plan interrupted by Cell.stop_motion() contains this text.
+STOPPED_ON_REQUEST = "stopped on request"
+
+
 class CellFault(RuntimeError):
     """The cell cannot go on safely (protective stop, lost connection, camera gone ...).
 
@@ -103,6 +108,16 @@ class Cell(abc.ABC):
 
         Implementations must call ``plan.verify(self.config)`` first, so an
         unchecked or tampered plan never moves the arm.
+        """
+
+    def stop_motion(self) -> None:
+        """Halt the motion in flight now; callable from a signal handler or another thread.
+
+        The interrupted ``execute`` returns ``completed=False`` with a failure
+        containing ``STOPPED_ON_REQUEST``; the caller must then send nothing
+        more.  The base implementation does nothing: it suits cells whose
+        plans take a fraction of a second of wall time (the simulation), which
+        simply finish the plan in flight.  A real arm overrides it (stopL).
         """
 
     @abc.abstractmethod

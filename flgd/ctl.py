@@ -126,7 +126,7 @@ def _parser() -> argparse.ArgumentParser:
                         ("reset", "clear a fault, home the arm, new scene in sim (-> IDLE)"),
                         ("status", "state, cause, cycles, policy, learner"),
                         ("stats", "grasp success, picks per hour, moves, faults, cycle-time split"),
-                        ("stop", "stop the daemon after the cycle in flight"),
+                        ("stop", "halt the motion in flight and stop the daemon"),
                         ("ping", "check that the daemon answers")):
         sub.add_parser(name, parents=[common], help=help_)
     pol = sub.add_parser("policy", parents=[common], help="load or save the acting policy")
@@ -183,7 +183,7 @@ def _human(command: str, reply: dict, extra: dict) -> str:
     if command == "backend":
         return f"backend {r['previous']} -> {r['backend']}"
     if command == "stop":
-        return "flgd is stopping after the cycle in flight"
+        return "flgd is stopping: motion halted, store flushed"
     if command == "ping":
         return f"flgd answers (pid {r['pid']}, {reply['state']})"
     return f"{command}: ok, state {reply['state']}"

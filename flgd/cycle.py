@@ -20,11 +20,14 @@ Outcomes of a cycle (``CycleRecord.outcome``):
   * ``fault``     -- the cell raised CellFault: the action is logged, its
     transition dropped, and the CellFault re-raised for the caller.
   * ``empty``     -- there was nothing to act on: the scene was reset; no step.
+  * ``stopped``   -- ``request_stop`` interrupted the action: the arm was halted
+    where it was, nothing more is sent, the action is logged and not learned from.
 """
 
 from __future__ import annotations
 
 import math
+import threading
 import time
 from dataclasses import dataclass, field
 from typing import Any, Callable
@@ -32,7 +35,7 @@ from typing import Any, Callable
 import numpy as np
 
 from flgd.actions import Action
-from flgd.cell import Cell, CellFault, ExecutionResult
+from flgd.cell import STOPPED_ON_REQUEST, Cell, CellFault, ExecutionResult
 from flgd.clutter import grasp_mask, grasp_reward, judge_move
 from flgd.config import CellConfig
 from flgd.perception import Heightmaps, frame_heightmaps
@@ -146,8 +149,18 @@ class CycleRunner:
         # (heightmaps, decision, step) of the newest decision, replaced as one object so another
         # thread (a snapshot request) never pairs a decision with the wrong heightmaps
         self.last_decided: tuple[Heightmaps, Any, int] | None = None
+        self._stop = threading.Event()
 
     # ------------------------------------------------------------------ helpers
+    def request_stop(self) -> None:
+        """Halt the motion in flight and send nothing more (any thread, signal handlers too)."""
+        self._stop.set()
+        self.cell.stop_motion()
+
+    @property
+    def stop_requested(self) -> bool:
+        return self._stop.is_set()
+
     def forget_state(self) -> None:
         """The next cycle starts from a fresh capture (after a reset, a swap of cell or agent)."""
         self.current = None
@@ -172,6 +185,8 @@ class CycleRunner:
 
     def _run_checked(self, plan: Any, what: str) -> ExecutionResult:
         """Check and run a follow-up plan (release, home); a refusal here is a cell fault."""
+        if self._stop.is_set():
+            return ExecutionResult(False, [], f"{what}: {STOPPED_ON_REQUEST}")
         try:
             checked = check_plan(plan, self.config)
         except PlanRefused as exc:
@@ -197,6 +212,15 @@ class CycleRunner:
             self.store.note_store_time(record.step, record.timings["store"])
         if timer.on_phase is not None:
             timer.on_phase("store")
+
+    def _stopped(self, record: CycleRecord, why: str, finish: Callable[[], CycleRecord],
+                 timer: _Timer) -> CycleRecord:
+        """A stop request interrupted the action: log it, learn nothing, forget the (moved) scene."""
+        record.outcome = "stopped"
+        record.failure = why if STOPPED_ON_REQUEST in why else f"{why}: {STOPPED_ON_REQUEST}"
+        self.forget_state()
+        self._commit(finish(), None, timer)
+        return finish()
 
     # ------------------------------------------------------------------ the cycle
     def run_once(self) -> CycleRecord:
@@ -248,9 +272,13 @@ class CycleRunner:
             self._commit(finish(), _make_transition(state, action, 0.0, state, False), timer)
             return finish()
 
+        if self._stop.is_set():
+            return self._stopped(record, "before execution", finish, timer)
         try:
             with timer.phase("execute"):
                 result = self.cell.execute(checked)
+                if _was_stopped(result) or self._stop.is_set():
+                    return self._stopped(record, result.failure or "after execution", finish, timer)
                 held = False
                 if action.primitive == "grasp" and result.completed:
                     width = float(result.widths[-1]) if result.widths else math.nan
@@ -258,11 +286,15 @@ class CycleRunner:
                 unstable = _unstable(result)
                 if not unstable and action.primitive == "grasp":
                     released = self._run_checked(plan_release(held, self.config), "release")
+                    if _was_stopped(released):
+                        return self._stopped(record, released.failure, finish, timer)
                     unstable = _unstable(released)
                     if not released.completed and not unstable:
                         raise CellFault(f"could not release after the grasp: {released.failure}")
                 if not unstable and not result.completed:
                     home = self._run_checked(plan_home(self.config), "home")
+                    if _was_stopped(home):
+                        return self._stopped(record, home.failure, finish, timer)
                     unstable = _unstable(home)
                     if not home.completed and not unstable:
                         raise CellFault(f"could not return home after a failed {record.kind}: {home.failure}")
@@ -305,6 +337,10 @@ class CycleRunner:
         else:
             self.current = after
         return finish()
+
+
+def _was_stopped(result: ExecutionResult) -> bool:
+    return not result.completed and STOPPED_ON_REQUEST in result.failure
 
 
 def _unstable(result: ExecutionResult) -> str:

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from flgd.actions import Action
-from flgd.cell import Cell, CellFault, ExecutionResult, make_cell
+from flgd.cell import STOPPED_ON_REQUEST, Cell, CellFault, ExecutionResult, make_cell
 from flgd.clutter import judge_move
 from flgd.config import load_config
 from flgd.cycle import CycleRunner
@@ -36,7 +36,9 @@ class FaultInjectingCell(Cell):
         self.captures = 0
         self.executions = 0
         self.resets = 0
-        self.fail_next: str | None = None  # "unstable" or "fault"
+        self.fail_next: str | None = None  # "unstable", "fault", "stop-mid-motion" or "stop-after-motion"
+        self.stop_during: CycleRunner | None = None  # whose request_stop a "stop-*" mode calls
+        self.stop_motion_calls = 0
 
     def capture(self):
         self.captures += 1
@@ -47,7 +49,12 @@ class FaultInjectingCell(Cell):
         mode, self.fail_next = self.fail_next, None
         if mode == "fault":
             raise CellFault("protective stop (injected)")
+        if mode == "stop-mid-motion":  # SIGTERM arrives during the motion; the arm halts where it is
+            self.stop_during.request_stop()
+            return ExecutionResult(completed=False, widths=[], failure=f"step 2 (descend): {STOPPED_ON_REQUEST}")
         result = self.inner.execute(plan)
+        if mode == "stop-after-motion":  # SIGTERM arrives just as the plan completed
+            self.stop_during.request_stop()
         if mode == "unstable":
             return ExecutionResult(completed=False, widths=result.widths,
                                    failure="unstable simulation (injected)", duration=result.duration)
@@ -55,6 +62,9 @@ class FaultInjectingCell(Cell):
 
     def gripper_width(self):
         return self.inner.gripper_width()
+
+    def stop_motion(self):
+        self.stop_motion_calls += 1
 
     def reset_scene(self):
         self.resets += 1
@@ -204,3 +214,24 @@ def test_empty_workspace_resets_the_scene_without_a_step(tmp_path):
         cell.close()
     assert rec.outcome == "empty" and rec.step is None and runner.step == 0
     assert cell.resets == 1 and store.action_log() == []
+
+
+@pytest.mark.parametrize("mode", ["stop-mid-motion", "stop-after-motion"])
+def test_a_stop_request_halts_the_action_and_sends_nothing_more(tmp_path, mode):
+    """SIGTERM during (or right after) a grasp: no release, no home, nothing learned, the action logged."""
+    def grasp_object(hm):
+        r, c = _object_pixel(hm)
+        return Action("grasp", r, c, 0)
+    cfg, cell, store, replay, runner = _setup(tmp_path, script={0: grasp_object, 1: grasp_object})
+    try:
+        cell.stop_during, cell.fail_next = runner, mode
+        rec = runner.run_once()
+        assert rec.outcome == "stopped" and STOPPED_ON_REQUEST in rec.failure
+        assert cell.executions == 1 and cell.stop_motion_calls == 1  # the grasp only: no release, no home
+        assert store.transition_count() == 0 and len(replay) == 0 and runner.current is None
+        assert store.action_log()[-1]["outcome"] == "stopped"
+        # Once stopped, a further cycle sends nothing either.
+        again = runner.run_once()
+        assert again.outcome == "stopped" and cell.executions == 1
+    finally:
+        cell.close()

@@ -120,6 +120,9 @@ def test_kill_9_at_random_points_then_resume(daemon_factory, tmp_path):
         # let some cycles and updates happen, then kill at a random moment (maybe mid-cycle, mid-checkpoint)
         target = st["cycles"] + rng.randint(1, 4)
         d.wait_for(lambda s: s["cycles"] >= target, f"run {run}: {target} cycles", poll=0.1)
+        if run == 0:  # the resume checks below need one checkpoint; a loaded machine may be slow to learn
+            d.wait_for(lambda s: any((state_dir / "checkpoints").glob("checkpoint-*.safetensors")),
+                       "a first checkpoint", poll=0.1)
         time.sleep(rng.uniform(0.0, 1.5))
         d.kill9()
     store = Store(state_dir)

@@ -138,54 +138,28 @@ class Controller:
 
     def _initial_network(self) -> Any:
         """Resume from the newest readable checkpoint; else the given policy; else a fresh network."""
-        from flgd.learning.networks import build_network
-        from flgd.learning.policy_file import PolicyFileError, load_policy
+        from flgd.learning.policy_file import PolicyFileError
+        from flgd.wiring import starting_network
 
-        variant = self.config.learning.network
-        existing = self.checkpoints.checkpoints()
-        if existing:
-            # numbering continues above any checkpoint we skip, so pruning never removes the new ones
-            self.resumed_from_updates = CheckpointDir.updates_of(existing[0])
-        for path in existing:
-            try:
-                loaded = load_policy(path, expected_variant=variant)
-            except PolicyFileError as exc:
-                log.warning("skipping unusable checkpoint: %s", exc)
-                continue
-            self.resumed_from_updates = CheckpointDir.updates_of(path)
-            self.policy_source = f"checkpoint {path}"
-            self.last_checkpoint = str(path)
-            log.info("resuming from %s (%d learner updates)", path, self.resumed_from_updates)
-            return loaded.network
-        if self.policy_arg:
-            try:
-                loaded = load_policy(self.policy_arg, expected_variant=variant)
-            except PolicyFileError as exc:
-                raise StartupError(str(exc)) from exc
-            self.policy_source = f"policy {self.policy_arg}"
-            return loaded.network
-        self.policy_source = f"fresh {variant} network (seed {self.config.learning.seed})"
-        return build_network(variant, rotations=self.config.learning.rotations, seed=self.config.learning.seed)
+        try:
+            start = starting_network(self.config, self.checkpoints, self.policy_arg)
+        except PolicyFileError as exc:
+            raise StartupError(str(exc)) from exc
+        self.resumed_from_updates = start.resumed_from_updates
+        self.policy_source = start.source
+        if start.checkpoint is not None:
+            self.last_checkpoint = str(start.checkpoint)
+        return start.network
 
     def _build_learning(self, network: Any) -> None:
-        from flgd.learning.agent import Agent
-        from flgd.learning.learner import Learner
-        from flgd.learning.replay import PrioritizedReplay, Transition
+        from flgd.wiring import build_agent_and_learner, rebuild_replay
 
-        lc = self.config.learning
-        self.replay = PrioritizedReplay.from_config(lc)
-        if self.store is not None:
-            try:
-                for st in self.store.iter_transitions(limit=lc.replay_capacity):
-                    self.replay.add(Transition(st.state, st.action, st.reward, st.next_state, st.done),
-                                    st.priority)
-            except StoreError as exc:
-                self.store_problem = str(exc)
-        log.info("replay rebuilt with %d transitions", len(self.replay))
-        self.agent = Agent(self.config, network, seed=lc.seed)
-        self.learner = Learner(self.config, network, self.replay, mailbox=self.agent.mailbox,
-                               checkpoint_callback=self._write_checkpoint)
-        self.learner.updates = self.resumed_from_updates
+        self.replay, problem = rebuild_replay(self.config, self.store)
+        if problem:
+            self.store_problem = problem
+        self.agent, self.learner = build_agent_and_learner(
+            self.config, network, self.replay, checkpoint_callback=self._write_checkpoint,
+            updates=self.resumed_from_updates)
 
     # ================================================================== checkpoints
     def _write_checkpoint(self, network: Any, updates: int) -> None:
@@ -295,10 +269,13 @@ class Controller:
             return fut.result()
 
     def request_stop(self, cause: str) -> None:
+        """STOPPING: halt the motion in flight (the cell decelerates and holds), send nothing more."""
         try:
             self.state.transition(State.STOPPING, cause)
         except IllegalTransition:
             return
+        if self.runner is not None:
+            self.runner.request_stop()
         self._wake.set()
 
     def _on_state_change(self, change: StateChange) -> None:

@@ -41,7 +41,7 @@ start          --                     IDLE, PAUSED -> RUNNING
 pause          --                     RUNNING -> PAUSED (the cycle in flight completes)
 reset          --                     IDLE, PAUSED, FAULT: clear a fault (cell.recover),
                                       home the arm, new scene in sim -> IDLE
-stop           --                     any state but STOPPING: stop after the cycle in flight,
+stop           --                     any state but STOPPING: halt the motion in flight and stop,
                                       flush the store and exit
 policy_load    path: str              any state but STOPPING: validate the policy file, then
                                       swap it in between cycles; on failure nothing changes

@@ -17,7 +17,7 @@ from __future__ import annotations
 import time
 from typing import Any, Callable
 
-from flgd.cell import Cell, CellFault, ExecutionResult, Frame
+from flgd.cell import STOPPED_ON_REQUEST, Cell, CellFault, ExecutionResult, Frame
 from flgd.config import CellConfig
 from flgd.plans import GripperCommand, MeasureWidth, MoveL, plan_home
 from flgd.safety import CheckedPlan, check_plan
@@ -97,7 +97,7 @@ class UR5eCell(Cell):
                 except PoseUnreachable as exc:
                     return ExecutionResult(False, widths, f"{where}: {exc}", self._clock() - start)
                 except MotionStopped:
-                    return ExecutionResult(False, widths, f"{where}: stopped on request", self._clock() - start)
+                    return ExecutionResult(False, widths, f"{where}: {STOPPED_ON_REQUEST}", self._clock() - start)
                 except GripperFault as exc:
                     self.arm.latch(f"gripper: {exc}")
                     raise CellFault(f"{where}: {exc}") from exc
