@@ -17,7 +17,12 @@ Speed -- exactly what is shortened (everything else is stepped at ``sim.time_ste
     descent, the part of a lift after the object has cleared its neighbours, and
     the carry home are jumps; the contact part of descend, lift, push, shift and
     retreat is simulated.  A line that starts with the gripper touching an
-    object is simulated from its start.
+    object it does not carry is simulated from its start.  What the gripper
+    carries is what is squeezed between both pads (side contacts), measured or
+    not; a freshly gripped object is simulated for the first
+    ``CARRY_TRIAL_TICKS`` (0.33 s) of the line after the grip and must still be
+    between the pads before its carry becomes a jump, so a grip too weak for
+    the object still slips and fails by width.
   * Free gripper motions: opening/closing while nothing is held and no object is
     within the gripper's reach sets the fingers directly.
   * Solver iterations: 20 normally, 60 while the fingers squeeze something
@@ -28,6 +33,15 @@ Protective stop: a line that presses the gripper down on an object (> 100 N, or
 an object squeezed > 6 mm into the table or another object -- pybullet's soft
 contacts let a block sink where a real one would stop the arm) stops; the arm
 retreats home and the plan fails with a "collision stop" failure.
+
+Shift press: a shift presses the closed fingers ``robot.shift_press`` into the
+object's top on purpose, so that friction drags it (paper III-A).  Rigid
+position control would squeeze the block through the 6 mm rule every time;
+instead the press is compliant, like the real fingertips and wrist: once an
+object is squeezed more than ``YIELD_DEPTH`` (3 mm), the rest of the plan's
+targets rise by the excess, up to ``shift_press`` in total.  A press that the
+give cannot absorb (the surface height was read too low) still stops the arm
+by the same 6 mm / 100 N rule.  Grasps and pushes get no give.
 
 Bookkeeping: an object measured as held (touching both pads at a MeasureWidth
 step) is carried out of the workspace: when the gripper next opens (at the
@@ -65,10 +79,13 @@ SOLVER_ITERATIONS = 20      # enough for resting piles, pushes and free fingers
 GRIP_SOLVER_ITERATIONS = 60  # while fingers squeeze an object; fewer let pads sink into it
 FREE_MARGIN = 0.02          # m between the swept gripper box and any object for a free move
 GRIPPER_HALF_SIZE = 0.075   # m, gripper + open fingers around the TCP in x/y
+CARRY_TRIAL_TICKS = 10      # control ticks (0.33 s) a freshly gripped object is simulated before a jump
+SIDE_CONTACT_NZ = 0.5       # |vertical part| of a pad contact normal below which it is a side (gripping) contact
 GRIPPER_TIMEOUT = 0.8       # s for a finger motion to come to rest
 MAX_OBJECT_SPEED = 4.0      # m/s; faster = unstable
 MAX_PENETRATION = 0.015     # m
 PRESS_DEPTH = 0.006           # m an object may be squeezed into the table/another object
+YIELD_DEPTH = 0.003           # m of squeeze at which an intended press starts to give way
 PROTECTIVE_STOP_FORCE = 100.0  # N of vertical push on the gripper that stops the arm (UR: 150 N at the TCP)
 TABLE_MARGIN = 0.15         # m of table beyond the workspace on each side
 DROP_MARGIN = 0.05          # m inside the workspace edge where random objects are dropped
@@ -119,6 +136,9 @@ class SimCell(Cell):
         self._natural_sizes: dict[str, float] = {}
         self._objects: dict[int, objects.SpawnedObject] = {}
         self._held: set[int] = set()
+        self._carry_tried: set[int] = set()   # gripped objects whose grip survived a simulated trial carry
+        self._press_allowance = 0.0           # m of intended press of the running plan (a shift's press)
+        self._press_yield = 0.0               # m the compliant wrist has given way during that press
         self.stats = {"grasped_out": 0, "left_workspace": 0, "unstable_resets": 0, "scenes": 0}
         self._sim_time = 0.0
         self._steps = 0
@@ -171,7 +191,8 @@ class SimCell(Cell):
 
     def execute(self, plan: CheckedPlan) -> ExecutionResult:
         """Run a checked plan; ``duration`` is the simulated time the motions took."""
-        steps = plan.verify(self.config).steps
+        planned = plan.verify(self.config)
+        steps = planned.steps
         with self._lock:
             self._check_open()
             t0 = self._sim_time
@@ -181,6 +202,10 @@ class SimCell(Cell):
                 return ExecutionResult(completed=False, failure=f"unreachable: {exc}; the arm did not move",
                                        duration=0.0)
             widths: list[float] = []
+            # A shift presses the closed fingers ``robot.shift_press`` into the object's top on purpose:
+            # that much extra squeeze is the intended press, not a collision.
+            self._press_allowance = self.config.robot.shift_press if planned.primitive == "shift" else 0.0
+            self._press_yield = 0.0
             try:
                 for i, step in enumerate(steps):
                     if isinstance(step, MoveL):
@@ -191,16 +216,19 @@ class SimCell(Cell):
                         widths.append(self.gripper_width())
                         self._note_held()
             except _CollisionStop as exc:
+                self._press_allowance = self._press_yield = 0.0
                 self._go_home()
                 return ExecutionResult(completed=False, widths=widths,
                                        failure=f"collision stop: {exc}; the arm retreated home",
                                        duration=self._sim_time - t0)
             except _Unstable as exc:
+                self._press_allowance = self._press_yield = 0.0
                 self.stats["unstable_resets"] += 1
                 self.reset_scene()
                 return ExecutionResult(completed=False, widths=widths,
                                        failure=f"unstable simulation ({exc}); scene reset",
                                        duration=self._sim_time - t0)
+            self._press_allowance = self._press_yield = 0.0
             self._remove_outside()
             return ExecutionResult(completed=True, widths=widths, duration=self._sim_time - t0)
 
@@ -390,14 +418,31 @@ class SimCell(Cell):
             raise
 
     # -- motions
-    def _obstacles(self) -> list[tuple[np.ndarray, np.ndarray]]:
-        """Bounding boxes of every object not held by the gripper."""
-        return [objects.body_aabb(b, self._client) for b in self._objects if b not in self._held]
+    def _between_pads(self) -> set[int]:
+        """Objects squeezed between the finger pads right now (gripped, whether or not measured yet):
+        touched by both pads through side contacts.  Closed fingers pressing on a top face (a shift)
+        touch it from above and do not count."""
+        c, rb = self._client, self._robot
+        sides = []
+        for link in rb.finger_links:
+            sides.append({cp[2] for cp in p.getContactPoints(bodyA=rb.body, linkIndexA=link, physicsClientId=c)
+                          if abs(cp[7][2]) < SIDE_CONTACT_NZ})
+            if not sides[-1]:
+                return set()
+        return {b for b in sides[0] & sides[1] if b in self._objects}
 
-    def _carry_extent(self, tcp: np.ndarray) -> tuple[float, float]:
-        """(xy half-size around the TCP, depth below the TCP) of the gripper with what it holds."""
+    def _in_gripper(self) -> set[int]:
+        """What moves with the gripper: the measured held objects plus whatever is between the pads."""
+        return self._held | self._between_pads()
+
+    def _obstacles(self, carried: set[int]) -> list[tuple[np.ndarray, np.ndarray]]:
+        """Bounding boxes of every object not carried by the gripper."""
+        return [objects.body_aabb(b, self._client) for b in self._objects if b not in carried]
+
+    def _carry_extent(self, tcp: np.ndarray, carried: set[int]) -> tuple[float, float]:
+        """(xy half-size around the TCP, depth below the TCP) of the gripper with what it carries."""
         half, below = GRIPPER_HALF_SIZE, 0.0
-        for body in self._held:
+        for body in carried:
             lo, hi = objects.body_aabb(body, self._client)
             half = max(half, float(np.max(np.abs(np.concatenate([lo[:2], hi[:2]]) - np.tile(tcp[:2], 2)))))
             below = max(below, float(tcp[2] - lo[2]))
@@ -413,11 +458,11 @@ class SimCell(Cell):
                 return False
         return True
 
-    def _free_span(self, traj: motion.Trajectory, from_end: bool) -> int:
+    def _free_span(self, traj: motion.Trajectory, carried: set[int], from_end: bool) -> int:
         """Number of ticks at the start (or end) of a line that cannot touch anything."""
         pts = traj.tcp[:, :3, 3]
-        half, below = self._carry_extent(self._tcp()[:3, 3])
-        boxes = self._obstacles()
+        half, below = self._carry_extent(self._tcp()[:3, 3], carried)
+        boxes = self._obstacles(carried)
         n = len(pts)
         order = range(n - 1, -1, -1) if from_end else range(n)
         count = 0
@@ -430,27 +475,27 @@ class SimCell(Cell):
             count += 1
         return count
 
-    def _touching_gripper(self) -> bool:
-        for link in self._robot.gripper_links:
-            for cp in p.getContactPoints(bodyA=self._robot.body, linkIndexA=link, physicsClientId=self._client):
-                if cp[2] in self._objects and cp[2] not in self._held:
-                    return True
+    def _touching_gripper(self, carried: set[int]) -> bool:
+        """Whether the gripper touches any object it does not carry."""
+        for cp in p.getContactPoints(bodyA=self._robot.body, physicsClientId=self._client):
+            if cp[3] in self._robot.gripper_links and cp[2] in self._objects and cp[2] not in carried:
+                return True
         return False
 
-    def _jump(self, q: np.ndarray, seconds: float) -> None:
-        """Put the arm at ``q`` without physics; held objects move rigidly with the TCP."""
+    def _jump(self, q: np.ndarray, seconds: float, carried: set[int]) -> None:
+        """Put the arm at ``q`` without physics; carried objects move rigidly with the TCP."""
         c = self._client
         before = self._tcp()
-        carried = []
-        for body in self._held:
+        moving = []
+        for body in carried:
             pos, orn = p.getBasePositionAndOrientation(body, physicsClientId=c)
             t = np.eye(4)
             t[:3, :3] = np.asarray(p.getMatrixFromQuaternion(orn)).reshape(3, 3)
             t[:3, 3] = pos
-            carried.append((body, np.linalg.inv(before) @ t))
+            moving.append((body, np.linalg.inv(before) @ t))
         self._robot.teleport(q)
         after = self._tcp()
-        for body, rel in carried:
+        for body, rel in moving:
             t = after @ rel
             p.resetBasePositionAndOrientation(body, t[:3, 3].tolist(), objects.quaternion_from_matrix(t[:3, :3]),
                                               physicsClientId=c)
@@ -462,37 +507,68 @@ class SimCell(Cell):
         n = len(joints) - 1
         if n <= 0:
             return
+        carried = self._in_gripper()
+        # gripped but not yet carried through a trial: its first ticks are simulated so a weak grip can slip
+        on_trial = carried - self._held - self._carry_tried
         first = 0
-        if not self._touching_gripper():
-            free_head = self._free_span(traj, from_end=False)
+        if not on_trial and not self._touching_gripper(carried):
+            free_head = self._free_span(traj, carried, from_end=False)
             if free_head >= len(joints):
-                self._jump(joints[-1], traj.duration)
+                self._jump(joints[-1], traj.duration, carried)
                 return
             first = max(free_head - 1, 0)
             if first > 0:
-                self._jump(joints[first], first * traj.tick)
-        last = n - max(self._free_span(traj, from_end=True) - 1, 0)
+                self._jump(joints[first], first * traj.tick, carried)
+        last = n - max(self._free_span(traj, carried, from_end=True) - 1, 0)
         self._set_solver()
-        vel = np.diff(joints, axis=0) / traj.tick
+        target = self._yielded(traj, first)
         for i in range(first, n):
-            if i >= last and i > first and not self._touching_gripper():
-                self._jump(joints[-1], (n - i) * traj.tick)
+            if i >= last and i > first and self._may_jump(carried, on_trial, i - first):
+                self._jump(joints[-1], (n - i) * traj.tick, carried)
                 return
+            nxt = self._yielded(traj, i + 1)
+            vel = (nxt - target) / traj.tick
             for sub in range(CONTROL_SUBSTEPS):
                 a = (sub + 1) / CONTROL_SUBSTEPS
-                self._robot.command_arm(joints[i] * (1 - a) + joints[i + 1] * a, vel[i])
+                self._robot.command_arm(target * (1 - a) + nxt * a, vel)
                 self._step(1)
+            target = nxt
             force, depth = self._pressing()
-            if force > PROTECTIVE_STOP_FORCE or depth > PRESS_DEPTH:
+            give = self._press_allowance - self._press_yield
+            if force > PROTECTIVE_STOP_FORCE or depth > PRESS_DEPTH + give:
                 self._robot.command_arm(self._robot.joints())
                 raise _CollisionStop(f"the gripper pressed down with {force:.0f} N, squeezing an object "
                                      f"{depth * 1000:.0f} mm into what it rests on")
-        self._robot.command_arm(joints[-1])
+            if give > 0.0 and depth > YIELD_DEPTH:
+                # an intended press (a shift) is compliant: the wrist gives way up to the planned press
+                self._press_yield += min(depth - YIELD_DEPTH, give)
+        end = self._yielded(traj, n)
+        self._robot.command_arm(end)
         # let the servos close the last tracking error
         for _ in range(10):
-            if np.max(np.abs(self._robot.joints() - joints[-1])) < 2e-4:
+            if np.max(np.abs(self._robot.joints() - end)) < 2e-4:
                 break
             self._step(2)
+
+    def _yielded(self, traj: motion.Trajectory, i: int) -> np.ndarray:
+        """Joint target of tick ``i``, raised by the give of a compliant press (see ``_press_yield``)."""
+        if self._press_yield <= 0.0:
+            return traj.joints[i]
+        pose = traj.tcp[i].copy()
+        pose[2, 3] += self._press_yield
+        q = kinematics.nearest_solution(kinematics.inverse(motion.tcp_to_flange(pose, self._tcp_offset)),
+                                        traj.joints[i])
+        return traj.joints[i] if q is None else q
+
+    def _may_jump(self, carried: set[int], on_trial: set[int], simulated_ticks: int) -> bool:
+        """Whether the rest of a line (already known to be clear of obstacles) may be a jump: the
+        gripper touches nothing it does not carry, and a freshly gripped object has been carried
+        for ``CARRY_TRIAL_TICKS`` and is still between both pads (it did not slip)."""
+        if on_trial:
+            if simulated_ticks < CARRY_TRIAL_TICKS or not on_trial <= self._between_pads():
+                return False
+            self._carry_tried |= on_trial
+        return not self._touching_gripper(carried)
 
     def _pressing(self) -> tuple[float, float]:
         """(vertical force on the gripper N, deepest object penetration m while the gripper
@@ -515,8 +591,9 @@ class SimCell(Cell):
         opening = width > self._robot.finger_target_width() + 1e-4 or width > self._robot.width() + 1e-3
         if opening and self._held:
             self._release_held()
-        if not self._held and not self._touching_gripper() and self._clear(
-                self._tcp()[None, :3, 3], GRIPPER_HALF_SIZE, 0.0, self._obstacles()):
+        self._carry_tried.clear()
+        if not self._in_gripper() and not self._touching_gripper(set()) and self._clear(
+                self._tcp()[None, :3, 3], GRIPPER_HALF_SIZE, 0.0, self._obstacles(set())):
             # nothing within reach of the fingers: set them without stepping the physics
             travel = abs(width - self._robot.width()) / 2.0
             self._robot.set_fingers(width, force)
