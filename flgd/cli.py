@@ -16,6 +16,7 @@ _COMMANDS: dict[str, tuple[str, str]] = {
     "bench": ("flgd.cli:bench_main", "run a benchmark: flgd bench NAME [options]"),
     "calibrate": ("flgd.hardware.calibration:main", "camera-to-base calibration on the real cell"),
     "run": ("flgd.daemon.run:main", "run the cell-controller daemon (foreground; systemd: Type=notify)"),
+    "eval": ("flgd.evaluation.cli:main", "evaluate a policy in simulation (VPG's metrics, scene sets, Q-maps)"),
 }
 
 

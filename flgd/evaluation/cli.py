@@ -1,0 +1,200 @@
+"""``flgd eval``: evaluate a policy in the simulated cell on scene files, random clutter or named scene sets.
+
+Bad input (config, policy file, scene file, object set, output path) is
+reported as ``flgd eval: <what is wrong>`` with exit code 1 before anything is
+simulated; usage errors exit 2; Ctrl-C exits 130.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+__all__ = ["main", "EXIT_OK", "EXIT_ERROR", "EXIT_INTERRUPTED"]
+
+EXIT_OK, EXIT_ERROR, EXIT_INTERRUPTED = 0, 1, 130
+
+
+def _parser() -> argparse.ArgumentParser:
+    from flgd.evaluation.evaluator import DEFAULT_ACTIONS_PER_OBJECT
+    from flgd.evaluation.metrics import FAILURE_LIMIT
+    from flgd.evaluation.scene_sets import CLUTTER_COUNT, SCENE_SETS
+
+    sets = "; ".join(f"{k}: {v}" for k, v in SCENE_SETS.items())
+    p = argparse.ArgumentParser(
+        prog="flgd eval",
+        description="Evaluate a policy in the simulated cell with VPG's metrics: completion (cleared without more "
+                    f"than {FAILURE_LIMIT} consecutive failed actions), grasp success (successful grasps / "
+                    "attempts), action efficiency (objects / actions over completed runs), moves by kind.",
+        epilog=f"scene sets: {sets}.")
+    p.add_argument("--config", required=True, help="cell config YAML (backend: sim)")
+    who = p.add_mutually_exclusive_group(required=True)
+    who.add_argument("--policy", help="policy file (.safetensors) to evaluate")
+    who.add_argument("--fresh", action="store_true",
+                     help="evaluate an untrained network of the config's learning.network (a baseline)")
+    p.add_argument("--scenes", nargs="+", default=[], metavar="FILE",
+                   help="scene files: the project's YAML, preset names (pile-20-a) or VPG test cases (.txt)")
+    p.add_argument("--objects", metavar="GLOB",
+                   help="random clutter of these objects: 'blocks', pybullet_data globs "
+                        "('random_urdfs/0[0-9][0-9]/*.urdf') or names ('duck,teddy,mug')")
+    p.add_argument("--count", type=int, default=CLUTTER_COUNT,
+                   help=f"objects per random clutter (--objects, novel-clutter, urdf-clutter; default {CLUTTER_COUNT})")
+    p.add_argument("--set", dest="sets", action="append", default=[], choices=list(SCENE_SETS), metavar="NAME",
+                   help="a named scene set (repeatable): " + ", ".join(SCENE_SETS))
+    p.add_argument("--vpg", metavar="DIR", default=os.environ.get("FLGD_VPG_DIR"),
+                   help="a copy of VPG's files (test-cases/ and objects/blocks/) for --set vpg-hard "
+                        "(default: $FLGD_VPG_DIR)")
+    p.add_argument("--vpg-meshes", metavar="DIR",
+                   help="VPG's block meshes for .txt scenes (default: objects/blocks next to the test cases)")
+    p.add_argument("--runs", type=int, default=3, help="runs per scene (default 3)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the scenes, sensor noise and policy (default 0)")
+    learn = p.add_mutually_exclusive_group()
+    learn.add_argument("--learn", dest="learn", action="store_true",
+                       help="explore and learn online as the daemon does (epsilon from the policy's training steps)")
+    learn.add_argument("--no-learn", dest="learn", action="store_false",
+                       help="frozen policy, greedy (epsilon 0; anti-repeat and two-failures rules on) [default]")
+    p.set_defaults(learn=False)
+    p.add_argument("--grasp-only", action="store_true",
+                   help="never move (exploration.grasp_only: the paper's Grasping-only mode, Table II)")
+    p.add_argument("--max-actions", type=int,
+                   help=f"actions per run before it is stopped (default {DEFAULT_ACTIONS_PER_OBJECT} per object)")
+    p.add_argument("--json", metavar="OUT", help="write the report as JSON")
+    p.add_argument("--png", metavar="OUT", help="write the summary bars as PNG (default: next to --json)")
+    p.add_argument("--save-qmaps", metavar="DIR", help="write a Q-map picture of every action into DIR")
+    p.add_argument("--quiet", action="store_true", help="no per-run progress lines")
+    return p
+
+
+def _fail(message: str) -> int:
+    print(f"flgd eval: {message}", file=sys.stderr)
+    return EXIT_ERROR
+
+
+def _collect_scenes(args: argparse.Namespace) -> list[Any]:
+    from flgd.evaluation.scene_sets import check_scene, clutter_scene, named_set, scene_from_argument
+
+    scenes = [scene_from_argument(s, args.vpg_meshes) for s in args.scenes]
+    if args.objects is not None:
+        scenes.append(clutter_scene(args.objects, args.count))
+    for name in args.sets:
+        scenes.extend(named_set(name, args.vpg, args.count))
+    for spec in scenes:
+        check_scene(spec)
+    return scenes
+
+
+def _prepare_output(path: str | None, what: str) -> Path | None:
+    if path is None:
+        return None
+    out = Path(path)
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise OSError(f"{what} {out}: cannot create its directory ({exc.strerror or exc})") from None
+    if out.is_dir():
+        raise OSError(f"{what} {out}: is a directory, expected a file path")
+    if not os.access(out.parent, os.W_OK):
+        raise OSError(f"{what} {out}: directory {out.parent} is not writable")
+    return out
+
+
+def _progress(quiet: bool):
+    def show(spec: Any, log: Any) -> None:
+        if quiet:
+            return
+        from flgd.evaluation.metrics import run_result
+
+        res = run_result(log)
+        print(f"  {spec.name} run {log.run + 1}: {log.end}{' (completed)' if res.completed else ''}, "
+              f"{res.actions} actions, {res.grasp_successes}/{res.grasp_attempts} grasps, "
+              f"{res.moves['push']} push, {res.moves['shift']} shift, {log.objects_left}/{log.objects} objects "
+              f"left ({log.seconds:.1f} s)", file=sys.stderr, flush=True)
+    return show
+
+
+def main(argv: list[str]) -> int:
+    args = _parser().parse_args(argv)
+    from flgd.config import ConfigError, load_config
+    from flgd.evaluation.evaluator import EvalOptions, EvaluationError, Evaluator
+    from flgd.evaluation.report import build_report, format_table, summary_picture
+    from flgd.evaluation.scene_sets import SceneSetError
+
+    if not (args.scenes or args.objects is not None or args.sets):
+        return _fail("nothing to evaluate: give --scenes FILE..., --objects GLOB [--count N] or --set NAME")
+    for name, value, lo in (("--runs", args.runs, 1), ("--max-actions", args.max_actions, 1),
+                            ("--seed", args.seed, 0)):
+        if value is not None and value < lo:
+            return _fail(f"{name}: got {value}, expected >= {lo}")
+    try:
+        config = load_config(args.config)
+    except ConfigError as exc:
+        return _fail(str(exc))
+    try:
+        scenes = _collect_scenes(args)
+    except SceneSetError as exc:
+        return _fail(str(exc))
+    try:
+        json_out = _prepare_output(args.json, "--json")
+        png_out = _prepare_output(args.png, "--png") or (json_out.with_suffix(".png") if json_out else None)
+        qmap_dir = Path(args.save_qmaps) if args.save_qmaps else None
+        if qmap_dir is not None:
+            qmap_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        return _fail(str(exc))
+
+    network, policy = _load_network(args, config)
+    if network is None:
+        return _fail(policy["error"])
+    options = EvalOptions(runs=args.runs, seed=args.seed, learn=args.learn, grasp_only=args.grasp_only,
+                          max_actions=args.max_actions, save_qmaps=qmap_dir)
+    t0 = time.perf_counter()
+    try:
+        with Evaluator(config, network, options, training_steps=int(policy.get("training_steps", 0)),
+                       progress=_progress(args.quiet)) as evaluator:
+            results = evaluator.evaluate(scenes)
+    except (EvaluationError, ValueError) as exc:
+        return _fail(str(exc))
+    except KeyboardInterrupt:
+        print("flgd eval: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    report = build_report(results, policy=policy, config=str(args.config),
+                          options={"runs": options.runs, "seed": options.seed, "learn": options.learn,
+                                   "grasp_only": options.grasp_only, "max_actions": options.max_actions,
+                                   "failure_limit": options.failure_limit},
+                          seconds=time.perf_counter() - t0)
+    print(format_table(report))
+    try:
+        if json_out is not None:
+            json_out.write_text(json.dumps(report, indent=2) + "\n", encoding="utf-8")
+        if png_out is not None:
+            from flgd.visualize import write_png
+
+            write_png(png_out, summary_picture(report))
+    except OSError as exc:
+        return _fail(f"cannot write the report: {exc}")
+    return EXIT_OK
+
+
+def _load_network(args: argparse.Namespace, config: Any) -> tuple[Any, dict[str, Any]]:
+    """(network, policy description) or (None, {"error": message})."""
+    if args.fresh:
+        from flgd.learning.networks import build_network
+
+        lc = config.learning
+        net = build_network(lc.network, rotations=lc.rotations, seed=args.seed)
+        return net, {"path": f"fresh {lc.network} network (seed {args.seed})", "variant": lc.network,
+                     "training_steps": 0}
+    from flgd.learning.policy_file import PolicyFileError, load_policy
+
+    try:
+        loaded = load_policy(args.policy)
+    except PolicyFileError as exc:
+        return None, {"error": str(exc)}
+    meta = loaded.metadata
+    return loaded.network, {"path": str(args.policy), "variant": meta["variant"],
+                            "training_steps": meta["training_steps"], "weights_sha256": meta["weights_sha256"]}

@@ -1,0 +1,276 @@
+"""Running a policy on scenes in the simulated cell, run by run, through the one cycle (CycleRunner).
+
+Each run: put the scene into the cell (load the file, or drop new random
+clutter), forget the agent's episode state, then cycle until the run ends:
+
+* ``cleared``           -- the workspace is empty;
+* ``nothing-graspable`` -- objects are left but none shows in the grasp mask;
+* ``failures``          -- more than ``failure_limit`` consecutive failed actions
+  (VPG's test rule; see ``flgd.evaluation.metrics``);
+* ``action-limit``      -- ``max_actions`` actions (default 5 per object);
+* ``unstable`` / ``fault`` -- the simulator gave up (not counted in the rates).
+
+Frozen evaluation (the default) acts greedily: epsilon = 0 and no curriculum,
+while the anti-repeat and two-failures rules stay on -- they are part of the
+policy.  With ``learn`` the agent explores and learns online exactly as the
+daemon does: epsilon continues from the policy's training steps, and every
+transition goes to a replay trained by a background ``Learner``.  Nothing is
+written to the config's state directory.
+
+The cycle resets the scene when the workspace is empty; here that only marks
+the end of the run (``EpisodeCell``), so that the next run's scene is exactly
+the one asked for.  Runs are reproducible for the same command line: one
+simulated cell per object set, seeded with ``seed``, and scenes in order.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import re
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable
+
+from flgd.cell import Cell, CellFault, Frame
+from flgd.config import CellConfig
+from flgd.cycle import CycleRecord, CycleRunner
+from flgd.evaluation.metrics import FAILURE_LIMIT, ActionEntry, RunLog
+from flgd.evaluation.scene_sets import SceneSpec
+from flgd.safety import CheckedPlan
+
+__all__ = ["EvalOptions", "EvaluationError", "EpisodeCell", "Evaluator", "evaluation_config",
+           "DEFAULT_ACTIONS_PER_OBJECT"]
+
+DEFAULT_ACTIONS_PER_OBJECT = 5
+
+
+class EvaluationError(RuntimeError):
+    """The evaluation cannot go on (the simulated cell cannot be created or recovered)."""
+
+
+@dataclass(frozen=True)
+class EvalOptions:
+    runs: int = 3
+    seed: int = 0
+    learn: bool = False
+    grasp_only: bool = False
+    max_actions: int | None = None        # per run; None = DEFAULT_ACTIONS_PER_OBJECT per object
+    failure_limit: int = FAILURE_LIMIT
+    save_qmaps: Path | None = None        # directory for one Q-map picture per action
+
+
+def evaluation_config(config: CellConfig, options: EvalOptions) -> CellConfig:
+    """``config`` as evaluated: greedy unless learning, grasp-only if asked, seeded, no scene of its own."""
+    ex = config.exploration
+    if not options.learn:
+        ex = dataclasses.replace(ex, epsilon_start=0.0, epsilon_end=0.0, curriculum_steps=0)
+    if options.grasp_only:
+        ex = dataclasses.replace(ex, grasp_only=True)
+    sim = dataclasses.replace(config.sim, seed=options.seed, scene="", objects=0)
+    learning = dataclasses.replace(config.learning, seed=options.seed)
+    return dataclasses.replace(config, exploration=ex, sim=sim, learning=learning)
+
+
+class EpisodeCell(Cell):
+    """A simulated cell whose ``reset_scene`` ends the run instead of making new clutter.
+
+    Everything else is the wrapped cell's; ``use`` switches the wrapped cell
+    (one per object set) under one CycleRunner.
+    """
+
+    name = "sim"
+
+    def __init__(self, config: CellConfig, inner: Any) -> None:
+        super().__init__(config)
+        self.inner = inner
+        self.scene_ended = False
+
+    def use(self, inner: Any) -> None:
+        self.inner = inner
+        self.scene_ended = False
+
+    def capture(self) -> Frame:
+        return self.inner.capture()
+
+    def execute(self, plan: CheckedPlan) -> Any:
+        return self.inner.execute(plan)
+
+    def gripper_width(self) -> float:
+        return self.inner.gripper_width()
+
+    def reset_scene(self) -> None:
+        self.scene_ended = True
+
+    def recover(self) -> None:
+        self.inner.recover()
+
+    def workspace_empty_hint(self) -> bool | None:
+        return self.inner.workspace_empty_hint()
+
+    def close(self) -> None:
+        """The wrapped cells belong to the Evaluator, which closes them."""
+
+
+def _slug(text: str) -> str:
+    return re.sub(r"[^A-Za-z0-9._-]+", "_", text).strip("_") or "scene"
+
+
+def _result_text(record: CycleRecord) -> str:
+    if record.outcome == "refused":
+        return f"refused ({record.refused})"
+    if record.kind == "grasp":
+        return "held an object" if record.success else "missed"
+    return (f"moved the clutter (r {record.reward:g}, mu {record.mu}, eta {record.eta})" if record.reward
+            else f"no change (mu {record.mu}, eta {record.eta})")
+
+
+class Evaluator:
+    """Runs ``options.runs`` runs of each scene with one policy; ``close`` releases the cells and learner."""
+
+    def __init__(self, config: CellConfig, network: Any, options: EvalOptions, *, training_steps: int = 0,
+                 progress: Callable[[SceneSpec, RunLog], None] | None = None) -> None:
+        import torch
+
+        from flgd.learning.agent import Agent
+
+        if config.backend != "sim":
+            raise EvaluationError(f"{config.source}: backend {config.backend!r}: flgd eval runs in the simulated "
+                                  "cell; use a config with backend: sim (e.g. cell_config/sim.yaml)")
+        if options.runs < 1:
+            raise ValueError(f"runs: got {options.runs}, expected >= 1")
+        if options.max_actions is not None and options.max_actions < 1:
+            raise ValueError(f"max_actions: got {options.max_actions}, expected >= 1")
+        self.config = evaluation_config(config, options)
+        self.options = options
+        self.progress = progress
+        if self.config.learning.threads > 0:
+            torch.set_num_threads(self.config.learning.threads)
+        self.agent = Agent(self.config, network, seed=options.seed)
+        self.replay = self.learner = None
+        if options.learn:
+            from flgd.learning.learner import Learner
+            from flgd.learning.replay import PrioritizedReplay
+
+            self.replay = PrioritizedReplay.from_config(self.config.learning)
+            self.learner = Learner(self.config, network, self.replay, mailbox=self.agent.mailbox)
+            self.learner.start()
+        self._cells: dict[str, Any] = {}
+        self.episode = EpisodeCell(self.config, None)
+        self.runner = CycleRunner(self.config, self.episode, self.agent, replay=self.replay, learner=self.learner,
+                                  step=training_steps if options.learn else 0, backend="sim")
+
+    # ------------------------------------------------------------------ cells
+    def _cell_for(self, spec: SceneSpec) -> Any:
+        """One simulated cell per object set (scene files share the config's)."""
+        key = spec.objects if spec.is_clutter else ""
+        if key not in self._cells:
+            from sim_cell.cell import SimCell
+
+            cfg = self.config
+            if key:
+                cfg = dataclasses.replace(cfg, sim=dataclasses.replace(cfg.sim, object_set=key))
+            try:
+                self._cells[key] = SimCell(cfg)
+            except (ValueError, CellFault) as exc:
+                raise EvaluationError(f"cannot create the simulated cell: {exc}") from None
+        return self._cells[key]
+
+    def close(self) -> None:
+        if self.learner is not None:
+            self.learner.stop(timeout=30.0)
+            self.learner = None
+        for cell in self._cells.values():
+            cell.close()
+        self._cells.clear()
+
+    def __enter__(self) -> "Evaluator":
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
+
+    # ------------------------------------------------------------------ running
+    def evaluate(self, scenes: list[SceneSpec]) -> list[tuple[SceneSpec, list[RunLog]]]:
+        """All runs of all scenes, in order."""
+        out = []
+        for spec in scenes:
+            logs = []
+            for r in range(self.options.runs):
+                log = self.run(spec, r)
+                logs.append(log)
+                if self.progress is not None:
+                    self.progress(spec, log)
+            out.append((spec, logs))
+        return out
+
+    def _set_scene(self, cell: Any, spec: SceneSpec) -> int:
+        from sim_cell.scenes import SceneError
+
+        if spec.is_clutter:
+            return cell.make_clutter(spec.count)
+        try:
+            return cell.load_scene(spec.path, vpg_meshes=spec.vpg_meshes)
+        except SceneError as exc:
+            raise EvaluationError(str(exc)) from None
+
+    def run(self, spec: SceneSpec, run_index: int) -> RunLog:
+        """One run of ``spec`` (see the module doc for when it ends)."""
+        t0 = time.perf_counter()
+        cell = self._cell_for(spec)
+        self.episode.use(cell)
+        objects = self._set_scene(cell, spec)
+        grasped_before = cell.stats["grasped_out"]
+        limit = self.options.max_actions or DEFAULT_ACTIONS_PER_OBJECT * max(1, objects)
+        self.agent.reset_episode()
+        self.runner.forget_state()
+        actions: list[ActionEntry] = []
+        streak = 0
+        end, note = "", ""
+        while not end:
+            try:
+                record = self.runner.run_once()
+            except CellFault as exc:
+                end, note = "fault", str(exc)
+                try:
+                    cell.recover()
+                except CellFault as exc2:
+                    raise EvaluationError(f"the simulated cell cannot recover from a fault: {exc2}") from None
+                break
+            if record.outcome in ("executed", "refused"):
+                entry = ActionEntry(kind=record.kind or record.primitive or "grasp",
+                                    success=bool(record.reward and record.reward > 0),
+                                    refused=record.outcome == "refused")
+                actions.append(entry)
+                streak = 0 if entry.success else streak + 1
+                if self.options.save_qmaps is not None:
+                    self._save_qmap(spec, run_index, len(actions), record)
+            if record.outcome == "discarded":
+                end, note = "unstable", record.failure
+            elif record.outcome == "stopped":
+                end, note = "fault", record.failure
+            elif record.outcome == "empty" or record.done or self.episode.scene_ended:
+                end = "cleared" if cell.object_count == 0 else "nothing-graspable"
+            elif streak > self.options.failure_limit:
+                end = "failures"
+            elif len(actions) >= limit:
+                end = "action-limit"
+        return RunLog(scene=spec.name, run=run_index, objects=objects, actions=tuple(actions),
+                      objects_left=cell.object_count if end not in ("unstable", "fault") else objects,
+                      objects_grasped=cell.stats["grasped_out"] - grasped_before, end=end,
+                      seconds=time.perf_counter() - t0, note=note)
+
+    def _save_qmap(self, spec: SceneSpec, run_index: int, number: int, record: CycleRecord) -> None:
+        from flgd.visualize import ActionGlyph, qmap_picture, write_png
+
+        last = self.runner.last_decided
+        if last is None or last[2] != record.step:
+            return
+        hm, decision, step = last
+        folder = Path(self.options.save_qmaps) / _slug(spec.group or "scenes") / _slug(spec.name) / f"run{run_index:02d}"
+        folder.mkdir(parents=True, exist_ok=True)
+        caption = (f"{spec.name} run {run_index} action {number}: {record.kind} -> {_result_text(record)}"
+                   f"   | rule {decision.rule}, eps {decision.epsilon:.2f}")
+        image = qmap_picture(hm.color, hm.height, decision.q_maps, decision.grasp_mask, decision.move_mask,
+                             decision.action, caption=caption, glyph=ActionGlyph.from_config(self.config))
+        write_png(folder / f"action{number:03d}-{record.kind}.png", image)
