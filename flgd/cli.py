@@ -17,6 +17,7 @@ _COMMANDS: dict[str, tuple[str, str]] = {
     "calibrate": ("flgd.hardware.calibration:main", "camera-to-base calibration on the real cell"),
     "run": ("flgd.daemon.run:main", "run the cell-controller daemon (foreground; systemd: Type=notify)"),
     "eval": ("flgd.evaluation.cli:main", "evaluate a policy in simulation (VPG's metrics, scene sets, Q-maps)"),
+    "train": ("flgd.training.run:main", "train a policy headless in sim_cell (resumable run directory)"),
 }
 
 

@@ -202,7 +202,7 @@ class ExplorationConfig:
 
 @dataclass(frozen=True)
 class LearningConfig:
-    network: Literal["fast", "densenet121", "rho-fcn"] = param("fast")
+    network: Literal["fast", "densenet121", "rho-fcn", "rho-fcn-fast"] = param("fast")
     rotations: int = param(16, ge=1)
     gamma: float = param(0.5, ge=0.0, lt=1.0)
     learning_rate: float = param(1e-4, gt=0.0)

@@ -16,7 +16,9 @@ One update (``update``):
 * priorities of the batch become |y - Q(s, a)| + epsilon;
 * the target network copies the online one every ``target_update_every`` updates.
 
-The learner trains its own copy of the network given to it, so the acting
+``flgd train`` uses the synchronous mode instead of the thread
+(``update_pending`` after each cycle, same updates), so that a training run is
+reproducible.  The learner trains its own copy of the network given to it, so the acting
 network is never touched mid-decision; after each run of updates it posts the
 new weights to the agent's ``WeightsMailbox``.  The background thread lowers
 its own CPU priority (``thread_nice``, Linux per-thread nice) so that on a
@@ -277,6 +279,28 @@ class Learner:
         if self._thread is not None:
             self._thread.join(timeout)
             self._thread = None
+
+    def update_pending(self) -> list[UpdateStats]:
+        """Synchronous mode: run the scheduled updates in the caller's thread, then publish.
+
+        ``flgd train`` calls this after each cycle instead of starting the
+        thread, so a run's results do not depend on thread timing; it is the
+        same update as the thread's.  Errors propagate (a training run should
+        stop on a broken update rather than log and go on).
+        """
+        if self.running:
+            raise RuntimeError("update_pending: the background learner thread is running; use one mode")
+        done: list[UpdateStats] = []
+        while True:
+            with self._cond:
+                if self._pending == 0:
+                    break
+                self._pending -= 1
+            stats = self.update()
+            if stats is not None:
+                done.append(stats)
+        self.publish()
+        return done
 
     @property
     def running(self) -> bool:

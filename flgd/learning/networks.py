@@ -37,6 +37,15 @@ Variants (``VARIANTS``):
   trunk, BN-ReLU-1x1 conv-BN-ReLU-1x1 conv on the stride-32 bottleneck and x16
   bilinear upsampling, no skip.  It keeps the dueling value stream so that the
   comparison isolates the head.
+* ``rho-fcn-fast`` - the rho-FCN head on the ``fast`` trunk, so that the
+  FLG / DPEN / rho-FCN comparison (``flgd bench learning``) runs on one CPU-
+  feasible trunk and isolates the head and the masks (the DenseNet ``rho-fcn``
+  costs about 4 s per decision here, far too slow to train).  It keeps what
+  the paper says distinguishes rho-FCN: the Q-maps come from a coarse
+  bottleneck upsampled x16 bilinearly, with no skip.  Trunk = ``fast``'s
+  encoder and dilated context (stride 8) plus one more stride-2 3x3 conv
+  stage (4w -> 8w, stride 16); head = BN-ReLU-1x1 conv-BN-ReLU-1x1 conv to two
+  maps, x16 bilinear up; dueling value from the pooled bottleneck.
 * ``fast`` (the default) - a small encoder-decoder for CPU-only cell PCs, chosen
   by measurement.  Three stride-2 3x3 convs (4->w->2w->4w channels, stride 8),
   a dilated residual context block (dilations 2 and 4; receptive field about
@@ -84,6 +93,7 @@ __all__ = [
     "FAST_WIDTH",
     "QMapNetwork",
     "FastQNet",
+    "RhoFcnFastQNet",
     "DenseNetQNet",
     "build_network",
     "q_maps",
@@ -93,7 +103,7 @@ __all__ = [
     "padded_side",
 ]
 
-VARIANTS: tuple[str, ...] = ("fast", "densenet121", "rho-fcn")
+VARIANTS: tuple[str, ...] = ("fast", "densenet121", "rho-fcn", "rho-fcn-fast")
 
 # Normalisation: colour to about zero mean / unit spread, heights like VPG (mean 1 cm, spread 3 cm).
 COLOR_MEAN = (0.485, 0.456, 0.406)
@@ -197,6 +207,37 @@ class FastQNet(QMapNetwork):
         advantage = self.advantage(self.fuse(torch.cat([up, s4], dim=1)))
         value = self.value(s8.mean(dim=(2, 3)))
         return advantage, value
+
+
+class RhoFcnFastQNet(QMapNetwork):
+    """The VPG head (x16 bilinear, no skip) on the fast trunk plus one stride-2 stage (see module doc)."""
+
+    variant = "rho-fcn-fast"
+    stride = 16
+
+    def __init__(self, rotations: int = 16, width: int = FAST_WIDTH) -> None:
+        super().__init__(rotations)
+        if not (isinstance(width, int) and 2 <= width <= 256):
+            raise ValueError(f"width: got {width!r}, expected an integer 2..256")
+        self.width = width
+        w = width
+        self.enc1 = _conv_bn_relu(4, w, stride=2)
+        self.enc2 = _conv_bn_relu(w, 2 * w, stride=2)
+        self.enc3 = _conv_bn_relu(2 * w, 4 * w, stride=2)
+        self.context = _DilatedContext(4 * w)
+        self.enc4 = _conv_bn_relu(4 * w, 8 * w, stride=2)
+        self.advantage = nn.Sequential(
+            nn.BatchNorm2d(8 * w), nn.ReLU(inplace=True), nn.Conv2d(8 * w, 2 * w, 1, bias=False),
+            nn.BatchNorm2d(2 * w), nn.ReLU(inplace=True), nn.Conv2d(2 * w, 2, 1))
+        self.value = nn.Linear(8 * w, 1)
+
+    def architecture(self) -> dict:
+        return {**super().architecture(), "width": self.width}
+
+    def advantage_and_value(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        bottleneck = self.enc4(self.context(self.enc3(self.enc2(self.enc1(x)))))
+        a = F.interpolate(self.advantage(bottleneck), scale_factor=16, mode="bilinear", align_corners=False)
+        return a, self.value(bottleneck.mean(dim=(2, 3)))
 
 
 class _DenseLayer(nn.Module):
@@ -316,6 +357,8 @@ def build_network(variant: str, rotations: int = 16, seed: int | None = None, **
             torch.manual_seed(seed)
         if variant == "fast":
             net: QMapNetwork = FastQNet(rotations, **architecture)
+        elif variant == "rho-fcn-fast":
+            net = RhoFcnFastQNet(rotations, **architecture)
         else:
             if architecture:
                 raise ValueError(f"network variant {variant!r} takes no architecture options, got {architecture}")

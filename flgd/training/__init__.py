@@ -1,0 +1,1 @@
+"""``flgd train``: headless sim training on the daemon's cycle (see flgd.training.run)."""

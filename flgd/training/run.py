@@ -1,0 +1,545 @@
+"""``flgd train``: headless training in sim_cell with the daemon's cycle, agent, learner and store.
+
+Nothing here is a second training loop: each step is ``CycleRunner.run_once``
+(the daemon's cycle) followed by ``Learner.update_pending`` -- the
+``learning.updates_per_action`` updates the daemon's learner thread would run,
+but in this thread, so a run does not depend on thread timing.  Network,
+replay, agent and learner are built by ``flgd.wiring`` exactly as the daemon
+builds them.
+
+Run directory (``--out``), also the store's state directory:
+
+* ``run.json``        -- settings, segments (one per start/resume), status;
+* ``config.yaml``     -- the effective cell config of the run;
+* ``flgd.sqlite``     -- the store: action log + replay transitions;
+* ``checkpoints/``    -- policy files, every ``learning.checkpoint_every``
+  updates and at exit (metadata: variant, method, steps, cell, rolling success);
+* ``trainer-state.safetensors`` -- target network, Adam state, priorities;
+* ``actions.csv``     -- one row per step (see flgd.training.actionlog);
+* ``curve.png``       -- rolling grasp success (last 50 and 200 grasps) and moves.
+
+Resume = run the same command again (or ``flgd train --out DIR``).  Restored
+exactly: the step counter, action log, replay contents and priorities, online
+and target weights, Adam state and learner update count as of the last
+checkpoint (one is written at every clean exit, including Ctrl-C).  Not
+restored: the scene in flight (a new one is dropped), the RNG streams (the
+sim, agent, replay and curriculum generators are re-seeded from (seed,
+segment number), so a resumed run is reproducible but not bit-identical to an
+uninterrupted one), the replay's beta annealing counter (restarts at
+``priority_beta_start``), and after a kill -9 the updates since the last
+checkpoint (their transitions are kept and replayed).
+
+Ctrl-C / SIGTERM: the cycle in flight finishes, a checkpoint and the trainer
+state are written, exit code 130.  A second Ctrl-C exits at once; the store
+(SQLite WAL) and the atomic checkpoints stay consistent.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import datetime as _dt
+import fcntl
+import json
+import logging
+import math
+import os
+import signal
+import sys
+import time
+from collections import deque
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from flgd.config import CellConfig, ConfigError, dump_config, load_config
+
+__all__ = ["TRAIN_VARIANTS", "RunSettings", "TrainingRun", "effective_config", "main", "EXIT_INTERRUPTED"]
+
+log = logging.getLogger("flgd.train")
+
+EXIT_OK, EXIT_ERROR, EXIT_USAGE, EXIT_INTERRUPTED = 0, 1, 2, 130
+RUN_FILE = "run.json"
+CONFIG_FILE = "config.yaml"
+LOG_FILE = "actions.csv"
+CURVE_FILE = "curve.png"
+MAX_CONSECUTIVE_FAULTS = 5
+
+# variant -> (network, masks, paper method).  All three share the fast trunk (see networks.py).
+TRAIN_VARIANTS: dict[str, tuple[str, bool, str]] = {
+    "flg": ("fast", True, "FLG"),
+    "dpen": ("fast", False, "DPEN"),
+    "rho-fcn": ("rho-fcn-fast", True, "rho-FCN"),
+}
+
+
+@dataclass(frozen=True)
+class RunSettings:
+    variant: str = "flg"
+    objects: int = 10
+    steps: int = 1000
+    seed: int = 0
+    curriculum: bool = False
+    grasp_only: bool = False
+
+    def describe(self) -> str:
+        scene = "curriculum 10->20 objects + presets" if self.curriculum else f"{self.objects} objects"
+        mode = ", grasp only" if self.grasp_only else ""
+        return f"{self.variant} ({TRAIN_VARIANTS[self.variant][2]}), {scene}{mode}, seed {self.seed}"
+
+
+def _derived_seed(seed: int, segment: int, stream: int) -> int:
+    """Segment 0 uses ``seed`` itself; a resumed segment gets fresh, reproducible streams."""
+    if segment == 0:
+        return seed
+    return int(np.random.SeedSequence([seed, segment, stream]).generate_state(1)[0])
+
+
+def effective_config(base: CellConfig, settings: RunSettings, out: Path, segment: int = 0) -> CellConfig:
+    """The cell config of a run: variant, objects, seeds, curriculum and the run directory as state dir."""
+    from flgd.curriculum import Curriculum
+
+    network, masks, _ = TRAIN_VARIANTS[settings.variant]
+    cfg = dataclasses.replace(
+        base,
+        state_dir=str(out),
+        policy="",
+        learning=dataclasses.replace(base.learning, network=network, seed=_derived_seed(settings.seed, segment, 1)),
+        exploration=dataclasses.replace(base.exploration, masks=masks, grasp_only=settings.grasp_only),
+        sim=dataclasses.replace(base.sim, objects=settings.objects, seed=_derived_seed(settings.seed, segment, 2),
+                                scene=""))
+    if settings.curriculum:
+        cfg = Curriculum().apply_to_config(cfg)
+    return cfg
+
+
+def rolling(outcomes: deque, window: int) -> float | None:
+    """Success rate of the last ``window`` grasps, None until the window is full."""
+    if len(outcomes) < window:
+        return None
+    recent = list(outcomes)[-window:]
+    return sum(recent) / window
+
+
+class _Progress:
+    """A one-line live display on a terminal, periodic plain lines otherwise."""
+
+    def __init__(self, stream, live: bool, every_steps: int = 25, every_seconds: float = 60.0):
+        self.stream, self.live = stream, live
+        self.every_steps, self.every_seconds = every_steps, every_seconds
+        self.last_print = 0.0
+        self.last_step = -1
+
+    def show(self, step: int, text: str, force: bool = False) -> None:
+        now = time.monotonic()
+        if self.live:
+            try:
+                width = os.get_terminal_size(self.stream.fileno()).columns - 1
+            except OSError:
+                width = 120
+            self.stream.write("\r\033[K" + text[:max(20, width)])
+            self.stream.flush()
+        elif force or step - self.last_step >= self.every_steps or now - self.last_print >= self.every_seconds:
+            self.stream.write(text + "\n")
+            self.stream.flush()
+            self.last_print, self.last_step = now, step
+
+    def message(self, text: str) -> None:
+        self.stream.write(("\r\033[K" if self.live else "") + text + "\n")
+        self.stream.flush()
+
+    def finish(self) -> None:
+        if self.live:
+            self.stream.write("\n")
+            self.stream.flush()
+
+
+class TrainingRun:
+    """One run directory: set up (fresh or resumed), train to ``settings.steps``, stop cleanly."""
+
+    def __init__(self, out: Path, settings: RunSettings, base_config: CellConfig, progress: _Progress,
+                 threads: int | None = None):
+        self.out = out
+        self.settings = settings
+        self.progress = progress
+        self.run_info = self._load_run_info()
+        self.segment = len(self.run_info.get("segments", []))
+        self.config = effective_config(base_config, settings, out, self.segment)
+        if threads is not None:
+            self.config = dataclasses.replace(self.config, learning=dataclasses.replace(
+                self.config.learning, threads=threads))
+        self.stop_signals: list[int] = []
+        self.grasps: deque = deque(maxlen=200)
+        self.slot_ids: list[int] = []
+        self.adds = 0
+        self.last_checkpoint_updates = -1
+        self.consecutive_faults = 0
+        self._lock_fd: int | None = None
+
+    # ------------------------------------------------------------------ setup
+    def _load_run_info(self) -> dict:
+        path = self.out / RUN_FILE
+        if not path.exists():
+            return {}
+        return json.loads(path.read_text())
+
+    def _write_run_info(self, status: str) -> None:
+        info = dict(self.run_info)
+        info.update({"settings": dataclasses.asdict(self.settings), "status": status,
+                     "step": self.runner.step if hasattr(self, "runner") else info.get("step", 0),
+                     "updates": self.learner.updates if hasattr(self, "learner") else info.get("updates", 0),
+                     "rolling_success_50": rolling(self.grasps, 50),
+                     "rolling_success_200": rolling(self.grasps, 200),
+                     "updated": _now()})
+        self.run_info = info
+        tmp = self.out / f".{RUN_FILE}.tmp"
+        tmp.write_text(json.dumps(info, indent=2) + "\n")
+        tmp.replace(self.out / RUN_FILE)
+
+    def _take_lock(self) -> None:
+        fd = os.open(self.out / "train.lock", os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            os.close(fd)
+            raise RuntimeError(f"another flgd train is using {self.out}") from None
+        self._lock_fd = fd
+
+    def setup(self) -> None:
+        import torch
+
+        from flgd.cell import make_cell
+        from flgd.cycle import CycleRunner
+        from flgd.store import CheckpointDir, Store
+        from flgd.training.actionlog import ActionLog
+        from flgd.wiring import build_agent_and_learner, rebuild_replay, starting_network
+
+        self.out.mkdir(parents=True, exist_ok=True)
+        self._take_lock()
+        if self.config.learning.threads > 0:
+            torch.set_num_threads(self.config.learning.threads)
+        (self.out / CONFIG_FILE).write_text(dump_config(self.config))
+        self.store = Store(self.out, keep_transitions=self.config.learning.replay_capacity)
+        self.checkpoints = CheckpointDir(self.out / "checkpoints", keep=1_000_000)
+        self.checkpoints.remove_temporary()
+        start = starting_network(self.config, self.checkpoints, None)
+        self.last_checkpoint_updates = start.resumed_from_updates if start.checkpoint else -1
+        lc = self.config.learning
+        replay_seed = _derived_seed(self.settings.seed, self.segment, 3)
+        self.replay, problem = rebuild_replay(self.config, self.store, seed=replay_seed)
+        if problem:
+            raise RuntimeError(problem)
+        self.slot_ids = [int(r[0]) for r in self.store.query(
+            "SELECT id FROM (SELECT id FROM transitions ORDER BY id DESC LIMIT ?) ORDER BY id",
+            (lc.replay_capacity,))]
+        self.adds = len(self.slot_ids)
+        self.agent, self.learner = build_agent_and_learner(
+            self.config, start.network, self.replay, checkpoint_callback=self._checkpoint,
+            updates=start.resumed_from_updates, agent_seed=_derived_seed(self.settings.seed, self.segment, 4))
+        self._restore_trainer_state(start.resumed_from_updates if start.checkpoint else None)
+
+        self.actions = ActionLog(self.out / LOG_FILE)
+        self.actions.reconcile(self.store.action_log())
+        for r in self.actions.rows:
+            if r.get("primitive") == "grasp" and r.get("success") not in ("", None) \
+                    and r.get("outcome", "executed") == "executed":
+                self.grasps.append(int(float(r["success"])))
+
+        step = self.store.next_step()
+        cell = make_cell(self.config)
+        self.scene_count = 0
+        if self.settings.curriculum:
+            from flgd.curriculum import Curriculum, CurriculumCell
+            from sim_cell.cell import preset_scenes
+
+            curriculum = Curriculum()
+            cell.set_object_count(curriculum.object_count(step))
+            cell.reset_scene()
+            rng = np.random.default_rng(_derived_seed(self.settings.seed, self.segment, 5))
+            cell = CurriculumCell(cell, curriculum, lambda: self.runner.step, preset_scenes(), rng)
+            cell.scene_kind = f"random {curriculum.object_count(step)}"
+        self.cell = cell
+        self.runner = CycleRunner(self.config, cell, self.agent, store=self.store, replay=self.replay,
+                                  learner=self.learner, step=step, backend=self.config.backend)
+        segments = list(self.run_info.get("segments", []))
+        segments.append({"started": _now(), "from_step": step, "from_updates": self.learner.updates,
+                         "source": start.source})
+        self.run_info["segments"] = segments
+        self.run_info.setdefault("created", _now())
+        self.run_info["config_source"] = self.config.source
+        self._write_run_info("running")
+        self.store.record_event("train", f"segment {self.segment} from step {step}: {self.settings.describe()}")
+        self.progress.message(f"flgd train: {self.settings.describe()} -> {self.out} "
+                              f"({'resumed at step ' + str(step) if self.segment else 'new run'}; {start.source})")
+
+    def _restore_trainer_state(self, checkpoint_updates: int | None) -> None:
+        from flgd.training.state import TRAINER_STATE, load_trainer_state, restore_learner
+
+        path = self.out / TRAINER_STATE
+        if checkpoint_updates is None or not path.exists():
+            return
+        try:
+            state = load_trainer_state(path)
+        except (OSError, ValueError, RuntimeError) as exc:
+            self.progress.message(f"flgd train: trainer state not used ({exc}); fresh optimizer state")
+            return
+        if state.updates != checkpoint_updates:
+            self.progress.message(f"flgd train: trainer state is of update {state.updates}, the checkpoint of "
+                                  f"{checkpoint_updates}: fresh optimizer state, default priorities")
+            return
+        restore_learner(self.learner, state)
+        saved = dict(zip(state.priority_ids.tolist(), state.priorities.tolist()))
+        eps = self.config.learning.priority_epsilon
+        for slot, tid in enumerate(self.slot_ids):
+            if tid in saved:
+                self.replay.update_priorities([slot], [max(0.0, saved[tid] - eps)])
+
+    # ------------------------------------------------------------------ checkpoints
+    def _checkpoint(self, network: Any, updates: int) -> None:
+        """Learner callback (inside an update): policy file + trainer state + curve."""
+        from flgd.learning.policy_file import save_policy
+        from flgd.training.state import TRAINER_STATE, save_trainer_state
+
+        r50, r200 = rolling(self.grasps, 50), rolling(self.grasps, 200)
+        meta = {"training_steps": int(self.runner.step), "cell": self.config.name or self.config.backend,
+                "rolling_success": r200 if r200 is not None else r50,
+                "rolling_success_50": r50, "rolling_success_200": r200,
+                "method": TRAIN_VARIANTS[self.settings.variant][2], "train_variant": self.settings.variant,
+                "learner_updates": int(updates), "seed": self.settings.seed,
+                "curriculum": self.settings.curriculum, "objects": self.settings.objects,
+                "grasp_only": self.settings.grasp_only, "source": f"flgd train {self.out.name}"}
+        self.checkpoints.write(lambda p: save_policy(p, network, meta), updates)
+        n = len(self.replay)
+        save_trainer_state(self.out / TRAINER_STATE, self.learner, np.asarray(self.slot_ids[:n], dtype=np.int64),
+                           np.array([self.replay.priority(i) for i in range(n)], dtype=np.float64))
+        self.store.set_counter("learner_updates", updates)
+        self.last_checkpoint_updates = updates
+        self.write_curve()
+
+    def final_checkpoint(self) -> None:
+        if self.learner.updates > max(0, self.last_checkpoint_updates):
+            self._checkpoint(self.learner.online, self.learner.updates)
+        else:
+            self.write_curve()
+
+    def write_curve(self) -> None:
+        from flgd.training.curve import plot_curves
+
+        try:
+            plot_curves(self.out / CURVE_FILE, {self.settings.variant: self.actions.rows},
+                        title=f"flgd train: {self.settings.describe()}")
+        except Exception as exc:  # a plot must never cost a training run
+            log.warning("learning curve not written: %s", exc)
+
+    # ------------------------------------------------------------------ the loop
+    def _note_transition(self, record) -> None:
+        if record.transition_id is None:
+            return
+        slot = self.adds % self.config.learning.replay_capacity
+        if slot < len(self.slot_ids):
+            self.slot_ids[slot] = int(record.transition_id)
+        else:
+            self.slot_ids.append(int(record.transition_id))
+        self.adds += 1
+
+    def _handle_fault(self, exc: Exception) -> None:
+        self.consecutive_faults += 1
+        self.progress.message(f"flgd train: cell fault at step {self.runner.step}: {exc}; recovering")
+        self.store.record_event("fault", str(exc))
+        if self.consecutive_faults >= MAX_CONSECUTIVE_FAULTS:
+            raise RuntimeError(f"{self.consecutive_faults} cell faults in a row; last: {exc}")
+        self.cell.recover()
+        self.cell.reset_scene()
+        self.runner.forget_state()
+        self.agent.reset_episode()
+
+    def train(self) -> int:
+        """Train until ``settings.steps`` or a stop signal; returns the exit code."""
+        from flgd.cell import CellFault
+
+        start_step, t0 = self.runner.step, time.monotonic()
+        target = self.settings.steps
+        if start_step >= target:
+            self.progress.message(f"flgd train: already at step {start_step} >= --steps {target}; nothing to do")
+        while self.runner.step < target and not self.stop_signals:
+            try:
+                record = self.runner.run_once()
+            except CellFault as exc:
+                self._handle_fault(exc)
+                continue
+            self.consecutive_faults = 0
+            if record.outcome == "empty" or record.step is None:
+                self.scene_count += 1
+                continue
+            self._note_transition(record)
+            t_update = time.perf_counter()
+            updates = self.learner.update_pending()
+            t_update = time.perf_counter() - t_update
+            if record.outcome == "executed" and record.primitive == "grasp" and record.success is not None:
+                self.grasps.append(int(record.success))
+            if record.done:
+                self.scene_count += 1
+            row = {k: v for k, v in record.row().items() if k in _LOG_KEYS}
+            row.update({"objects_left": 0 if record.done else self.cell.object_count,
+                        "scene": self.scene_count,
+                        "scene_kind": getattr(self.cell, "scene_kind", f"random {self.settings.objects}"),
+                        "updates": self.learner.updates,
+                        "loss": updates[-1].loss if updates else None, "t_update": t_update,
+                        "t_store": record.timings.get("store")})
+            self.actions.append(row)
+            done = self.runner.step - start_step
+            rate = done / max(1e-9, time.monotonic() - t0)
+            eta = (target - self.runner.step) / rate if rate > 0 else math.inf
+            self.progress.show(self.runner.step, self._status(rate, eta))
+        interrupted = bool(self.stop_signals) and self.runner.step < target
+        self.progress.show(self.runner.step, self._status(None, None), force=True)
+        self.progress.finish()
+        self.final_checkpoint()
+        self._write_run_info("interrupted" if interrupted else "finished")
+        self.progress.message(f"flgd train: {'interrupted' if interrupted else 'finished'} at step "
+                              f"{self.runner.step}, {self.learner.updates} updates; log {self.out / LOG_FILE}, "
+                              f"curve {self.out / CURVE_FILE}")
+        return EXIT_INTERRUPTED if interrupted else EXIT_OK
+
+    def _status(self, rate: float | None, eta: float | None) -> str:
+        r50, r200 = rolling(self.grasps, 50), rolling(self.grasps, 200)
+        pct = lambda v: "-" if v is None else f"{100 * v:.0f}%"  # noqa: E731
+        text = (f"step {self.runner.step}/{self.settings.steps} | grasp success {pct(r50)} (last 50) "
+                f"{pct(r200)} (last 200) | objects {self.cell.object_count}")
+        if rate is not None:
+            text += f" | {rate:.2f} actions/s"
+        if eta is not None and math.isfinite(eta):
+            text += f" | ETA {_duration(eta)}"
+        return text
+
+    def close(self) -> None:
+        for closer in (getattr(self, "cell", None), getattr(self, "store", None)):
+            if closer is not None:
+                try:
+                    closer.close()
+                except Exception as exc:
+                    log.error("close failed: %s", exc)
+        if self._lock_fd is not None:
+            os.close(self._lock_fd)
+            self._lock_fd = None
+
+
+_LOG_KEYS = frozenset({"step", "time", "outcome", "primitive", "kind", "reward", "success", "rule", "epsilon",
+                       "q_value", "mu", "eta", "refused", "failure", "t_capture", "t_perceive", "t_decide",
+                       "t_plan", "t_execute", "t_judge", "duration"})
+
+
+def _now() -> str:
+    return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
+
+
+def _duration(seconds: float) -> str:
+    seconds = int(seconds)
+    h, rem = divmod(seconds, 3600)
+    return f"{h}h{rem // 60:02d}m" if h else f"{rem // 60}m{rem % 60:02d}s"
+
+
+# ---------------------------------------------------------------------- command line
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="flgd train", description="Train a policy headless in sim_cell (the daemon's cycle, agent and "
+                                       "learner; synchronous updates).  Run again with the same --out to resume.")
+    p.add_argument("--config", help="cell config YAML (backend sim); optional when resuming --out")
+    p.add_argument("--variant", choices=sorted(TRAIN_VARIANTS), help="flg (default), dpen (no masks), "
+                                                                     "rho-fcn (VPG head on the fast trunk)")
+    p.add_argument("--objects", type=int, help="objects per random scene (default 10; not with --curriculum)")
+    p.add_argument("--steps", type=int, help="train until this many steps (actions) in total (default 1000)")
+    p.add_argument("--seed", type=int, help="seed of the sim, network, agent and replay (default 0)")
+    p.add_argument("--out", required=True, help="run directory (created; resumed if it holds a run)")
+    p.add_argument("--curriculum", action="store_true", default=None,
+                   help="paper IV-A curriculum: few moves for 500 steps, 10 -> 20 objects from step 400, "
+                        "preset piles after 1500 steps")
+    p.add_argument("--grasp-only", action="store_true", default=None, help="never move (paper's Grasping-only)")
+    p.add_argument("--threads", type=int, help="torch CPU threads (default: learning.threads of the config)")
+    p.add_argument("--log-every", type=int, default=25, help="steps between plain progress lines (no terminal)")
+    return p
+
+
+def _settings(args: argparse.Namespace, previous: dict | None) -> RunSettings:
+    """Settings from the command line, checked against a run being resumed."""
+    given = {"variant": args.variant, "objects": args.objects, "steps": args.steps, "seed": args.seed,
+             "curriculum": args.curriculum, "grasp_only": args.grasp_only}
+    if previous:
+        for key, value in given.items():
+            if key != "steps" and value is not None and value != previous.get(key):
+                raise ValueError(f"--{key.replace('_', '-')}: got {value!r}, but the run in --out was started "
+                                 f"with {previous.get(key)!r}; use another --out for other settings")
+        merged = {**previous, **{k: v for k, v in given.items() if v is not None}}
+        return RunSettings(**{f.name: merged[f.name] for f in dataclasses.fields(RunSettings)})
+    defaults = RunSettings()
+    s = RunSettings(**{k: (getattr(defaults, k) if v is None else v) for k, v in given.items()})
+    if s.curriculum and args.objects is not None:
+        raise ValueError("--objects: the curriculum sets the object count (10 -> 20); drop one of the two")
+    if s.curriculum:
+        s = dataclasses.replace(s, objects=10)
+    return s
+
+
+def main(argv: list[str]) -> int:
+    args = _parser().parse_args(argv)
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    out = Path(args.out).resolve()
+    previous_info = json.loads((out / RUN_FILE).read_text()) if (out / RUN_FILE).exists() else None
+    try:
+        settings = _settings(args, previous_info.get("settings") if previous_info else None)
+        for name in ("objects", "steps", "seed"):
+            v = getattr(settings, name)
+            if v < 0 or (name == "objects" and not 1 <= v <= 60):
+                raise ValueError(f"--{name}: got {v!r}, expected " + ("1..60" if name == "objects" else ">= 0"))
+        if args.threads is not None and args.threads < 0:
+            raise ValueError(f"--threads: got {args.threads!r}, expected >= 0")
+    except ValueError as exc:
+        print(f"flgd train: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    config_path = args.config or (str(out / CONFIG_FILE) if previous_info else None)
+    if config_path is None:
+        print("flgd train: --config is required for a new run", file=sys.stderr)
+        return EXIT_USAGE
+    try:
+        base = load_config(config_path)
+    except ConfigError as exc:
+        print(f"flgd train: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    if base.backend != "sim":
+        print(f"flgd train: {config_path}: backend: got {base.backend!r}, expected 'sim' (training runs in "
+              "sim_cell; fine-tune on a real cell with `flgd run`)", file=sys.stderr)
+        return EXIT_USAGE
+
+    live = sys.stderr.isatty()
+    progress = _Progress(sys.stderr, live, every_steps=max(1, args.log_every))
+    run = TrainingRun(out, settings, base, progress, threads=args.threads)
+
+    def on_signal(signum, _frame) -> None:
+        run.stop_signals.append(signum)
+        if len(run.stop_signals) > 1:
+            sys.stderr.write("\nflgd train: second interrupt, exiting now (the store and checkpoints are "
+                             "consistent; the updates since the last checkpoint are lost)\n")
+            sys.stderr.flush()
+            os._exit(EXIT_INTERRUPTED)
+        progress.message("flgd train: stopping after the current step (Ctrl-C again to exit at once)")
+
+    signal.signal(signal.SIGINT, on_signal)
+    signal.signal(signal.SIGTERM, on_signal)
+    try:
+        run.setup()
+        return run.train()
+    except Exception as exc:
+        progress.finish()
+        print(f"flgd train: {type(exc).__name__}: {exc}", file=sys.stderr)
+        if hasattr(run, "learner") and hasattr(run, "runner"):
+            try:
+                run.final_checkpoint()
+                run._write_run_info("failed")
+            except Exception as exc2:
+                print(f"flgd train: final checkpoint failed: {exc2}", file=sys.stderr)
+        return EXIT_ERROR
+    finally:
+        run.close()

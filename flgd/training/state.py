@@ -1,0 +1,103 @@
+"""What a policy file does not hold but a resumed training run needs: target net, Adam, priorities.
+
+Written next to each checkpoint as ``trainer-state.safetensors`` (atomic, like
+policy files; safetensors so that loading never executes code).  It is used
+on resume only when its ``updates`` equals the checkpoint's, otherwise the
+learner starts with target = online weights, fresh Adam moments and the
+replay's default priorities, and says so.
+
+Tensors: ``target.<name>`` (target network), ``adam.<i>.<key>`` (per
+parameter state of torch.optim.Adam), ``priority.ids`` (int64 store
+transition ids) and ``priority.values`` (float64 raw priorities).
+Metadata: ``updates`` and ``adam_groups`` (JSON of the hyper-parameters).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from safetensors.torch import load_file, save
+
+__all__ = ["TRAINER_STATE", "TrainerState", "save_trainer_state", "load_trainer_state", "restore_learner"]
+
+TRAINER_STATE = "trainer-state.safetensors"
+
+
+@dataclass
+class TrainerState:
+    updates: int
+    target: dict[str, torch.Tensor]
+    adam_state: dict[int, dict[str, torch.Tensor]]
+    adam_groups: list[dict]
+    priority_ids: np.ndarray
+    priorities: np.ndarray
+
+
+def save_trainer_state(path: str | os.PathLike, learner, priority_ids: np.ndarray, priorities: np.ndarray) -> None:
+    """Write the learner's target network, Adam state and the replay priorities (call with updates quiet)."""
+    tensors: dict[str, torch.Tensor] = {}
+    for k, v in learner.target.state_dict().items():
+        tensors[f"target.{k}"] = v.detach().cpu().clone().contiguous()
+    opt = learner.optimizer.state_dict()
+    for i, st in opt["state"].items():
+        for key, v in st.items():
+            t = v if torch.is_tensor(v) else torch.tensor(float(v))
+            tensors[f"adam.{int(i)}.{key}"] = t.detach().cpu().clone().contiguous()
+    groups = [{k: v for k, v in g.items() if isinstance(v, (int, float, bool, list, tuple, type(None)))}
+              for g in opt["param_groups"]]
+    tensors["priority.ids"] = torch.from_numpy(np.asarray(priority_ids, dtype=np.int64).copy())
+    tensors["priority.values"] = torch.from_numpy(np.asarray(priorities, dtype=np.float64).copy())
+    meta = {"updates": str(int(learner.updates)), "adam_groups": json.dumps(groups)}
+    data = save(tensors, metadata=meta)
+    path = Path(path)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def load_trainer_state(path: str | os.PathLike) -> TrainerState:
+    from safetensors import safe_open
+
+    path = Path(path)
+    with safe_open(str(path), framework="pt") as f:
+        meta = f.metadata() or {}
+    tensors = load_file(str(path))
+    try:
+        updates = int(meta["updates"])
+        groups = json.loads(meta["adam_groups"])
+    except (KeyError, ValueError) as exc:
+        raise ValueError(f"{path}: trainer state metadata is incomplete: {exc}") from None
+    target = {k[len("target."):]: v for k, v in tensors.items() if k.startswith("target.")}
+    adam: dict[int, dict[str, torch.Tensor]] = {}
+    for k, v in tensors.items():
+        if k.startswith("adam."):
+            _, i, key = k.split(".", 2)
+            adam.setdefault(int(i), {})[key] = v
+    return TrainerState(updates, target, adam, groups, tensors["priority.ids"].numpy(),
+                        tensors["priority.values"].numpy())
+
+
+def restore_learner(learner, state: TrainerState) -> None:
+    """Load target weights and Adam state into ``learner`` (shapes are checked by torch)."""
+    learner.target.load_state_dict(state.target)
+    opt = learner.optimizer.state_dict()
+    groups = opt["param_groups"]
+    for g, saved in zip(groups, state.adam_groups):
+        for k, v in saved.items():
+            if k != "params":
+                g[k] = v
+    learner.optimizer.load_state_dict({"state": {i: dict(s) for i, s in state.adam_state.items()},
+                                       "param_groups": groups})

@@ -1,0 +1,92 @@
+"""How a cell's learning parts are put together: network, replay, agent and learner.
+
+The daemon (``flgd run``) and ``flgd train`` both build their learning state
+here, so that resuming from a state directory means the same thing for both:
+the newest readable checkpoint wins over a given policy, which wins over a
+fresh network; the replay is rebuilt from the store's newest transitions with
+their stored priorities.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable
+
+from flgd.config import CellConfig
+from flgd.store import CheckpointDir, Store, StoreError
+
+__all__ = ["StartingNetwork", "starting_network", "rebuild_replay", "build_agent_and_learner"]
+
+log = logging.getLogger("flgd")
+
+
+@dataclass(frozen=True)
+class StartingNetwork:
+    network: Any
+    source: str                  # what it is, for status lines and policy metadata
+    resumed_from_updates: int    # learner update count to continue from (0 = not resumed)
+    checkpoint: Path | None      # the checkpoint loaded, if any
+
+
+def starting_network(config: CellConfig, checkpoints: CheckpointDir, policy_path: str | None) -> StartingNetwork:
+    """The newest readable checkpoint; else ``policy_path``; else a fresh seeded network.
+
+    A bad ``policy_path`` raises ``PolicyFileError``; unusable checkpoints are
+    skipped with a warning, but the update numbering continues above them so
+    checkpoint pruning never removes the new ones.
+    """
+    from flgd.learning.networks import build_network
+    from flgd.learning.policy_file import PolicyFileError, load_policy
+
+    variant = config.learning.network
+    existing = checkpoints.checkpoints()
+    resumed = CheckpointDir.updates_of(existing[0]) if existing else 0
+    for path in existing:
+        try:
+            loaded = load_policy(path, expected_variant=variant)
+        except PolicyFileError as exc:
+            log.warning("skipping unusable checkpoint: %s", exc)
+            continue
+        updates = CheckpointDir.updates_of(path)
+        log.info("resuming from %s (%d learner updates)", path, updates)
+        return StartingNetwork(loaded.network, f"checkpoint {path}", updates, path)
+    if policy_path:
+        loaded = load_policy(policy_path, expected_variant=variant)
+        return StartingNetwork(loaded.network, f"policy {policy_path}", resumed, None)
+    network = build_network(variant, rotations=config.learning.rotations, seed=config.learning.seed)
+    return StartingNetwork(network, f"fresh {variant} network (seed {config.learning.seed})", resumed, None)
+
+
+def rebuild_replay(config: CellConfig, store: Store | None, seed: int | None = None) -> tuple[Any, str]:
+    """(replay, problem): a replay holding the store's newest ``replay_capacity`` transitions.
+
+    ``problem`` is '' or the store error that stopped the rebuild part-way.
+    """
+    from flgd.learning.replay import PrioritizedReplay, Transition
+
+    lc = config.learning
+    replay = PrioritizedReplay.from_config(lc, seed=seed)
+    problem = ""
+    if store is not None:
+        try:
+            for st in store.iter_transitions(limit=lc.replay_capacity):
+                replay.add(Transition(st.state, st.action, st.reward, st.next_state, st.done), st.priority)
+        except StoreError as exc:
+            problem = str(exc)
+    log.info("replay rebuilt with %d transitions", len(replay))
+    return replay, problem
+
+
+def build_agent_and_learner(config: CellConfig, network: Any, replay: Any, *,
+                            checkpoint_callback: Callable[[Any, int], None] | None, updates: int = 0,
+                            agent_seed: int | None = None) -> tuple[Any, Any]:
+    """The acting agent and its learner (which trains a copy of ``network`` and posts to the agent)."""
+    from flgd.learning.agent import Agent
+    from flgd.learning.learner import Learner
+
+    agent = Agent(config, network, seed=config.learning.seed if agent_seed is None else agent_seed)
+    learner = Learner(config, network, replay, mailbox=agent.mailbox, checkpoint_callback=checkpoint_callback)
+    learner.updates = int(updates)
+    return agent, learner
