@@ -21,7 +21,7 @@ EXIT_OK, EXIT_ERROR, EXIT_INTERRUPTED = 0, 1, 130
 
 
 def _parser() -> argparse.ArgumentParser:
-    from flgd.evaluation.evaluator import DEFAULT_ACTIONS_PER_OBJECT
+    from flgd.evaluation.evaluator import DEFAULT_ACTIONS_PER_OBJECT, MIN_DEFAULT_ACTIONS
     from flgd.evaluation.metrics import FAILURE_LIMIT
     from flgd.evaluation.scene_sets import CLUTTER_COUNT, SCENE_SETS
 
@@ -62,7 +62,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--grasp-only", action="store_true",
                    help="never move (exploration.grasp_only: the paper's Grasping-only mode, Table II)")
     p.add_argument("--max-actions", type=int,
-                   help=f"actions per run before it is stopped (default {DEFAULT_ACTIONS_PER_OBJECT} per object)")
+                   help=f"actions per run before it is stopped (default {DEFAULT_ACTIONS_PER_OBJECT} per object, "
+                        f"at least {MIN_DEFAULT_ACTIONS})")
     p.add_argument("--json", metavar="OUT", help="write the report as JSON")
     p.add_argument("--png", metavar="OUT", help="write the summary bars as PNG (default: next to --json)")
     p.add_argument("--save-qmaps", metavar="DIR", help="write a Q-map picture of every action into DIR")

@@ -7,7 +7,8 @@ clutter), forget the agent's episode state, then cycle until the run ends:
 * ``nothing-graspable`` -- objects are left but none shows in the grasp mask;
 * ``failures``          -- more than ``failure_limit`` consecutive failed actions
   (VPG's test rule; see ``flgd.evaluation.metrics``);
-* ``action-limit``      -- ``max_actions`` actions (default 5 per object);
+* ``action-limit``      -- ``max_actions`` actions (default: 10 per object, at least 30;
+  a safety net for policies that keep moving the clutter around);
 * ``unstable`` / ``fault`` -- the simulator gave up (not counted in the rates).
 
 Frozen evaluation (the default) acts greedily: epsilon = 0 and no curriculum,
@@ -40,9 +41,10 @@ from flgd.evaluation.scene_sets import SceneSpec
 from flgd.safety import CheckedPlan
 
 __all__ = ["EvalOptions", "EvaluationError", "EpisodeCell", "Evaluator", "evaluation_config",
-           "DEFAULT_ACTIONS_PER_OBJECT"]
+           "DEFAULT_ACTIONS_PER_OBJECT", "MIN_DEFAULT_ACTIONS"]
 
-DEFAULT_ACTIONS_PER_OBJECT = 5
+DEFAULT_ACTIONS_PER_OBJECT = 10
+MIN_DEFAULT_ACTIONS = 30  # so VPG's failure rule (11 in a row) can always end a run first
 
 
 class EvaluationError(RuntimeError):
@@ -55,7 +57,7 @@ class EvalOptions:
     seed: int = 0
     learn: bool = False
     grasp_only: bool = False
-    max_actions: int | None = None        # per run; None = DEFAULT_ACTIONS_PER_OBJECT per object
+    max_actions: int | None = None        # per run; None = 10 per object, at least 30
     failure_limit: int = FAILURE_LIMIT
     save_qmaps: Path | None = None        # directory for one Q-map picture per action
 
@@ -221,7 +223,7 @@ class Evaluator:
         self.episode.use(cell)
         objects = self._set_scene(cell, spec)
         grasped_before = cell.stats["grasped_out"]
-        limit = self.options.max_actions or DEFAULT_ACTIONS_PER_OBJECT * max(1, objects)
+        limit = self.options.max_actions or max(MIN_DEFAULT_ACTIONS, DEFAULT_ACTIONS_PER_OBJECT * objects)
         self.agent.reset_episode()
         self.runner.forget_state()
         actions: list[ActionEntry] = []

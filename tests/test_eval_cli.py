@@ -1,0 +1,273 @@
+"""``flgd eval`` end to end in sim_cell: reports, pictures, run-ending rules, modes and bad input.
+
+VPG's test cases are read from <repo>/../shared/external/vpg (never copied into the repository).
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from flgd.cli import main as flgd_main
+from flgd.config import load_config
+from flgd.evaluation.evaluator import EvalOptions, Evaluator, evaluation_config
+from flgd.evaluation.metrics import run_result
+from flgd.evaluation.scene_sets import named_set, scene_from_argument
+from flgd.learning.agent import Decision
+from flgd.learning.networks import build_network
+from flgd.learning.policy_file import save_policy
+from flgd.actions import Action
+from sim_cell.scenes import load_vpg_test_case
+
+REPO = Path(__file__).resolve().parents[1]
+SIM_CONFIG = REPO / "cell_config" / "sim.yaml"
+VPG = REPO.parent / "shared" / "external" / "vpg"
+VPG_CASE = VPG / "test-cases" / "test-10-obj-00.txt"
+needs_vpg = pytest.mark.skipif(not VPG_CASE.is_file(), reason=f"VPG's files are not at {VPG}")
+
+ONE_CUBE = """format: flgd-scene
+version: 1
+objects:
+  - shape: cube
+    size: [0.04]
+    color: [0.9, 0.2, 0.2]
+    position: [0.15, 0.15, 0.02]
+    rpy: [0, 0, 0]
+"""
+
+
+@pytest.fixture(scope="module")
+def policy_file(tmp_path_factory) -> Path:
+    path = tmp_path_factory.mktemp("policy") / "p.safetensors"
+    save_policy(path, build_network("fast", rotations=16, seed=3), {"training_steps": 120, "cell": "test"})
+    return path
+
+
+@pytest.fixture(scope="module")
+def config():
+    return load_config(SIM_CONFIG)
+
+
+# ----------------------------------------------------------------------------- the report, end to end
+
+@needs_vpg
+def test_vpg_test_case_end_to_end_gives_a_well_formed_report(policy_file, tmp_path, capsys):
+    out = tmp_path / "report.json"
+    qdir = tmp_path / "qmaps"
+    code = flgd_main(["eval", "--config", str(SIM_CONFIG), "--policy", str(policy_file), "--scenes", str(VPG_CASE),
+                      "--runs", "2", "--max-actions", "2", "--json", str(out), "--save-qmaps", str(qdir), "--quiet"])
+    captured = capsys.readouterr()
+    assert code == 0, captured.err
+    report = json.loads(out.read_text())
+    assert {"format", "version", "policy", "config", "options", "scenes", "sets", "overall", "seconds"} <= set(report)
+    assert report["format"] == "flgd-eval" and report["policy"]["training_steps"] == 120
+    assert report["options"] == {"runs": 2, "seed": 0, "learn": False, "grasp_only": False, "max_actions": 2,
+                                 "failure_limit": 10}
+    [scene] = report["scenes"]
+    assert scene["scene"] == "test-10-obj-00" and scene["runs"] == 2 and len(scene["run_logs"]) == 2
+    for key in ("completion", "grasp_success", "grasp_success_completed", "action_efficiency", "mean_actions",
+                "moves", "grasp_attempts", "grasp_successes", "ends"):
+        assert key in scene
+    objects = len(load_vpg_test_case(VPG_CASE).objects)
+    for row in scene["run_logs"]:
+        assert row["objects"] == objects
+        assert 1 <= row["actions"] <= 2
+        assert row["grasp_attempts"] + row["push"] + row["shift"] + row["refused"] == row["actions"]
+        assert row["objects_grasped"] == row["grasp_successes"]
+        assert row["objects_left"] == objects - row["objects_grasped"] - row["objects_lost"]
+        assert row["end"] == "action-limit" and row["completed"] is False
+    assert scene["completion"] == 0.0 and scene["action_efficiency"] is None
+    assert report["overall"]["grasp_attempts"] == scene["grasp_attempts"]
+    # the terminal table has the scene row and the overall row
+    assert "test-10-obj-00" in captured.out and "OVERALL" in captured.out
+    # a summary PNG next to the JSON and one Q-map picture per action
+    summary = cv2.imread(str(out.with_suffix(".png")))
+    assert summary is not None and summary.std() > 10
+    pictures = sorted(qdir.rglob("*.png"))
+    assert len(pictures) == sum(r["actions"] for r in scene["run_logs"])
+    first = cv2.imread(str(pictures[0]))
+    assert first.shape[0] > 600 and first.shape[1] > 1500
+    assert len(np.unique(first.reshape(-1, 3), axis=0)) > 500
+
+
+def test_named_sets_resolve_without_simulating(tmp_path):
+    presets = named_set("presets")
+    assert len(presets) >= 4 and all(s.path is not None and s.path.suffix == ".yaml" for s in presets)
+    iso = named_set("novel-isolated")
+    assert [s.count for s in iso] == [1] * len(iso) and "duck alone" in [s.name for s in iso]
+    [clutter] = named_set("novel-clutter", count=7)
+    assert clutter.count == 7 and "teddy" in clutter.objects
+    if VPG_CASE.is_file():
+        hard = named_set("vpg-hard", VPG)
+        assert len(hard) == 11 and all(s.vpg_meshes is not None for s in hard)
+    # VPG's own repository layout: simulation/test-cases next to objects/blocks one level up
+    if VPG_CASE.is_file():
+        (tmp_path / "simulation" / "test-cases").mkdir(parents=True)
+        (tmp_path / "objects").mkdir()
+        (tmp_path / "objects" / "blocks").symlink_to(VPG / "objects" / "blocks")
+        (tmp_path / "simulation" / "test-cases" / VPG_CASE.name).write_bytes(VPG_CASE.read_bytes())
+        [case] = named_set("vpg-hard", tmp_path)
+        assert case.vpg_meshes == tmp_path / "objects" / "blocks"
+
+
+# ----------------------------------------------------------------------------- run-ending rules
+
+class _GraspTheEmptyCorner:
+    """A scripted agent that always grasps the same empty table pixel: every action fails."""
+
+    def __init__(self, rotations: int = 16) -> None:
+        self.rotations = rotations
+        self.decisions = 0
+
+    def decide(self, heightmaps, step):
+        self.decisions += 1
+        h, w = heightmaps.height.shape
+        q = np.zeros((self.rotations, 2, h, w), np.float32)
+        ones = np.ones((h, w), np.uint8)
+        return Decision(Action("grasp", 20, 20, 0, self.rotations), q, ones, ones, 0.0, "greedy", 0.0)
+
+    def record_outcome(self, action, success) -> None:
+        pass
+
+
+def test_a_run_stops_at_the_eleventh_consecutive_failure(config, tmp_path):
+    scene = tmp_path / "one-cube.yaml"
+    scene.write_text(ONE_CUBE)
+    spec = scene_from_argument(str(scene))
+    with Evaluator(config, build_network("fast", rotations=16, seed=0), EvalOptions(runs=1)) as ev:
+        ev.runner.agent = _GraspTheEmptyCorner()
+        log = ev.run(spec, 0)
+    assert log.end == "failures"
+    assert len(log.actions) == 11 and not any(a.success for a in log.actions)
+    assert log.objects == 1 and log.objects_left == 1
+    assert not run_result(log).completed
+
+
+def test_action_limit_and_clearing_a_scene(config, tmp_path):
+    scene = tmp_path / "one-cube.yaml"
+    scene.write_text(ONE_CUBE)
+    spec = scene_from_argument(str(scene))
+    with Evaluator(config, build_network("fast", rotations=16, seed=0), EvalOptions(runs=1, max_actions=3)) as ev:
+        ev.runner.agent = _GraspTheEmptyCorner()
+        limited = ev.run(spec, 0)
+        assert limited.end == "action-limit" and len(limited.actions) == 3
+        # an oracle grasp across the cube clears the one-object scene: a completed run of one action
+        cube = ev._cells[""].object_states()[0]
+        from flgd.perception import base_to_pixel
+
+        row, col = base_to_pixel(cube.position[0], cube.position[1], ev.config.workspace)
+        oracle = _GraspTheEmptyCorner()
+        oracle.decide = lambda hm, step: Decision(Action("grasp", int(row), int(col), 0, 16),
+                                                  np.zeros((16, 2) + hm.height.shape, np.float32),
+                                                  np.ones(hm.height.shape, np.uint8),
+                                                  np.ones(hm.height.shape, np.uint8), 0.0, "greedy", 0.0)
+        ev.runner.agent = oracle
+        cleared = ev.run(spec, 1)
+    assert cleared.end == "cleared", cleared
+    assert [a.success for a in cleared.actions] == [True]
+    res = run_result(cleared)
+    assert res.completed and res.action_efficiency == 1.0 and cleared.objects_grasped == 1
+
+
+# ----------------------------------------------------------------------------- modes
+
+def test_frozen_evaluation_is_greedy_and_grasp_only_never_moves(config, tmp_path):
+    frozen = evaluation_config(config, EvalOptions())
+    assert frozen.exploration.epsilon_start == frozen.exploration.epsilon_end == 0.0
+    assert frozen.exploration.curriculum_steps == 0 and frozen.exploration.top_m == config.exploration.top_m
+    learning = evaluation_config(config, EvalOptions(learn=True, grasp_only=True))
+    assert learning.exploration.epsilon_start == config.exploration.epsilon_start
+    assert learning.exploration.grasp_only and not frozen.exploration.grasp_only
+
+    out = tmp_path / "g.json"
+    code = flgd_main(["eval", "--config", str(SIM_CONFIG), "--fresh", "--scenes", "pile-20-a", "--runs", "1",
+                      "--max-actions", "6", "--grasp-only", "--json", str(out), "--quiet"])
+    assert code == 0
+    report = json.loads(out.read_text())
+    assert report["options"]["grasp_only"] is True
+    assert report["overall"]["moves"] == {"push": 0, "shift": 0}
+    assert report["overall"]["grasp_attempts"] + report["overall"]["refused"] == 6
+
+
+def test_learn_feeds_the_replay_and_no_learn_keeps_the_weights(config, tmp_path):
+    scene = tmp_path / "one-cube.yaml"
+    scene.write_text(ONE_CUBE)
+    spec = scene_from_argument(str(scene))
+    net = build_network("fast", rotations=16, seed=0)
+    before = {k: v.clone() for k, v in net.state_dict().items()}
+    with Evaluator(config, net, EvalOptions(runs=1, max_actions=2)) as ev:
+        assert ev.replay is None and ev.learner is None
+        frozen = ev.run(spec, 0)
+    assert all(torch.equal(before[k], v) for k, v in net.state_dict().items())
+    assert all(a.kind == "grasp" or a.kind in ("push", "shift") for a in frozen.actions)
+
+    with Evaluator(config, build_network("fast", rotations=16, seed=0), EvalOptions(runs=1, max_actions=2, learn=True),
+                   training_steps=40) as ev:
+        log = ev.run(spec, 0)
+        assert len(ev.replay) == len(log.actions) >= 1
+        assert ev.runner.step == 40 + len(log.actions)   # epsilon continues from the policy's steps
+        assert ev.learner.wait_idle(timeout=60)
+        assert ev.learner.updates + ev.learner.failed_updates >= 1
+
+
+# ----------------------------------------------------------------------------- bad input
+
+def _eval(capsys, *args: str) -> tuple[int, str]:
+    code = flgd_main(["eval", "--config", str(SIM_CONFIG), *args])
+    err = capsys.readouterr().err
+    assert "Traceback" not in err
+    return code, err
+
+
+def test_bad_scenes_are_clear_errors(capsys, tmp_path, policy_file):
+    code, err = _eval(capsys, "--policy", str(policy_file), "--scenes", str(tmp_path / "nope.yaml"))
+    assert code == 1 and "nope.yaml: file not found" in err
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("format: flgd-scene\nversion: 1\nobjects:\n  - shape: cube\n    size: [banana]\n")
+    code, err = _eval(capsys, "--policy", str(policy_file), "--scenes", str(bad))
+    assert code == 1 and "bad.yaml" in err and "objects[0]" in err
+    txt = tmp_path / "test-cases" / "broken.txt"
+    txt.parent.mkdir()
+    txt.write_text("0.obj 1 0 0 -0.5 0.0\n")
+    code, err = _eval(capsys, "--policy", str(policy_file), "--scenes", str(txt), "--vpg-meshes", str(tmp_path))
+    assert code == 1 and "broken.txt, line 1" in err and "expected 10" in err
+    code, err = _eval(capsys, "--policy", str(policy_file), "--scenes", str(txt))
+    assert code == 1 and "block meshes not found" in err
+    code, err = _eval(capsys, "--policy", str(policy_file), "--objects", "no_such_thing_*.urdf")
+    assert code == 1 and "no_such_thing_*.urdf" in err
+    code, err = _eval(capsys, "--policy", str(policy_file), "--set", "vpg-hard", "--vpg", str(tmp_path / "empty"))
+    assert code == 1 and "no VPG test cases" in err
+    code, err = _eval(capsys, "--policy", str(policy_file))
+    assert code == 1 and "nothing to evaluate" in err
+
+
+def test_bad_policy_and_config_are_clear_errors(capsys, tmp_path, policy_file):
+    corrupt = tmp_path / "corrupt.safetensors"
+    blob = bytearray(policy_file.read_bytes())
+    blob[-100] ^= 0xFF
+    corrupt.write_bytes(bytes(blob))
+    code, err = _eval(capsys, "--policy", str(corrupt), "--scenes", "pile-20-a")
+    assert code == 1 and "corrupt.safetensors" in err and "checksum" in err
+    code, err = _eval(capsys, "--policy", str(tmp_path / "missing.safetensors"), "--scenes", "pile-20-a")
+    assert code == 1 and "missing.safetensors" in err and "cannot read" in err
+    code = flgd_main(["eval", "--config", str(REPO / "cell_config" / "ur5e-d415.yaml"), "--policy", str(policy_file),
+                      "--scenes", "pile-20-a"])
+    err = capsys.readouterr().err
+    assert code == 1 and "backend: sim" in err and "Traceback" not in err
+
+
+def test_the_installed_command_reports_a_corrupt_policy_without_a_traceback(tmp_path):
+    junk = tmp_path / "junk.safetensors"
+    junk.write_bytes(b"\x80\x04this is a pickle, not a policy")
+    p = subprocess.run([sys.executable, "-m", "flgd.cli", "eval", "--config", str(SIM_CONFIG), "--policy", str(junk),
+                        "--scenes", "pile-20-a"], capture_output=True, text=True, timeout=120)
+    assert p.returncode == 1
+    assert "flgd eval: policy file" in p.stderr and "junk.safetensors" in p.stderr
+    assert "Traceback" not in p.stderr
