@@ -124,8 +124,13 @@ def spread(values: Sequence[int | None]) -> Spread:
 
 
 def plot_curves(path: str | Path, curves: Mapping[str, Sequence[Mapping]], windows: Sequence[int] = (50, 200),
-                title: str = "", thresholds: Sequence[float] = (0.8, 0.9)) -> None:
-    """One PNG: rolling grasp success (one line per run and window) above the share of moves per window."""
+                title: str = "", thresholds: Sequence[float] = (0.8, 0.9),
+                groups: Mapping[str, str] | None = None) -> None:
+    """One PNG: rolling grasp success (one line per run and window) above the share of moves per window.
+
+    ``groups`` maps a curve label to a group (e.g. the variant); curves of one
+    group share a colour.
+    """
     import matplotlib
 
     matplotlib.use("Agg")
@@ -134,8 +139,10 @@ def plot_curves(path: str | Path, curves: Mapping[str, Sequence[Mapping]], windo
     fig, (ax, ax_moves) = plt.subplots(2, 1, figsize=(9, 7), sharex=True, gridspec_kw={"height_ratios": [3, 1]})
     colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
     styles = ["-", "--", ":", "-."]
+    group_index: dict[str, int] = {}
     for k, (label, rows) in enumerate(curves.items()):
-        colour = colours[k % len(colours)]
+        group = (groups or {}).get(label, label)
+        colour = colours[group_index.setdefault(group, len(group_index)) % len(colours)]
         series = grasp_series(rows)
         for j, w in enumerate(windows):
             steps, rate = rolling_success(series, w)

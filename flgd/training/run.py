@@ -426,7 +426,8 @@ class TrainingRun:
             self._lock_fd = None
 
 
-_LOG_KEYS = frozenset({"step", "time", "outcome", "primitive", "kind", "reward", "success", "rule", "epsilon",
+_LOG_KEYS = frozenset({"step", "time", "outcome", "primitive", "kind", "row", "col", "rotation", "reward",
+                       "success", "rule", "epsilon",
                        "q_value", "mu", "eta", "refused", "failure", "t_capture", "t_perceive", "t_decide",
                        "t_plan", "t_execute", "t_judge", "duration"})
 

@@ -1,0 +1,278 @@
+"""``flgd bench learning``: learning efficiency of FLG against its ablations (paper IV-A), and Table II.
+
+1. Curves: FLG, DPEN (no masks) and rho-FCN (VPG head, x16 upsampling, no
+   skip) -- all on the fast trunk, see flgd.learning.networks -- trained from
+   scratch with ``--objects`` (10) objects, ``--seeds`` (0 1 2) each, by
+   ``flgd train`` in the same harness.  Reported per variant: the steps
+   (actions) until the rolling grasp success over the last 200 grasp attempts
+   (the paper's figure) first reaches 80 % and 90 %, and the same for a window
+   of 50; median and min..max over seeds, plus every seed's value, and one PNG
+   of all curves.
+2. Table II: Grasping-only against Grasping-Moving on the preset highly
+   cluttered piles (sim_cell/scenes): an FLG run trained with
+   ``exploration.grasp_only`` (``<root>/flg-grasponly-s<seed>``) and the
+   grasp-and-move FLG run of part 1, each evaluated frozen (greedy) by
+   ``flgd eval`` on every preset, ``--eval-runs`` runs per scene; completion
+   rate and grasp success.
+
+Every run is a ``flgd train`` run directory under ``--root``, so a run that is
+cut short (Ctrl-C, a session that ends) is continued by running the bench
+again; finished runs are skipped.  Runs go in parallel processes
+(``--jobs``, one torch thread each).  ``--report-only`` only reads whatever
+runs exist and marks the unfinished ones.
+
+    flgd bench learning [--root runs/learning] [--steps 1000] [--seeds 0 1 2] [--jobs 2]
+    flgd bench learning --report-only
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import signal
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+from flgd.training.actionlog import read_rows
+from flgd.training.curve import grasp_series, plot_curves, rolling_success, spread, steps_to_threshold
+
+REPO = Path(__file__).resolve().parents[1]
+DEFAULT_CONFIG = REPO / "cell_config" / "sim.yaml"
+VARIANTS = ("flg", "dpen", "rho-fcn")
+THRESHOLDS = (0.8, 0.9)
+WINDOWS = (200, 50)
+
+
+@dataclass(frozen=True)
+class RunSpec:
+    name: str
+    variant: str
+    seed: int
+    grasp_only: bool = False
+
+    def args(self, config: Path, objects: int, steps: int, out: Path) -> list[str]:
+        cmd = [sys.executable, "-m", "flgd.cli", "train", "--config", str(config), "--variant", self.variant,
+               "--objects", str(objects), "--steps", str(steps), "--seed", str(self.seed), "--threads", "1",
+               "--out", str(out)]
+        return cmd + (["--grasp-only"] if self.grasp_only else [])
+
+
+@dataclass
+class RunResult:
+    spec: RunSpec
+    directory: Path
+    rows: list[dict]
+    step: int
+    target: int
+    status: str
+
+    @property
+    def complete(self) -> bool:
+        return self.status == "finished" and self.step >= self.target
+
+
+def run_specs(variants: list[str], seeds: list[int], table2: bool) -> list[RunSpec]:
+    specs = [RunSpec(f"{v}-s{s}", v, s) for s in seeds for v in variants]
+    if table2 and "flg" in variants:  # Table II compares two FLG runs
+        specs += [RunSpec(f"flg-grasponly-s{s}", "flg", s, grasp_only=True) for s in seeds]
+    return specs
+
+
+def read_run(directory: Path, spec: RunSpec, steps: int) -> RunResult | None:
+    info_path = directory / "run.json"
+    if not info_path.exists():
+        return None
+    info = json.loads(info_path.read_text())
+    rows = read_rows(directory / "actions.csv")
+    step = max((int(r["step"]) for r in rows if r.get("step")), default=-1) + 1
+    return RunResult(spec, directory, rows, step, steps, str(info.get("status", "unknown")))
+
+
+# ---------------------------------------------------------------------- running
+
+def train_all(specs: list[RunSpec], root: Path, config: Path, objects: int, steps: int, jobs: int) -> None:
+    """Start or continue every unfinished run, ``jobs`` at a time; Ctrl-C stops them cleanly."""
+    todo = []
+    for spec in specs:
+        res = read_run(root / spec.name, spec, steps)
+        if res is not None and res.complete:
+            print(f"  {spec.name}: finished ({res.step} steps), skipped")
+            continue
+        todo.append(spec)
+    running: dict[str, subprocess.Popen] = {}
+    stopping = False
+
+    def on_signal(signum, _frame) -> None:
+        nonlocal stopping
+        stopping = True
+        for proc in running.values():
+            proc.send_signal(signal.SIGINT)
+
+    old = signal.signal(signal.SIGINT, on_signal)
+    env = dict(os.environ, OMP_NUM_THREADS="1", MKL_NUM_THREADS="1")
+    try:
+        while (todo and not stopping) or running:
+            while todo and not stopping and len(running) < jobs:
+                spec = todo.pop(0)
+                out = root / spec.name
+                out.mkdir(parents=True, exist_ok=True)
+                log = (root / f"{spec.name}.out").open("a")
+                print(f"  {spec.name}: training to {steps} steps (log {log.name})")
+                running[spec.name] = subprocess.Popen(spec.args(config, objects, steps, out), stdout=log,
+                                                      stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                                                      env=env, cwd=REPO)
+            for name, proc in list(running.items()):
+                if proc.poll() is not None:
+                    print(f"  {name}: exit code {proc.returncode}")
+                    del running[name]
+            time.sleep(2.0)
+    finally:
+        signal.signal(signal.SIGINT, old)
+
+
+def evaluate_table2(results: dict[str, RunResult], root: Path, eval_runs: int, seeds: list[int]) -> None:
+    """``flgd eval`` of the newest checkpoint of each Table II run on the presets (cached per checkpoint)."""
+    from sim_cell.cell import preset_scenes
+
+    scenes = [str(p) for p in preset_scenes()]
+    for seed in seeds:
+        for name, grasp_only in ((f"flg-s{seed}", False), (f"flg-grasponly-s{seed}", True)):
+            res = results.get(name)
+            if res is None or not res.complete:
+                continue
+            ckpts = sorted((res.directory / "checkpoints").glob("checkpoint-*.safetensors"))
+            if not ckpts:
+                continue
+            out = res.directory / f"table2-{ckpts[-1].stem}-r{eval_runs}.json"
+            if out.exists():
+                continue
+            cmd = [sys.executable, "-m", "flgd.cli", "eval", "--config", str(res.directory / "config.yaml"),
+                   "--policy", str(ckpts[-1]), "--scenes", *scenes, "--runs", str(eval_runs), "--seed", str(seed),
+                   "--json", str(out), "--quiet"] + (["--grasp-only"] if grasp_only else [])
+            print(f"  evaluating {name} ({ckpts[-1].name}) on {len(scenes)} presets x {eval_runs} runs")
+            subprocess.run(cmd, cwd=REPO, check=False, env=dict(os.environ, OMP_NUM_THREADS="1"))
+
+
+# ---------------------------------------------------------------------- report
+
+def _fmt(v: int | None, res: RunResult) -> str:
+    if v is not None:
+        return str(v)
+    return f"> {res.step}" if res.complete else f"not yet (at {res.step})*"
+
+
+def report(results: dict[str, RunResult], variants: list[str], seeds: list[int], root: Path,
+           steps: int, objects: int, eval_runs: int) -> dict:
+    lines = [f"# flgd bench learning ({objects} objects, target {steps} steps per run)", "",
+             f"machine: {platform.node()}, {os.cpu_count()} CPUs, {platform.processor() or platform.machine()}; "
+             f"runs in {root}", "",
+             "Steps (actions) until the rolling grasp success over the last W grasp attempts first reaches the "
+             "threshold; median [min..max] over seeds (a run that never reached it ranks last).  "
+             "`*` = run not finished yet.", ""]
+    out: dict = {"objects": objects, "steps": steps, "variants": {}}
+    header = "| variant | W | 80 % | 90 % | per seed (80 % / 90 %) | final rolling success |"
+    lines += [header, "|---|---|---|---|---|---|"]
+    for v in variants:
+        runs = [results[f"{v}-s{s}"] for s in seeds if f"{v}-s{s}" in results]
+        entry: dict = {"runs": {r.spec.name: {"step": r.step, "status": r.status, "complete": r.complete}
+                                for r in runs}}
+        for w in WINDOWS:
+            per_seed = {}
+            for r in runs:
+                series = grasp_series(r.rows)
+                per_seed[r.spec.name] = {t: steps_to_threshold(series, t, w) for t in THRESHOLDS}
+                _, rate = rolling_success(series, w)
+                per_seed[r.spec.name]["final"] = float(rate[-1]) if len(rate) else None
+            spreads = {t: spread([per_seed[n][t] for n in per_seed]) for t in THRESHOLDS}
+            entry[f"window_{w}"] = {
+                "per_seed": {n: {str(k): val for k, val in d.items()} for n, d in per_seed.items()},
+                **{f"steps_to_{int(100 * t)}": vars(spreads[t]) for t in THRESHOLDS}}
+            seeds_txt = "; ".join(
+                f"s{r.spec.seed}: {_fmt(per_seed[r.spec.name][0.8], r)} / {_fmt(per_seed[r.spec.name][0.9], r)}"
+                for r in runs)
+            finals = ", ".join("-" if per_seed[r.spec.name]["final"] is None
+                               else f"{100 * per_seed[r.spec.name]['final']:.0f}%" for r in runs)
+            lines.append(f"| {v} | {w} | {spreads[0.8].text() if runs else '-'} | "
+                         f"{spreads[0.9].text() if runs else '-'} | {seeds_txt or 'no runs'} | {finals} |")
+        out["variants"][v] = entry
+    curves = {}
+    groups = {}
+    for v in variants:
+        for s in seeds:
+            r = results.get(f"{v}-s{s}")
+            if r is not None and r.rows:
+                label = f"{v} s{s}" + ("" if r.complete else " (unfinished)")
+                curves[label], groups[label] = r.rows, v
+    if curves:
+        plot_curves(root / "curves.png", curves, windows=(200,), groups=groups,
+                    title=f"rolling grasp success (last 200 grasps), {objects} objects")
+        lines += ["", f"curves: {root / 'curves.png'}"]
+
+    table2 = []
+    for s in seeds:
+        for name, mode in ((f"flg-s{s}", "Grasping-Moving"), (f"flg-grasponly-s{s}", "Grasping-only")):
+            res = results.get(name)
+            evals = sorted(res.directory.glob(f"table2-*-r{eval_runs}.json")) if res else []
+            if not evals:
+                table2.append((mode, s, None, res))
+                continue
+            rep = json.loads(evals[-1].read_text())
+            table2.append((mode, s, rep.get("overall", {}), res))
+    if any(t[2] is not None or t[3] is not None for t in table2):
+        lines += ["", "## Table II: preset cluttered piles, frozen greedy policy", "",
+                  "| mode | seed | completion | grasp success | grasps | runs |", "|---|---|---|---|---|---|"]
+        out["table2"] = []
+        for mode, s, ov, res in table2:
+            if ov is None:
+                state = "no run" if res is None else ("not evaluated" if res.complete else
+                                                      f"training not finished (at {res.step})*")
+                lines.append(f"| {mode} | {s} | {state} | | | |")
+                continue
+            comp, gs = ov.get("completion"), ov.get("grasp_success")
+            lines.append(f"| {mode} | {s} | {'-' if comp is None else f'{100 * comp:.0f}%'} | "
+                         f"{'-' if gs is None else f'{100 * gs:.1f}%'} | "
+                         f"{ov.get('grasp_successes', '-')}/{ov.get('grasp_attempts', '-')} | {ov.get('runs', '-')} |")
+            out["table2"].append({"mode": mode, "seed": s, **{k: ov.get(k) for k in (
+                "completion", "grasp_success", "grasp_successes", "grasp_attempts", "runs")}})
+    text = "\n".join(lines) + "\n"
+    (root / "report.md").write_text(text)
+    (root / "report.json").write_text(json.dumps(out, indent=2) + "\n")
+    print(text)
+    return out
+
+
+def main(argv: list[str]) -> int:
+    ap = argparse.ArgumentParser(prog="flgd bench learning", description=__doc__.splitlines()[0])
+    ap.add_argument("--config", default=str(DEFAULT_CONFIG))
+    ap.add_argument("--root", default=str(REPO / "runs" / "learning"), help="directory of the run directories")
+    ap.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=VARIANTS)
+    ap.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
+    ap.add_argument("--objects", type=int, default=10)
+    ap.add_argument("--steps", type=int, default=1000, help="training steps per run")
+    ap.add_argument("--jobs", type=int, default=2, help="parallel training processes (one torch thread each)")
+    ap.add_argument("--no-table2", action="store_true", help="skip the grasp-only vs grasp-and-move part")
+    ap.add_argument("--eval-runs", type=int, default=2, help="Table II: runs per preset scene")
+    ap.add_argument("--report-only", action="store_true", help="no training: report on the runs that exist")
+    args = ap.parse_args(argv)
+    if args.jobs < 1 or args.steps < 1 or args.eval_runs < 1 or not 1 <= args.objects <= 60:
+        print("flgd bench learning: --jobs, --steps and --eval-runs must be >= 1, --objects 1..60", file=sys.stderr)
+        return 2
+    root = Path(args.root).resolve()
+    root.mkdir(parents=True, exist_ok=True)
+    specs = run_specs(args.variants, args.seeds, not args.no_table2)
+    if not args.report_only:
+        train_all(specs, root, Path(args.config).resolve(), args.objects, args.steps, args.jobs)
+    results = {}
+    for spec in specs:
+        res = read_run(root / spec.name, spec, args.steps)
+        if res is not None:
+            results[spec.name] = res
+    if not args.report_only and not args.no_table2:
+        evaluate_table2(results, root, args.eval_runs, args.seeds)
+    report(results, args.variants, args.seeds, root, args.steps, args.objects, args.eval_runs)
+    return 0

@@ -1,0 +1,110 @@
+"""Learning-curve statistics and the learning bench's report, on hand-made action logs."""
+
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from benchmarks import learning as bench
+from flgd.training.actionlog import COLUMNS
+from flgd.training.curve import grasp_series, move_fraction, rolling_success, spread, steps_to_threshold
+
+
+def _rows(pattern: list[str]) -> list[dict]:
+    """'G' = successful grasp, 'g' = failed grasp, 'p' = push, 'r' = refused grasp; one step each."""
+    rows = []
+    for step, ch in enumerate(pattern):
+        if ch == "p":
+            rows.append({"step": str(step), "outcome": "executed", "primitive": "push", "success": ""})
+        else:
+            rows.append({"step": str(step), "outcome": "refused" if ch == "r" else "executed",
+                         "primitive": "grasp", "success": "1" if ch == "G" else "0"})
+    return rows
+
+
+def test_rolling_success_counts_full_windows_of_executed_grasps():
+    rows = _rows(list("GgpGrG"))
+    s = grasp_series(rows)
+    assert s.steps.tolist() == [0, 1, 3, 5] and s.success.tolist() == [1, 0, 1, 1] and s.last_step == 5
+    steps, rate = rolling_success(s, 2)
+    assert steps.tolist() == [1, 3, 5] and rate.tolist() == [0.5, 0.5, 1.0]
+    steps, rate = rolling_success(s, 2, full_only=False)
+    assert steps.tolist() == [0, 1, 3, 5] and rate.tolist() == [1.0, 0.5, 0.5, 1.0]
+    assert len(rolling_success(s, 10)[0]) == 0
+
+
+def test_steps_to_threshold_is_the_first_full_window_at_or_above():
+    # 10 failures, then successes: a window of 10 grasps reaches 80 % at the 8th success
+    rows = _rows(["g"] * 10 + ["G"] * 20)
+    s = grasp_series(rows)
+    assert steps_to_threshold(s, 0.8, 10) == 18   # step 17 is the 18th action
+    assert steps_to_threshold(s, 0.9, 10) == 19
+    assert steps_to_threshold(s, 1.0, 10) == 20
+    # early luck does not count: 3 of 3 at the start, window 10 not yet full
+    lucky = grasp_series(_rows(["G"] * 3 + ["g"] * 7))
+    assert steps_to_threshold(lucky, 0.9, 10) is None
+    # moves between grasps stretch the step count, not the window
+    spaced = grasp_series(_rows(["G", "p"] * 10))
+    assert steps_to_threshold(spaced, 0.9, 10) == 19
+
+
+def test_move_fraction_per_window_of_actions():
+    steps, frac = move_fraction(_rows(list("GpGpGG")), 4)
+    assert steps.tolist() == [3, 4, 5] and frac.tolist() == [0.5, 0.5, 0.25]
+
+
+def test_spread_ranks_never_reached_last():
+    s = spread([400, 300, 500])
+    assert (s.median, s.low, s.high, s.reached, s.total) == (400, 300, 500, 3, 3)
+    s = spread([400, None, 300])
+    assert (s.median, s.low, s.high, s.reached) == (400, 300, np.inf, 2)
+    assert "2/3 runs reached" in s.text()
+    s = spread([None, None, 350])
+    assert s.median == np.inf and "not reached" in s.text().split("[")[0]
+    assert spread([None]).text() == "not reached (0/1)"
+
+
+def _write_run(root: Path, name: str, pattern: list[str], status: str) -> None:
+    d = root / name
+    d.mkdir(parents=True)
+    (d / "run.json").write_text(json.dumps({"status": status}))
+    with (d / "actions.csv").open("w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=COLUMNS)
+        w.writeheader()
+        for r in _rows(pattern):
+            w.writerow({k: r.get(k, "") for k in COLUMNS})
+
+
+def test_bench_report_medians_over_seeds_and_marks_unfinished_runs(tmp_path):
+    # window 200 needs 200 grasps: pad with failures before a run of successes
+    _write_run(tmp_path, "flg-s0", ["g"] * 200 + ["G"] * 200, "finished")    # 80 % at 360, 90 % at 380
+    _write_run(tmp_path, "flg-s1", ["g"] * 100 + ["G"] * 300, "finished")    # 80 % at 260, 90 % at 280
+    _write_run(tmp_path, "flg-s2", ["g"] * 300 + ["G"] * 100, "finished")    # never
+    _write_run(tmp_path, "dpen-s0", ["g"] * 150, "running")                  # unfinished
+    specs = bench.run_specs(["flg", "dpen"], [0, 1, 2], table2=False)
+    results = {s.name: r for s in specs if (r := bench.read_run(tmp_path / s.name, s, 400)) is not None}
+    assert results["flg-s0"].complete and not results["dpen-s0"].complete
+    out = bench.report(results, ["flg", "dpen"], [0, 1, 2], tmp_path, steps=400, objects=10, eval_runs=2)
+    w200 = out["variants"]["flg"]["window_200"]
+    assert w200["per_seed"]["flg-s0"]["0.8"] == 360 and w200["per_seed"]["flg-s1"]["0.9"] == 280
+    assert w200["per_seed"]["flg-s2"]["0.8"] is None
+    assert w200["steps_to_80"]["median"] == 360 and w200["steps_to_80"]["low"] == 260
+    assert w200["steps_to_80"]["reached"] == 2 and w200["steps_to_80"]["total"] == 3
+    text = (tmp_path / "report.md").read_text()
+    assert "not yet (at 150)*" in text and "s2: > 400 / > 400" in text
+    assert (tmp_path / "curves.png").read_bytes()[:4] == b"\x89PNG"
+    assert json.loads((tmp_path / "report.json").read_text())["variants"]["dpen"]["runs"]["dpen-s0"]["step"] == 150
+
+
+def test_bench_commands_use_one_thread_and_the_run_directory(tmp_path):
+    spec = bench.run_specs(["rho-fcn"], [3], table2=True)
+    assert [s.name for s in spec] == ["rho-fcn-s3"]  # Table II runs need the flg variant
+    spec = bench.run_specs(["flg"], [1], table2=True)
+    assert [s.name for s in spec] == ["flg-s1", "flg-grasponly-s1"]
+    cmd = spec[1].args(Path("c.yaml"), 10, 700, tmp_path / "x")
+    assert cmd[cmd.index("--threads") + 1] == "1" and "--grasp-only" in cmd
+    assert cmd[cmd.index("--steps") + 1] == "700" and cmd[cmd.index("--out") + 1] == str(tmp_path / "x")
