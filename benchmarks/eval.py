@@ -1,0 +1,151 @@
+"""``flgd bench eval``: the standard evaluation of a policy file, as reported in BENCHMARKS.md.
+
+Three parts, all frozen and greedy (``flgd eval`` defaults), each with
+``--runs`` runs per scene:
+
+1. VPG's 11 hard test cases (read from ``--vpg``, default <repo>/../shared/external/vpg)
+   -- targets: completion 100 %, grasp success >= 90 % (VPG: 82.7 %, 77.2 %);
+2. the preset cluttered piles, grasp-only vs grasp-and-move (paper Table II)
+   -- target: grasp-and-move has the higher grasp success;
+3. held-out novel objects alone and in clutter (paper Table III)
+   -- target: grasp success >= 90 % in clutter.
+
+The same ``Evaluator`` as ``flgd eval`` runs every part (one cycle, one
+definition of the metrics).  ``--json`` writes the three reports.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+REPO = Path(__file__).resolve().parents[1]
+DEFAULT_CONFIG = REPO / "cell_config" / "sim.yaml"
+DEFAULT_VPG = REPO.parent / "shared" / "external" / "vpg"
+
+
+def _pct(v: float | None) -> str:
+    return "-" if v is None else f"{100 * v:.1f} %"
+
+
+def _evaluate(config: Any, network: Any, policy: dict, scenes: list, runs: int, seed: int, grasp_only: bool,
+              max_actions: int | None) -> dict:
+    from flgd.evaluation.evaluator import EvalOptions, Evaluator
+    from flgd.evaluation.report import build_report
+
+    options = EvalOptions(runs=runs, seed=seed, grasp_only=grasp_only, max_actions=max_actions)
+    t0 = time.perf_counter()
+
+    def progress(spec: Any, log: Any) -> None:
+        print(f"    {spec.name} run {log.run + 1}: {log.end}, {len(log.actions)} actions "
+              f"({log.seconds:.0f} s)", file=sys.stderr, flush=True)
+
+    with Evaluator(config, network, options, progress=progress) as ev:
+        results = ev.evaluate(scenes)
+    return build_report(results, policy=policy, config=str(config.source),
+                        options={"runs": runs, "seed": seed, "learn": False, "grasp_only": grasp_only,
+                                 "max_actions": max_actions, "failure_limit": options.failure_limit},
+                        seconds=time.perf_counter() - t0)
+
+
+def _line(name: str, s: dict) -> str:
+    return (f"| {name} | {s['counted_runs']} | {_pct(s['completion'])} | {_pct(s['grasp_success'])} "
+            f"({s['grasp_successes']}/{s['grasp_attempts']}) | {_pct(s['action_efficiency'])} | "
+            f"{s['mean_actions'] or 0:.1f} | {s['moves']['push']} / {s['moves']['shift']} | {s['aborted']} |")
+
+
+def main(argv: list[str]) -> int:
+    ap = argparse.ArgumentParser(prog="flgd bench eval", description=__doc__.split("\n\n")[0])
+    who = ap.add_mutually_exclusive_group(required=True)
+    who.add_argument("--policy", help="policy file to evaluate")
+    who.add_argument("--fresh", action="store_true", help="an untrained network (to try the benchmark)")
+    ap.add_argument("--config", default=str(DEFAULT_CONFIG))
+    ap.add_argument("--vpg", default=str(DEFAULT_VPG), help="a copy of VPG's test cases and block meshes")
+    ap.add_argument("--runs", type=int, default=3, help="runs per scene (default 3)")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--max-actions", type=int, help="cap per run (default: flgd eval's)")
+    ap.add_argument("--parts", default="vpg,presets,novel", help="comma list of vpg, presets, novel")
+    ap.add_argument("--json", help="write the reports here")
+    args = ap.parse_args(argv)
+
+    from flgd.config import ConfigError, load_config
+    from flgd.evaluation.scene_sets import SceneSetError, named_set
+    from flgd.learning.policy_file import PolicyFileError, load_policy
+
+    parts = [p.strip() for p in args.parts.split(",") if p.strip()]
+    unknown = sorted(set(parts) - {"vpg", "presets", "novel"})
+    if unknown or args.runs < 1:
+        print(f"flgd bench eval: --parts: unknown {unknown}" if unknown else "flgd bench eval: --runs must be >= 1",
+              file=sys.stderr)
+        return 1
+    try:
+        config = load_config(args.config)
+        if args.fresh:
+            from flgd.learning.networks import build_network
+
+            network = build_network(config.learning.network, rotations=config.learning.rotations, seed=args.seed)
+            policy = {"path": f"fresh {config.learning.network} network", "training_steps": 0}
+        else:
+            loaded = load_policy(args.policy)
+            network = loaded.network
+            policy = {"path": args.policy, "variant": loaded.metadata["variant"],
+                      "training_steps": loaded.metadata["training_steps"],
+                      "weights_sha256": loaded.metadata["weights_sha256"]}
+        suites: list[tuple[str, list, bool]] = []
+        if "vpg" in parts:
+            suites.append(("VPG hard test cases", named_set("vpg-hard", args.vpg), False))
+        if "presets" in parts:
+            presets = named_set("presets")
+            suites.append(("presets, grasp-only", presets, True))
+            suites.append(("presets, grasp-and-move", presets, False))
+        if "novel" in parts:
+            suites.append(("novel objects, isolated", named_set("novel-isolated"), False))
+            suites.append(("novel objects, clutter of 10", named_set("novel-clutter"), False))
+    except (ConfigError, PolicyFileError, SceneSetError) as exc:
+        print(f"flgd bench eval: {exc}", file=sys.stderr)
+        return 1
+
+    print(f"# flgd bench eval {' '.join(argv)}")
+    print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cpus, python "
+          f"{platform.python_version()}; config {args.config}; policy {policy['path']} "
+          f"({policy.get('training_steps', 0)} training steps); {args.runs} run(s) per scene, seed {args.seed}")
+    reports: dict[str, dict] = {}
+    t0 = time.perf_counter()
+    for name, scenes, grasp_only in suites:
+        print(f"  {name} ...", file=sys.stderr, flush=True)
+        reports[name] = _evaluate(config, network, policy, scenes, args.runs, args.seed, grasp_only,
+                                  args.max_actions)
+    print("\n| evaluation | runs | completion | grasp success | action efficiency | actions/run | push / shift "
+          "| aborted |")
+    print("|---|---|---|---|---|---|---|---|")
+    for name, report in reports.items():
+        print(_line(name, report["overall"]))
+    if "novel objects, isolated" in reports:
+        print("\nnovel objects alone (grasp success per object, Table III isolation): " + ", ".join(
+            f"{sc['scene'].replace(' alone', '')} {_pct(sc['grasp_success'])}"
+            for sc in reports["novel objects, isolated"]["scenes"]))
+    print()
+    if "VPG hard test cases" in reports:
+        s = reports["VPG hard test cases"]["overall"]
+        print(f"target VPG hard: completion {_pct(s['completion'])} (target 100 %), grasp success "
+              f"{_pct(s['grasp_success'])} / VPG's per-completed-run mean {_pct(s['grasp_success_completed'])} "
+              f"(target >= 90 %; VPG 82.7 % completion, 77.2 % grasp success)")
+    if "presets, grasp-only" in reports:
+        g = reports["presets, grasp-only"]["overall"]["grasp_success"]
+        m = reports["presets, grasp-and-move"]["overall"]["grasp_success"]
+        ratio = f"{m / g:.2f}" if g and m is not None else "-"
+        print(f"target presets: grasp-and-move {_pct(m)} vs grasp-only {_pct(g)} grasp success (ratio {ratio}; "
+              "target > 1)")
+    if "novel objects, clutter of 10" in reports:
+        s = reports["novel objects, clutter of 10"]["overall"]
+        print(f"target novel clutter: grasp success {_pct(s['grasp_success'])} (target >= 90 %; paper 94.7 %)")
+    print(f"total time {time.perf_counter() - t0:.0f} s")
+    if args.json:
+        Path(args.json).write_text(json.dumps(reports, indent=2) + "\n", encoding="utf-8")
+    return 0
