@@ -4,6 +4,9 @@
    build the heightmap, plan a grasp or a push at a random object, check it and
    execute it (a successful grasp also runs the place plan).  Median over runs;
    the reference measured in the same run is the frame rate of capture alone.
+   Besides wall-clock actions/s, actions per CPU-second of this process are
+   reported: on a shared machine the wall clock also measures the neighbours'
+   load (printed with the machine line), the CPU time only this cell's work.
 2. Oracle grasp success on isolated blocks: one random block at a random pose,
    grasped at its footprint centre across its short axis through plan_grasp,
    check_plan, execute and grasp_reward -- shows gripper, friction and the
@@ -50,19 +53,22 @@ def short_axis_grasp(points: np.ndarray) -> tuple[float, float, float]:
 
 
 def actions_per_second(cfg, actions: int, seed: int) -> tuple[float, float, dict]:
-    """(actions/s, captures/s, counters) for one run with ``cfg.sim.objects`` objects."""
+    """(actions/s, captures/s, counters) for one run with ``cfg.sim.objects`` objects;
+    ``counters["cpu_actions_per_s"]`` is the rate per CPU-second of this process."""
     from sim_cell.cell import SimCell
 
     rng = np.random.default_rng(seed)
     counts = {"grasp": 0, "grasp_ok": 0, "push": 0, "failed": 0, "resets": 0}
     with SimCell(cfg) as cell:
         busy = 0.0
+        cpu = 0.0
         capture_time = 0.0
         for i in range(actions):
             if cell.object_count < cfg.sim.objects // 2:
                 cell.reset_scene()
                 counts["resets"] += 1
             t0 = time.perf_counter()
+            c0 = time.process_time()
             frame = cell.capture()
             t1 = time.perf_counter()
             capture_time += t1 - t0
@@ -86,6 +92,7 @@ def actions_per_second(cfg, actions: int, seed: int) -> tuple[float, float, dict
             except PlanRefused:
                 counts["failed"] += 1
                 busy += time.perf_counter() - t0
+                cpu += time.process_time() - c0
                 continue
             result = cell.execute(checked)
             if plan.primitive == "grasp":
@@ -97,6 +104,8 @@ def actions_per_second(cfg, actions: int, seed: int) -> tuple[float, float, dict
                 counts["push"] += 1
             counts["failed"] += int(not result.completed)
             busy += time.perf_counter() - t0
+            cpu += time.process_time() - c0
+    counts["cpu_actions_per_s"] = round(actions / cpu, 2)
     return actions / busy, actions / capture_time, counts
 
 
@@ -151,18 +160,22 @@ def main(argv: list[str]) -> int:
     args = ap.parse_args(argv)
     cfg = load_config(args.config)
     cfg = dataclasses.replace(cfg, sim=dataclasses.replace(cfg.sim, objects=args.objects, scene=""))
+    load = " ".join(f"{v:.2f}" for v in os.getloadavg())
     print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cpus, "
-          f"python {platform.python_version()}; config {args.config}")
-    rates, refs = [], []
+          f"python {platform.python_version()}, load average {load}; config {args.config}")
+    rates, refs, cpu_rates = [], [], []
     for r in range(args.runs):
         cfg_r = dataclasses.replace(cfg, sim=dataclasses.replace(cfg.sim, seed=args.seed + r))
         aps, fps, counts = actions_per_second(cfg_r, args.actions, args.seed + r)
         rates.append(aps)
         refs.append(fps)
+        cpu_rates.append(counts["cpu_actions_per_s"])
         print(f"run {r}: {aps:.2f} actions/s (capture alone {fps:.1f} frames/s) {counts}")
     med, ref = statistics.median(rates), statistics.median(refs)
     print(f"actions/s with {args.objects} objects: median {med:.2f} over {args.runs} runs "
           f"(reference: capture alone {ref:.1f} frames/s; ratio {med / ref:.3f}) -- target >= 2")
+    print(f"actions per CPU-second: median {statistics.median(cpu_rates):.2f} "
+          f"(load average now {' '.join(f'{v:.2f}' for v in os.getloadavg())})")
     rate, per_shape = oracle_success(cfg, args.trials, args.seed)
     print(f"oracle grasp success on isolated blocks: {rate * 100:.1f}% of {args.trials} -- target >= 95%")
     print(f"per shape: {per_shape}")

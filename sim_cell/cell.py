@@ -600,12 +600,21 @@ class SimCell(Cell):
             self._sim_time += travel / FINGER_SPEED
             return
         self._robot.command_gripper(width, force)
-        self._set_solver(squeeze=width < self._robot.width() - 1e-3)
+        closing = width < self._robot.width() - 1e-3
         steps = int(GRIPPER_TIMEOUT / self._dt)
         for k in range(0, steps, 4):
+            # the costly solver only once a closing pad touches something (free travel needs none)
+            self._set_solver(squeeze=closing and self._pads_touch())
             self._step(4)
             if k >= 12 and self._robot.finger_speed() < 2e-3:
                 break
+
+    def _pads_touch(self) -> bool:
+        """Whether a finger pad touches any object."""
+        c, rb = self._client, self._robot
+        return any(cp[2] in self._objects
+                   for link in rb.finger_links
+                   for cp in p.getContactPoints(bodyA=rb.body, linkIndexA=link, physicsClientId=c))
 
     def _set_solver(self, squeeze: bool | None = None) -> None:
         """More solver iterations only while the fingers press on something (costly otherwise)."""

@@ -91,9 +91,11 @@ def inverse(target: np.ndarray) -> list[np.ndarray]:
             t45 = _dh(th5, d5, 0.0, _ALPHA[4])
             t56 = _dh(th6, d6, 0.0, _ALPHA[5])
             t14 = _rigid_inverse(t01) @ t @ _rigid_inverse(t45 @ t56)
+            # Joints 2, 3, 4 are parallel: frame 4 is frame 1 turned by th2 + th3 + th4 about z.
+            th234 = math.atan2(t14[1, 0], t14[0, 0])
             # Frame 4 sits d4 along its -y from the end of the planar two-link chain (joints 2, 3).
-            p13 = t14 @ np.array([0.0, -d4, 0.0, 1.0])
-            px, py = p13[0], p13[1]  # the planar chain lies in frame 1's x-y plane
+            px = t14[0, 3] - d4 * t14[0, 1]  # the planar chain lies in frame 1's x-y plane
+            py = t14[1, 3] - d4 * t14[1, 1]
             dist2 = px * px + py * py
             c3 = (dist2 - a2 * a2 - a3 * a3) / (2 * a2 * a3)
             if abs(c3) > 1.0 + 1e-9:
@@ -102,10 +104,7 @@ def inverse(target: np.ndarray) -> list[np.ndarray]:
             for s3 in (1.0, -1.0):
                 th3 = s3 * math.acos(c3)
                 th2 = math.atan2(py, px) - math.atan2(a3 * math.sin(th3), a2 + a3 * math.cos(th3))
-                t12 = _dh(th2, 0.0, a2, 0.0)
-                t23 = _dh(th3, 0.0, a3, 0.0)
-                t34 = _rigid_inverse(t12 @ t23) @ t14
-                th4 = math.atan2(t34[1, 0], t34[0, 0])
+                th4 = th234 - th2 - th3
                 q = np.array([th1, th2, th3, th4, th5, th6])
                 out.append(np.remainder(q + math.pi, 2 * math.pi) - math.pi)
     return out
@@ -126,12 +125,11 @@ JOINT_LIMITS = np.array([2 * math.pi, 2 * math.pi, math.pi, 2 * math.pi, 2 * mat
 def nearest_solution(solutions: list[np.ndarray], q_ref) -> np.ndarray | None:
     """The solution closest to ``q_ref`` in joint space, each joint shifted by 2*pi where that
     is nearer and stays within the joint limits (UR joints turn +-2*pi)."""
+    if not solutions:
+        return None
     q_ref = np.asarray(q_ref, dtype=float)
-    best, best_cost = None, math.inf
-    for q in solutions:
-        shifted = q_ref + np.remainder(q - q_ref + math.pi, 2 * math.pi) - math.pi
-        shifted = np.where(np.abs(shifted) > JOINT_LIMITS, q, shifted)
-        cost = float(np.sum((shifted - q_ref) ** 2))
-        if cost < best_cost:
-            best, best_cost = shifted, cost
-    return best
+    qs = np.asarray(solutions)
+    shifted = q_ref + np.remainder(qs - q_ref + math.pi, 2 * math.pi) - math.pi
+    shifted = np.where(np.abs(shifted) > JOINT_LIMITS, qs, shifted)
+    cost = np.sum((shifted - q_ref) ** 2, axis=1)
+    return shifted[int(np.argmin(cost))]
