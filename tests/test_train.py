@@ -74,6 +74,18 @@ def test_a_short_run_writes_log_checkpoint_and_curve_then_resumes(tmp_path):
     # other settings for an existing run directory are refused, naming the flag
     assert train_main(["--out", str(out), "--variant", "dpen"]) == 2
 
+    # shipping a checkpoint: a byte copy that loads, its metadata JSON and curve
+    from flgd.training.export import export_policy
+
+    dest = tmp_path / "policies" / "p.safetensors"
+    info = export_policy(out, dest, "latest")
+    assert dest.read_bytes() == _checkpoints(out)[-1].read_bytes()
+    assert load_policy(dest).metadata["training_steps"] == 5
+    saved = json.loads((tmp_path / "policies" / "p.json").read_text())
+    assert saved == json.loads(json.dumps(info)) and saved["run_settings"]["seed"] == 5
+    assert saved["resume_command"] == f"flgd train --out {out}"
+    assert (tmp_path / "policies" / "p-curve.png").read_bytes()[:8] == PNG_MAGIC
+
 
 def test_same_seed_same_actions(tmp_path):
     """Synchronous updates and fixed seeds: two runs of one command act identically."""
