@@ -123,9 +123,11 @@ def train_all(specs: list[RunSpec], root: Path, config: Path, objects: int, step
                 out.mkdir(parents=True, exist_ok=True)
                 log = (root / f"{spec.name}.out").open("a")
                 print(f"  {spec.name}: training to {steps} steps (log {log.name})")
+                # own session: a terminal's Ctrl-C reaches only the bench, which forwards exactly one
+                # SIGINT (a second one would make a run exit without its final checkpoint)
                 running[spec.name] = subprocess.Popen(spec.args(config, objects, steps, out), stdout=log,
                                                       stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                                                      env=env, cwd=REPO)
+                                                      env=env, cwd=REPO, start_new_session=True)
             for name, proc in list(running.items()):
                 if proc.poll() is not None:
                     print(f"  {name}: exit code {proc.returncode}")
