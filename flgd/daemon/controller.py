@@ -524,7 +524,7 @@ class Controller:
         return {"backend": name, "previous": old_name}
 
     def _snapshot(self) -> dict:
-        from flgd.visualize import encode_png, qmap_picture
+        from flgd.visualize import ActionGlyph, encode_png, qmap_picture
 
         runner = self.runner
         assert runner is not None
@@ -537,13 +537,14 @@ class Controller:
         hm, decision, step = last
         image = qmap_picture(hm.color, hm.height, decision.q_maps, decision.grasp_mask, decision.move_mask,
                              decision.action, caption=f"{note}: step {step}, rule {decision.rule}, "
-                                                  f"Q {decision.q_value:.3f}")
+                                                  f"Q {decision.q_value:.3f}",
+                             glyph=ActionGlyph.from_config(self.config))
         return {"png_base64": base64.b64encode(encode_png(image)).decode("ascii"), "source": note, "step": step,
                 "action": dataclasses.asdict(decision.action), "q_value": decision.q_value}
 
     def _fresh_snapshot(self) -> dict:
         """Run loop: capture and evaluate the network without acting (no decision state changes)."""
-        from flgd.visualize import encode_png, greedy_action, qmap_picture
+        from flgd.visualize import ActionGlyph, encode_png, greedy_action, qmap_picture
 
         assert self.runner is not None
         try:
@@ -558,7 +559,8 @@ class Controller:
         if gmask.any():
             action = greedy_action(q, gmask, mmask, hm.height, self.config.rewards.shift_height)
         note = "fresh capture, greedy action (not executed)"
-        image = qmap_picture(hm.color, hm.height, q, gmask, mmask, action, caption=note)
+        image = qmap_picture(hm.color, hm.height, q, gmask, mmask, action, caption=note,
+                             glyph=ActionGlyph.from_config(self.config))
         return {"png_base64": base64.b64encode(encode_png(image)).decode("ascii"), "source": note,
                 "action": None if action is None else dataclasses.asdict(action),
                 "q_value": None if action is None else float(q[action.rotation, action.channel, action.row,
