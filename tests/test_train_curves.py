@@ -108,3 +108,18 @@ def test_bench_commands_use_one_thread_and_the_run_directory(tmp_path):
     cmd = spec[1].args(Path("c.yaml"), 10, 700, tmp_path / "x")
     assert cmd[cmd.index("--threads") + 1] == "1" and "--grasp-only" in cmd
     assert cmd[cmd.index("--steps") + 1] == "700" and cmd[cmd.index("--out") + 1] == str(tmp_path / "x")
+
+
+def test_bench_trains_skips_finished_runs_and_continues_longer_ones(tmp_path, capsys):
+    common = ["--root", str(tmp_path), "--variants", "flg", "--seeds", "0", "--no-table2", "--jobs", "1"]
+    assert bench.main(common + ["--steps", "2"]) == 0
+    out = capsys.readouterr().out
+    assert "flg-s0: training to 2 steps" in out and "flg-s0: exit code 0" in out
+    assert json.loads((tmp_path / "flg-s0" / "run.json").read_text())["status"] == "finished"
+    assert bench.main(common + ["--steps", "2"]) == 0
+    assert "flg-s0: finished (2 steps), skipped" in capsys.readouterr().out
+    assert bench.main(common + ["--steps", "3"]) == 0        # a longer target continues the same run
+    rows = (tmp_path / "flg-s0" / "actions.csv").read_text().splitlines()
+    assert len(rows) == 1 + 3
+    report = json.loads((tmp_path / "report.json").read_text())
+    assert report["variants"]["flg"]["runs"]["flg-s0"] == {"step": 3, "status": "finished", "complete": True}
