@@ -248,7 +248,8 @@ class CellConfig:
     exploration: ExplorationConfig = param(default_factory=ExplorationConfig)
     learning: LearningConfig = param(default_factory=LearningConfig)
     sim: SimConfig = param(default_factory=SimConfig)
-    policy: str = param("", help="policy file loaded at start; empty = a fresh network")
+    policy: str = param("", help="policy file loaded at start (relative to the config file); "
+                                   "empty = a fresh network")
     state_dir: str = param("/var/lib/flgd", help="replay store, logs and checkpoints")
     source: str = param("<defaults>", help="file this config came from (set by the loader)")
 
@@ -476,9 +477,11 @@ def load_config(path: str | os.PathLike) -> CellConfig:
         problem = getattr(exc, "problem", None) or str(exc)
         raise ConfigError(source, [f"invalid YAML{where}: {problem}"]) from None
     cfg = config_from_dict(data, source)
-    # A relative state directory is relative to the config file, not to the cwd.
+    # A relative state directory or policy file is relative to the config file, not to the cwd.
     if not os.path.isabs(cfg.state_dir):
         cfg = dataclasses.replace(cfg, state_dir=str((p.parent / cfg.state_dir).resolve()))
+    if cfg.policy and not os.path.isabs(cfg.policy):
+        cfg = dataclasses.replace(cfg, policy=str((p.parent / cfg.policy).resolve()))
     return cfg
 
 

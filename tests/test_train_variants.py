@@ -70,3 +70,13 @@ def test_rho_fcn_fast_q_maps_and_policy_round_trip(tmp_path):
     loaded = load_policy(tmp_path / "p.safetensors", expected_variant="rho-fcn-fast")
     with torch.no_grad():
         assert torch.equal(q_maps(loaded.network, hm, 4), q)
+
+
+def test_a_relative_policy_path_is_relative_to_the_config_file(tmp_path):
+    text = (REPO / "cell_config" / "sim.yaml").read_text()
+    lines = [ln for ln in text.splitlines() if not ln.startswith("policy:")]
+    sub = tmp_path / "cfg"
+    sub.mkdir()
+    (sub / "cell.yaml").write_text("\n".join(lines + ['policy: "../policies/p.safetensors"']) + "\n")
+    cfg = load_config(sub / "cell.yaml")
+    assert cfg.policy == str(tmp_path / "policies" / "p.safetensors")
