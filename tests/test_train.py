@@ -12,6 +12,7 @@ from pathlib import Path
 
 import pytest
 
+from flgd.cell import Cell, CellFault
 from flgd.learning.policy_file import load_policy
 from flgd.store import Store
 from flgd.training.actionlog import read_rows
@@ -150,3 +151,80 @@ def test_bad_arguments_are_refused_with_the_flag_named(tmp_path, capsys):
     assert train_main(["--config", str(bad), "--out", str(tmp_path / "w")]) == 2
     assert "expected 'sim'" in capsys.readouterr().err
     assert not (tmp_path / "w").exists()
+
+
+class FlakyCell(Cell):
+    """A real SimCell behind a wrapper that fails chosen executions like a simulator can (a fake of failures only):
+    ``errors`` non-CellFault exceptions (pybullet giving up) and ``faults`` CellFaults."""
+
+    def __init__(self, inner: Cell, errors: list[int], faults: list[int]):
+        super().__init__(inner.config)
+        self.inner, self.errors, self.faults, self.calls = inner, errors, faults, 0
+
+    def execute(self, plan):
+        self.calls += 1
+        if self.calls in self.errors:
+            raise RuntimeError("bodies 0 and 11 interpenetrate by 16 mm (injected)")
+        if self.calls in self.faults:
+            raise CellFault("protective stop (injected)")
+        return self.inner.execute(plan)
+
+    def __getattr__(self, name):  # set_object_count, object_count ...
+        return getattr(self.inner, name)
+
+    def capture(self):
+        return self.inner.capture()
+
+    def gripper_width(self):
+        return self.inner.gripper_width()
+
+    def reset_scene(self):
+        self.inner.reset_scene()
+
+    def recover(self):
+        self.inner.recover()
+
+    def workspace_empty_hint(self):
+        return self.inner.workspace_empty_hint()
+
+    def close(self):
+        self.inner.close()
+
+
+def _run_with_flaky_cell(tmp_path, errors, faults, steps):
+    import io
+
+    from flgd.config import load_config
+    from flgd.training.run import RunSettings, TrainingRun, _Progress
+
+    out = tmp_path / "run"
+    run = TrainingRun(out, RunSettings(steps=steps, seed=1), load_config(CONFIG), _Progress(io.StringIO(), False),
+                      threads=1)
+    try:
+        run.setup()
+        run.cell = FlakyCell(run.cell, errors, faults)
+        run.runner.cell = run.cell
+        code = run.train()
+        return code, run
+    finally:
+        run.close()
+
+
+def test_simulator_errors_and_faults_are_survived_and_logged(tmp_path):
+    code, run = _run_with_flaky_cell(tmp_path, errors=[1], faults=[3], steps=3)
+    assert code == 0 and run.runner.step == 3
+    store = Store(tmp_path / "run")
+    try:
+        faults = [e["message"] for e in store.events("fault")]
+    finally:
+        store.close()
+    assert any("RuntimeError: bodies 0 and 11" in m for m in faults)
+    assert any("protective stop (injected)" in m for m in faults)
+
+
+def test_a_cell_that_keeps_failing_stops_the_run(tmp_path):
+    from flgd.training import run as run_module
+
+    with pytest.raises(RuntimeError, match="cell faults in a row"):
+        _run_with_flaky_cell(tmp_path, errors=list(range(1, 50)), faults=[], steps=20)
+    assert run_module.MAX_CONSECUTIVE_FAULTS == 5

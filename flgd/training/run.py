@@ -47,6 +47,7 @@ import os
 import signal
 import sys
 import time
+import traceback
 from collections import deque
 from dataclasses import dataclass
 from pathlib import Path
@@ -345,19 +346,31 @@ class TrainingRun:
         self.adds += 1
 
     def _handle_fault(self, exc: Exception) -> None:
+        """A cell fault or a simulator error inside a cycle: recover, new scene; give up after several in a row."""
+        from flgd.cell import CellFault
+
         self.consecutive_faults += 1
-        self.progress.message(f"flgd train: cell fault at step {self.runner.step}: {exc}; recovering")
-        self.store.record_event("fault", str(exc))
-        if self.consecutive_faults >= MAX_CONSECUTIVE_FAULTS:
-            raise RuntimeError(f"{self.consecutive_faults} cell faults in a row; last: {exc}")
-        self.cell.recover()
-        self.cell.reset_scene()
+        what = str(exc) if isinstance(exc, CellFault) else f"{type(exc).__name__}: {exc}"
+        self.progress.message(f"flgd train: cell fault at step {self.runner.step}: {what}; recovering")
+        self.store.record_event("fault", what)
+        while True:
+            if self.consecutive_faults >= MAX_CONSECUTIVE_FAULTS:
+                raise RuntimeError(f"{self.consecutive_faults} cell faults in a row; last: {what}")
+            try:
+                self.cell.recover()
+                self.cell.reset_scene()
+                break
+            except Exception as again:  # recovering failed too: count it and try again
+                self.consecutive_faults += 1
+                what = f"recovery: {type(again).__name__}: {again}"
+                self.progress.message(f"flgd train: {what}")
         self.runner.forget_state()
         self.agent.reset_episode()
 
     def train(self) -> int:
         """Train until ``settings.steps`` or a stop signal; returns the exit code."""
         from flgd.cell import CellFault
+        from flgd.store import StoreError
 
         start_step, t0 = self.runner.step, time.monotonic()
         target = self.settings.steps
@@ -367,6 +380,12 @@ class TrainingRun:
             try:
                 record = self.runner.run_once()
             except CellFault as exc:
+                self._handle_fault(exc)
+                continue
+            except StoreError:
+                raise  # disk full, read-only ...: stop with a checkpoint rather than lose steps
+            except Exception as exc:  # the simulator failing inside a cycle: log it, new scene, go on
+                traceback.print_exc(file=sys.stderr)
                 self._handle_fault(exc)
                 continue
             self.consecutive_faults = 0
