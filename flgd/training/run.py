@@ -266,7 +266,7 @@ class TrainingRun:
                                   learner=self.learner, step=step, backend=self.config.backend)
         segments = list(self.run_info.get("segments", []))
         segments.append({"started": _now(), "from_step": step, "from_updates": self.learner.updates,
-                         "source": start.source})
+                         "source": start.source, "code": _code_version()})
         self.run_info["segments"] = segments
         self.run_info.setdefault("created", _now())
         self.run_info["config_source"] = self.config.source
@@ -449,6 +449,21 @@ _LOG_KEYS = frozenset({"step", "time", "outcome", "primitive", "kind", "row", "c
                        "success", "rule", "epsilon",
                        "q_value", "mu", "eta", "refused", "failure", "t_capture", "t_perceive", "t_decide",
                        "t_plan", "t_execute", "t_judge", "duration"})
+
+
+def _code_version() -> str:
+    """The git commit of the code a segment ran (runs that span sim changes must say so), '+dirty' if edited."""
+    import subprocess
+
+    repo = Path(__file__).resolve().parents[2]
+    try:
+        head = subprocess.run(["git", "-C", str(repo), "rev-parse", "--short", "HEAD"], capture_output=True,
+                              text=True, timeout=10).stdout.strip()
+        dirty = subprocess.run(["git", "-C", str(repo), "status", "--porcelain", "--untracked-files=no", "flgd",
+                                "sim_cell"], capture_output=True, text=True, timeout=10).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+    return (head or "unknown") + ("+dirty" if dirty else "")
 
 
 def _now() -> str:
