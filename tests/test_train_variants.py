@@ -80,3 +80,17 @@ def test_a_relative_policy_path_is_relative_to_the_config_file(tmp_path):
     (sub / "cell.yaml").write_text("\n".join(lines + ['policy: "../policies/p.safetensors"']) + "\n")
     cfg = load_config(sub / "cell.yaml")
     assert cfg.policy == str(tmp_path / "policies" / "p.safetensors")
+
+
+def test_the_shipped_sim_policy_is_the_configs_default_and_loads():
+    cfg = load_config(REPO / "cell_config" / "sim.yaml")
+    path = Path(cfg.policy)
+    assert path.parent == REPO / "policies" and path.stat().st_size < 50 * 1024 * 1024
+    policy = load_policy(path, expected_variant=cfg.learning.network)
+    meta = policy.metadata
+    assert meta["curriculum"] is True and meta["train_variant"] == "flg" and meta["training_steps"] > 0
+    import json
+
+    sidecar = json.loads(path.with_suffix(".json").read_text())
+    assert sidecar["policy_metadata"]["weights_sha256"] == meta["weights_sha256"]
+    assert (path.parent / sidecar["learning_curve"]).exists()
