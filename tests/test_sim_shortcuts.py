@@ -3,11 +3,9 @@ and a carried block leaves with the gripper."""
 
 from __future__ import annotations
 
-import dataclasses
 import math
 
 import numpy as np
-import pybullet as p
 import pytest
 
 from flgd.clutter import grasp_reward

@@ -7,7 +7,6 @@ import json
 from pathlib import Path
 
 import numpy as np
-import pytest
 
 from benchmarks import learning as bench
 from flgd.training.actionlog import COLUMNS

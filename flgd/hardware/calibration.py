@@ -26,7 +26,6 @@ import math
 import os
 import re
 import sys
-import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -36,6 +35,7 @@ import cv2
 import numpy as np
 import yaml
 
+from flgd.atomic_file import write_atomically
 from flgd.cell import Cell, CellFault, Frame
 from flgd.config import CellConfig, ConfigError, config_from_dict, load_config
 from flgd.geometry import ToolPose, matrix_to_rpy, rotvec_to_matrix
@@ -248,16 +248,7 @@ def write_calibration(path: str | os.PathLike, fit: CalibrationFit) -> CellConfi
     if not np.allclose(got, position, atol=1e-5) or abs(cfg.camera.depth_scale_correction
                                                          - fit.depth_scale_correction) > 1e-4:
         raise ConfigError(str(p), ["camera.pose: the rewritten file does not read back as written"])
-    fd, tmp = tempfile.mkstemp(dir=p.parent, prefix=f".{p.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            f.write(new_text)
-        os.chmod(tmp, p.stat().st_mode & 0o777)
-        os.replace(tmp, p)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    write_atomically(p, new_text.encode("utf-8"), mode=p.stat().st_mode & 0o777)
     return load_config(p)
 
 

@@ -31,7 +31,6 @@ import json
 import math
 import os
 import struct
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -40,6 +39,7 @@ from safetensors import SafetensorError
 from safetensors.torch import load as _st_load
 from safetensors.torch import save as _st_save
 
+from flgd.atomic_file import write_atomically
 from flgd.learning.networks import VARIANTS, QMapNetwork, build_network
 
 __all__ = ["FORMAT", "FORMAT_VERSION", "POLICY_SUFFIX", "PolicyFileError", "LoadedPolicy", "save_policy",
@@ -121,24 +121,7 @@ def save_policy(path: str | os.PathLike, network: QMapNetwork, metadata: dict) -
     data = _st_save(tensors, metadata=meta)
 
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except FileNotFoundError:
-            pass
-        raise
-    dir_fd = os.open(path.parent, os.O_RDONLY)
-    try:
-        os.fsync(dir_fd)
-    finally:
-        os.close(dir_fd)
+    write_atomically(path, data)
 
 
 def _read_header(path: Path, blob: bytes) -> dict:

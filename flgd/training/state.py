@@ -16,13 +16,14 @@ from __future__ import annotations
 
 import json
 import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
 from safetensors.torch import load_file, save
+
+from flgd.atomic_file import write_atomically
 
 __all__ = ["TRAINER_STATE", "TrainerState", "save_trainer_state", "load_trainer_state", "restore_learner"]
 
@@ -55,17 +56,7 @@ def save_trainer_state(path: str | os.PathLike, learner, priority_ids: np.ndarra
     tensors["priority.values"] = torch.from_numpy(np.asarray(priorities, dtype=np.float64).copy())
     meta = {"updates": str(int(learner.updates)), "adam_groups": json.dumps(groups)}
     data = save(tensors, metadata=meta)
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    write_atomically(path, data)
 
 
 def load_trainer_state(path: str | os.PathLike) -> TrainerState:
