@@ -176,6 +176,20 @@ class _DilatedContext(nn.Module):
         return F.relu(x + self.b(self.a(x)))
 
 
+def _add_fast_trunk(net: nn.Module, width: int) -> int:
+    """The stride-8 encoder and dilated context shared by ``fast`` and ``rho-fcn-fast``, so that their
+    comparison isolates the head.  Set as attributes (not a submodule) to keep the parameter names of
+    existing policy files."""
+    if not (isinstance(width, int) and 2 <= width <= 256):
+        raise ValueError(f"width: got {width!r}, expected an integer 2..256")
+    net.width = width
+    net.enc1 = _conv_bn_relu(4, width, stride=2)
+    net.enc2 = _conv_bn_relu(width, 2 * width, stride=2)
+    net.enc3 = _conv_bn_relu(2 * width, 4 * width, stride=2)
+    net.context = _DilatedContext(4 * width)
+    return width
+
+
 class FastQNet(QMapNetwork):
     """The CPU default: stride-8 encoder, dilated context, FLG-style skip head (see module doc)."""
 
@@ -184,14 +198,7 @@ class FastQNet(QMapNetwork):
 
     def __init__(self, rotations: int = 16, width: int = FAST_WIDTH) -> None:
         super().__init__(rotations)
-        if not (isinstance(width, int) and 2 <= width <= 256):
-            raise ValueError(f"width: got {width!r}, expected an integer 2..256")
-        self.width = width
-        w = width
-        self.enc1 = _conv_bn_relu(4, w, stride=2)
-        self.enc2 = _conv_bn_relu(w, 2 * w, stride=2)
-        self.enc3 = _conv_bn_relu(2 * w, 4 * w, stride=2)
-        self.context = _DilatedContext(4 * w)
+        w = _add_fast_trunk(self, width)
         self.squeeze = _conv_relu_bn(4 * w, 2 * w, 1)
         self.fuse = _conv_relu_bn(4 * w, 2 * w, 3)
         self.advantage = nn.Conv2d(2 * w, 2, 1)
@@ -217,14 +224,7 @@ class RhoFcnFastQNet(QMapNetwork):
 
     def __init__(self, rotations: int = 16, width: int = FAST_WIDTH) -> None:
         super().__init__(rotations)
-        if not (isinstance(width, int) and 2 <= width <= 256):
-            raise ValueError(f"width: got {width!r}, expected an integer 2..256")
-        self.width = width
-        w = width
-        self.enc1 = _conv_bn_relu(4, w, stride=2)
-        self.enc2 = _conv_bn_relu(w, 2 * w, stride=2)
-        self.enc3 = _conv_bn_relu(2 * w, 4 * w, stride=2)
-        self.context = _DilatedContext(4 * w)
+        w = _add_fast_trunk(self, width)
         self.enc4 = _conv_bn_relu(4 * w, 8 * w, stride=2)
         self.advantage = nn.Sequential(
             nn.BatchNorm2d(8 * w), nn.ReLU(inplace=True), nn.Conv2d(8 * w, 2 * w, 1, bias=False),
