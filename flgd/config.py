@@ -141,6 +141,9 @@ class RobotConfig:
     shift_distance: float = param(0.06, unit="m", gt=0.0)
     speed: float = param(0.25, unit="m/s", gt=0.0, help="free moves")
     approach_speed: float = param(0.10, unit="m/s", gt=0.0, help="descents, pushes and shifts")
+    descent_contact_force: float = param(
+        20.0, unit="N", ge=0.0,
+        help="a grasp descent stops where the fingers meet this much resistance and closes there (0 = no guard)")
     acceleration: float = param(0.8, unit="m/s^2", gt=0.0)
     tcp_offset: Vec3 = param((0.0, 0.0, 0.20), unit="m", help="flange to fingertip centre")
 

@@ -6,7 +6,8 @@ must pass before a cell runs one.
 
 Distances (defaults in ``RobotConfig``, all configurable):
   * grasp: open, approach ``approach_height`` above the grasp point, descend to
-    ``grasp_depth`` below the surface (never below the table clearance), close,
+    ``grasp_depth`` below the surface (never below the table clearance; the
+    descent stops early where the fingers meet ``descent_contact_force``), close,
     lift to ``lift_height``, go home, measure the width (the paper's success test).
   * push (the point is background): close, descend beside the objects to
     ``push_height`` above the table, travel ``push_distance`` (10 cm) along
@@ -47,12 +48,20 @@ __all__ = [
 
 @dataclass(frozen=True)
 class MoveL:
-    """Linear tool move to ``pose`` at ``speed`` (m/s) and ``acceleration`` (m/s^2)."""
+    """Linear tool move to ``pose`` at ``speed`` (m/s) and ``acceleration`` (m/s^2).
+
+    ``stop_on_contact`` (N, 0 = off) makes it a guarded move: it ends early, where
+    the tool first meets that much resistance, and the plan goes on from there.  A
+    grasp descent is guarded so that a finger landing on a neighbouring object
+    closes above it instead of pressing it into the table (a protective stop).
+    The guarded move ends somewhere on the checked segment, so the envelope holds.
+    """
 
     pose: ToolPose
     speed: float
     acceleration: float
     label: str = ""
+    stop_on_contact: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -127,7 +136,8 @@ def plan_grasp(x: float, y: float, surface_height: float, angle: float, config: 
     steps: tuple[Step, ...] = (
         GripperCommand(gr.open_width, gr.force, "open"),
         MoveL(ToolPose.top_down(x, y, above, yaw), rb.speed, rb.acceleration, "approach"),
-        MoveL(ToolPose.top_down(x, y, z, yaw), rb.approach_speed, rb.acceleration, "descend"),
+        MoveL(ToolPose.top_down(x, y, z, yaw), rb.approach_speed, rb.acceleration, "descend",
+              stop_on_contact=rb.descent_contact_force),
         GripperCommand(gr.closed_width, gr.force, "close"),
         MoveL(ToolPose.top_down(x, y, table + rb.lift_height, yaw), rb.approach_speed, rb.acceleration, "lift"),
         MoveL(ToolPose.top_down(*home.position, home.yaw), rb.speed, rb.acceleration, "home"),

@@ -75,6 +75,8 @@ def _check_move(step: MoveL, cfg: CellConfig) -> str | None:
         return f"speed {step.speed!r} m/s is outside (0, {sf.max_speed}] m/s"
     if not (_finite([step.acceleration]) and 0 < step.acceleration <= sf.max_acceleration):
         return f"acceleration {step.acceleration!r} m/s^2 is outside (0, {sf.max_acceleration}] m/s^2"
+    if not (_finite([step.stop_on_contact]) and step.stop_on_contact >= 0.0):
+        return f"stop_on_contact {step.stop_on_contact!r} N is not a finite force >= 0 N"
     return None
 
 

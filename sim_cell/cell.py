@@ -37,6 +37,11 @@ an object squeezed > 6 mm into the table or another object -- pybullet's soft
 contacts let a block sink where a real one would stop the arm) stops; the arm
 retreats home and the plan fails with a "collision stop" failure.
 
+Guarded moves (``MoveL.stop_on_contact`` > 0, a grasp's descent): the line is
+checked every two physics steps and ends where the gripper meets that force (or
+squeezes an object ``YIELD_DEPTH`` into its support); the arm holds there and
+the rest of the plan is re-planned from the pose it stopped at.
+
 Shift press: a shift presses the closed fingers ``robot.shift_press`` into the
 object's top on purpose, so that friction drags it (paper III-A).  Rigid
 position control would squeeze the block through the 6 mm rule every time;
@@ -212,7 +217,9 @@ class SimCell(Cell):
             try:
                 for i, step in enumerate(steps):
                     if isinstance(step, MoveL):
-                        self._run_line(lines[i])
+                        if self._run_line(lines[i], step.stop_on_contact):
+                            # a guarded move met resistance: the rest of the plan starts where it stopped
+                            lines.update(self._plan_lines(steps, first=i + 1))
                     elif isinstance(step, GripperCommand):
                         self._run_gripper(step.width, step.force)
                     elif isinstance(step, MeasureWidth):
@@ -228,8 +235,9 @@ class SimCell(Cell):
                 self._press_allowance = self._press_yield = 0.0
                 self.stats["unstable_resets"] += 1
                 self.reset_scene()
+                where = f"{planned.primitive} step {i} ({steps[i].label or type(steps[i]).__name__})"
                 return ExecutionResult(completed=False, widths=widths,
-                                       failure=f"unstable simulation ({exc}); scene reset",
+                                       failure=f"unstable simulation ({exc}) during {where}; scene reset",
                                        duration=self._sim_time - t0)
             self._press_allowance = self._press_yield = 0.0
             self._remove_outside()
@@ -368,13 +376,13 @@ class SimCell(Cell):
     def _tcp(self) -> np.ndarray:
         return self._robot.tcp_pose(self._tcp_offset)
 
-    def _plan_lines(self, steps) -> dict[int, motion.Trajectory]:
-        """IK for every MoveL of the plan before anything moves."""
+    def _plan_lines(self, steps, first: int = 0) -> dict[int, motion.Trajectory]:
+        """IK for every MoveL of the plan (from step ``first``) before anything moves."""
         q, pose = self._robot.joints(), self._tcp()
         out = {}
         tick = CONTROL_SUBSTEPS * self._dt
         for i, step in enumerate(steps):
-            if isinstance(step, MoveL):
+            if i >= first and isinstance(step, MoveL):
                 goal = self._pose_matrix(step.pose)
                 try:
                     traj = motion.plan_line(q, pose, goal, step.speed, step.acceleration, tick, self._tcp_offset)
@@ -505,11 +513,12 @@ class SimCell(Cell):
             p.resetBaseVelocity(body, [0, 0, 0], [0, 0, 0], physicsClientId=c)
         self._sim_time += seconds
 
-    def _run_line(self, traj: motion.Trajectory) -> None:
+    def _run_line(self, traj: motion.Trajectory, stop_force: float = 0.0) -> bool:
+        """Follow ``traj``; True when a guarded line (``stop_force`` N > 0) stopped at a contact."""
         joints = traj.joints
         n = len(joints) - 1
         if n <= 0:
-            return
+            return False
         carried = self._in_gripper()
         # gripped but not yet carried through a trial: its first ticks are simulated so a weak grip can slip
         on_trial = carried - self._held - self._carry_tried
@@ -518,7 +527,7 @@ class SimCell(Cell):
             free_head = self._free_span(traj, carried, from_end=False)
             if free_head >= len(joints):
                 self._jump(joints[-1], traj.duration, carried)
-                return
+                return False
             first = max(free_head - 1, 0)
             if first > 0:
                 self._jump(joints[first], first * traj.tick, carried)
@@ -531,13 +540,16 @@ class SimCell(Cell):
         for i in range(first, n):
             if i >= last and i > first and self._may_jump(carried, on_trial, straight_up, i - first):
                 self._jump(joints[-1], (n - i) * traj.tick, carried)
-                return
+                return False
             nxt = self._yielded(traj, i + 1)
             vel = (nxt - target) / traj.tick
             for sub in range(CONTROL_SUBSTEPS):
                 a = (sub + 1) / CONTROL_SUBSTEPS
                 self._robot.command_arm(target * (1 - a) + nxt * a, vel)
                 self._step(1)
+                if stop_force > 0.0 and sub % 2 == 1 and self._met_resistance(stop_force):
+                    self._hold_still()
+                    return True
             target = nxt
             force, depth = self._pressing()
             give = self._press_allowance - self._press_yield
@@ -555,6 +567,19 @@ class SimCell(Cell):
             if np.max(np.abs(self._robot.joints() - end)) < 2e-4:
                 break
             self._step(2)
+        return False
+
+    def _met_resistance(self, stop_force: float) -> bool:
+        """A guarded move's contact test: the gripper pushed up by ``stop_force`` N, or an object it
+        touches squeezed ``YIELD_DEPTH`` into its support (pybullet's soft contacts give before the
+        force builds up)."""
+        force, depth = self._pressing()
+        return force > stop_force or depth > YIELD_DEPTH
+
+    def _hold_still(self) -> None:
+        """Stop the arm where it is, as a controller's stopL does, and let it settle."""
+        self._robot.command_arm(self._robot.joints())
+        self._step(8)
 
     def _yielded(self, traj: motion.Trajectory, i: int) -> np.ndarray:
         """Joint target of tick ``i``, raised by the give of a compliant press (see ``_press_yield``)."""
