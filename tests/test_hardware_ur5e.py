@@ -35,6 +35,8 @@ ROOT = Path(__file__).resolve().parents[1]
 
 # --------------------------------------------------------------------------- the fake controller
 
+_REAL_FORCE = object()  # FakeURController.force_reply: answer from the force model
+
 class FakeURController:
     """One simulated UR controller shared by the fake interfaces; time advances only through ``sleep``."""
 
@@ -62,6 +64,13 @@ class FakeURController:
         self._speed = 0.0
         self._start = None
         self.real_sleep = 0.0
+        # TCP force model: a rigid top surface at ``surface_z`` (None = free space) pushes back with
+        # ``surface_stiffness`` N/m; ``force_offset`` is the sensor's bias; ``force_reply`` replaces the answer
+        self.surface_z: float | None = None
+        self.surface_stiffness = 20000.0
+        self.force_offset = np.array([3.0, -2.0, 9.0])
+        self.force_reply = _REAL_FORCE
+        self.stop_positions: list[np.ndarray] = []  # TCP position at each stopL
 
     # -- recording / scripted failures
     def record(self, iface: str, method: str, *args) -> None:
@@ -230,6 +239,7 @@ class FakeRTDEControl(_FakeInterface):
 
     def stopL(self, a=10.0, asynchronous=False) -> None:
         self._rec("stopL", a)
+        self.ctl.stop_positions.append(self.ctl.tcp[:3].copy())
         self.ctl._halt()
 
     def getAsyncOperationProgressEx(self) -> _FakeAsyncStatus:
@@ -290,6 +300,17 @@ class FakeRTDEReceive(_FakeInterface):
     def getActualTCPPose(self) -> list[float]:
         self._rec("getActualTCPPose")
         return self._fresh()[4].tolist()
+
+    def getActualTCPForce(self) -> list[float]:
+        self._rec("getActualTCPForce")
+        ctl = self.ctl
+        if ctl.force_reply is not _REAL_FORCE:
+            return ctl.force_reply
+        tcp = self._fresh()[4]
+        force = ctl.force_offset.copy()
+        if ctl.surface_z is not None and tcp[2] < ctl.surface_z:
+            force[2] += ctl.surface_stiffness * (ctl.surface_z - tcp[2])
+        return [*force.tolist(), 0.0, 0.0, 0.0]
 
 
 class FakeRTDEIO(_FakeInterface):
@@ -635,3 +656,77 @@ def test_registered_as_the_ur5e_backend_and_refuses_an_empty_host():
     cfg = dataclasses.replace(cfg, robot=dataclasses.replace(cfg.robot, host=""))
     with pytest.raises(CellFault, match="robot.host is empty"):
         make_cell(cfg)
+
+
+def _descend_step(checked: CheckedPlan) -> MoveL:
+    return next(s for s in checked.plan.steps if isinstance(s, MoveL) and s.label == "descend")
+
+
+def test_guarded_descent_stops_at_contact_and_the_grasp_goes_on_from_there(ctl, rg2):
+    cell = make_ur5e(ctl, rg2)
+    cfg = cell.config
+    assert cfg.robot.descent_contact_force > 0, "the shipped real-cell config guards grasp descents"
+    checked = grasp(cfg)
+    descend = _descend_step(checked)
+    assert descend.stop_on_contact == cfg.robot.descent_contact_force
+    # a neighbour's top 2 cm above the planned fingertip height: the descent must stop on it
+    surface = descend.pose.position[2] + 0.02
+    ctl.surface_z = surface
+    since = len(ctl.log)
+    result = cell.execute(checked)
+    assert result.completed, result.failure
+    names = ctl.names(since)
+    moves = [i for i, n in enumerate(names) if n == "moveL"]
+    stops = [i for i, n in enumerate(names) if n == "stopL"]
+    assert len(stops) == 1 and moves[1] < stops[0] < moves[2], "one stopL, during the descent"
+    # stopped just past first contact (within the force threshold's squeeze + one poll of travel)
+    (at_stop,) = ctl.stop_positions
+    assert surface - 0.003 < at_stop[2] <= surface
+    np.testing.assert_allclose(at_stop[:2], descend.pose.position[:2], atol=1e-9)
+    # the fingers closed there and the plan went on: lift to its absolute pose, home
+    grips = [c for c in rg2.calls if c[0] == "rg_grip"]
+    assert [g[2] for g in grips] == [pytest.approx(85.0), pytest.approx(0.0)]
+    lift = ctl.calls("moveL", since)[2][0]
+    step_lift = next(s for s in checked.plan.steps if isinstance(s, MoveL) and s.label == "lift")
+    np.testing.assert_allclose(lift, step_lift.pose.as_ur_pose())
+    np.testing.assert_allclose(ctl.tcp[:3], cfg.robot.home.position, atol=1e-9)
+
+
+def test_guard_measures_the_change_of_force_not_the_sensor_bias(ctl, rg2):
+    cell = make_ur5e(ctl, rg2)
+    cfg = cell.config
+    ctl.force_offset = np.array([0.0, -5.0, 3.0 * cfg.robot.descent_contact_force])  # a big, constant bias
+    checked = grasp(cfg)
+    surface = _descend_step(checked).pose.position[2] + 0.01
+    ctl.surface_z = surface
+    result = cell.execute(checked)
+    assert result.completed, result.failure
+    (at_stop,) = ctl.stop_positions  # no stop from the bias alone, one at the contact
+    assert surface - 0.003 < at_stop[2] <= surface
+
+
+def test_free_descent_reaches_the_planned_depth(ctl, rg2):
+    cell = make_ur5e(ctl, rg2)
+    checked = grasp(cell.config)
+    reached = []
+    ctl.at(2, 1.0, lambda: reached.append(ctl.tcp[2]))
+    result = cell.execute(checked)
+    assert result.completed, result.failure
+    assert ctl.calls("stopL") == []
+    assert reached == [pytest.approx(_descend_step(checked).pose.position[2])]
+
+
+@pytest.mark.parametrize("reply", [None, [float("nan")] * 6, [1.0, 2.0], "garbage"])
+def test_an_unusable_force_reading_stops_the_arm_and_latches(ctl, rg2, reply):
+    cell = make_ur5e(ctl, rg2)
+    checked = grasp(cell.config)
+    ctl.at(2, 0.3, lambda: setattr(ctl, "force_reply", reply))  # mid-descent
+    with pytest.raises(CellFault, match="TCP force"):
+        cell.execute(checked)
+    assert cell.fault is not None
+    assert ctl.calls("stopL"), "the descent was halted before the fault was raised"
+    assert ctl._target is None
+    since = len(ctl.log)
+    with pytest.raises(CellFault):
+        cell.execute(checked)
+    assert "moveL" not in ctl.names(since), "no motion until recovery"

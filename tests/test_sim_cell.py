@@ -195,3 +195,24 @@ def test_reset_scene_respects_the_object_count_and_unstable_physics_is_reported(
     assert result.failure.startswith("unstable")
     assert empty_cell.stats["unstable_resets"] >= 1
     assert empty_cell.object_count == 12      # a fresh scene
+
+
+@pytest.mark.parametrize("guard", [True, False])
+def test_guarded_descent_closes_above_a_neighbour_instead_of_a_protective_stop(empty_cell, guard):
+    """A finger lands on a 3 cm neighbour 1 cm above the planned depth beside a 5 cm block."""
+    cfg = empty_cell.config
+    if not guard:
+        cfg = dataclasses.replace(cfg, robot=dataclasses.replace(cfg.robot, descent_contact_force=0.0))
+        empty_cell.config = cfg
+    target = cube_at(empty_cell, -0.50, 0.0, size=(0.03, 0.03, 0.05))
+    cube_at(empty_cell, -0.50 + 0.055, 0.0, size=(0.03, 0.08, 0.03))
+    s = state(empty_cell, target)
+    plan = plan_grasp(s.position[0], s.position[1], s.top - cfg.workspace.table_z, 0.0, cfg)
+    result = empty_cell.execute(check_plan(plan, cfg))
+    if guard:
+        assert result.completed, result.failure
+        assert grasp_reward(result.widths[0], cfg.gripper) == 1.0
+        assert abs(result.widths[0] - 0.03) < 0.006, "the pads hold the target's upper part"
+    else:
+        assert not result.completed
+        assert result.failure.startswith("collision stop"), result.failure

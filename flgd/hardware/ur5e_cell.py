@@ -85,8 +85,10 @@ class UR5eCell(Cell):
                     if self.arm.stop_requested:
                         raise MotionStopped("stop requested")
                     if isinstance(step, MoveL):
+                        # a guarded move may end short of its pose; the next (absolute) pose goes on from there
                         self.arm.move_linear(step.pose.as_ur_pose(), min(step.speed, sf.max_speed),
-                                             min(step.acceleration, sf.max_acceleration), step.label)
+                                             min(step.acceleration, sf.max_acceleration), step.label,
+                                             stop_force=step.stop_on_contact)
                     elif isinstance(step, GripperCommand):
                         self.arm.check()
                         self.gripper.move(step.width, min(step.force, gr.force))

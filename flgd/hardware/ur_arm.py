@@ -316,10 +316,15 @@ class URArm:
         except CellFault:
             pass  # the arm is already stopped by the controller, or the link is gone
 
-    def move_linear(self, pose: Sequence[float], speed: float, acceleration: float, label: str = "") -> None:
+    def move_linear(self, pose: Sequence[float], speed: float, acceleration: float, label: str = "",
+                    stop_force: float = 0.0) -> bool:
         """moveL to ``pose`` [x, y, z, rx, ry, rz] and wait until it is there.
 
-        Raises PoseUnreachable (nothing sent), MotionStopped, or CellFault (latched).
+        With ``stop_force`` > 0 (N) the move is guarded: it is halted (stopL) as soon as the
+        TCP force differs from its value at the start by more than that, and True is
+        returned -- the arm stands somewhere on the line, short of the target.  False: the
+        target was reached.  Raises PoseUnreachable (nothing sent), MotionStopped, or
+        CellFault (latched).
         """
         what = f"move '{label}'" if label else "move"
         target = [float(v) for v in pose]
@@ -335,15 +340,35 @@ class URArm:
         start_pose = self.tcp_pose()
         distance = pose_error(start_pose, target)[0]
         timeout = 2.0 * move_duration(distance, speed, acceleration) + MOVE_TIMEOUT_MARGIN
+        guard = None
+        if stop_force > 0.0:
+            guard = (self._tcp_force(), float(stop_force))
         self._require(self._call(self.control, "moveL", target, float(speed), float(acceleration), True),
                       f"moveL ({what})")
-        self._wait_for_move(target, what, timeout)
+        return self._wait_for_move(target, what, timeout, guard)
+
+    def _tcp_force(self) -> np.ndarray:
+        """The controller's estimate of the force at the TCP (N, base frame)."""
+        try:
+            wrench = self._call(self.receive, "getActualTCPForce")
+        except CellFault:
+            self._halt()  # an unguarded descent must not go on
+            raise
+        try:
+            force = np.asarray(list(wrench), dtype=float)[:3]
+        except (TypeError, ValueError):
+            force = np.empty(0)
+        if force.shape != (3,) or not np.all(np.isfinite(force)):
+            self._halt()
+            self._latch(f"the controller reported an unusable TCP force {wrench!r}")
+        return force
 
     def _async_running(self) -> bool:
         status = self._call(self.control, "getAsyncOperationProgressEx")
         return bool(status.isAsyncOperationRunning())
 
-    def _wait_for_move(self, target: list[float], what: str, timeout: float) -> None:
+    def _wait_for_move(self, target: list[float], what: str, timeout: float,
+                       guard: tuple[np.ndarray, float] | None = None) -> bool:
         start = self._clock()
         seen_running = False
         while True:
@@ -354,18 +379,33 @@ class URArm:
             if reason:
                 self._halt()
                 self._latch(f"{reason} during {what}")
+            if guard is not None and np.linalg.norm(self._tcp_force() - guard[0]) > guard[1]:
+                self._halt()
+                self._wait_until_still(what)
+                return True
             running = self._async_running()
             seen_running = seen_running or running
             dp, dr = pose_error(self.tcp_pose(), target)
             elapsed = self._clock() - start
             if not running:
                 if dp <= POSITION_TOLERANCE and dr <= ORIENTATION_TOLERANCE:
-                    return
+                    return False
                 if seen_running or elapsed > START_GRACE:
                     self._latch(f"{what} ended {dp * 1000:.1f} mm / {math.degrees(dr):.1f} deg from its target")
             if elapsed > timeout:
                 self._halt()
                 self._latch(f"{what} did not finish within {timeout:.1f} s")
+            self._sleep(self._poll)
+
+    def _wait_until_still(self, what: str) -> None:
+        """After a guard's stopL: wait for the deceleration to end before the plan goes on."""
+        start = self._clock()
+        while self._async_running():
+            reason = self.fault_reason()
+            if reason:
+                self._latch(f"{reason} during {what}")
+            if self._clock() - start > MOVE_TIMEOUT_MARGIN:
+                self._latch(f"{what}: the arm did not stop within {MOVE_TIMEOUT_MARGIN:.0f} s of a contact stop")
             self._sleep(self._poll)
 
     def set_tool_output(self, index: int, level: bool) -> None:
