@@ -8,7 +8,9 @@ cycle and what to do with the record and with exceptions.
 One capture per cycle: the frame taken after an action is both the "after" of
 its move judgement and the state the next decision is made on (the next state
 of the stored transition).  A fresh capture is needed only after a scene
-reset, a discarded action or when the runner is new.
+reset, a discarded action, a stop or when the runner is new; each of those
+first sends the arm home (``plan_home``, checked like any plan), since it may
+stand in the camera's view -- a real arm halted mid-motion does.
 
 Outcomes of a cycle (``CycleRecord.outcome``):
   * ``executed``  -- the plan ran; a transition was stored and learned from.
@@ -235,6 +237,16 @@ class CycleRunner:
             return record
 
         if self.current is None:
+            # The arm may stand anywhere (daemon start, a stop mid-motion, a reset, another cell):
+            # send it home, out of the camera's view, before taking the picture a decision rests on.
+            with timer.phase("execute"):
+                home = self._run_checked(plan_home(self.config), "home before capture")
+            if _was_stopped(home) or self._stop.is_set():
+                record.outcome = "stopped"
+                record.failure = home.failure or STOPPED_ON_REQUEST
+                return finish()
+            if not home.completed and not _unstable(home):
+                raise CellFault(f"could not go home before capturing: {home.failure}")
             self.current = self.perceive(timer)
         state = self.current
 

@@ -18,6 +18,9 @@ from flgd.actions import Action
 from flgd.cell import STOPPED_ON_REQUEST, Cell, CellFault, ExecutionResult, make_cell
 from flgd.clutter import judge_move
 from flgd.config import load_config
+from flgd.geometry import ToolPose
+from flgd.plans import MoveL, Plan
+from flgd.safety import check_plan
 from flgd.cycle import CycleRunner
 from flgd.learning.agent import Agent
 from flgd.learning.networks import build_network
@@ -196,6 +199,7 @@ def test_unstable_execution_is_discarded_and_the_scene_reset(tmp_path):
 def test_cell_fault_is_logged_and_propagated_without_a_transition(tmp_path):
     cfg, cell, store, replay, runner = _setup(tmp_path)
     try:
+        runner.current = runner.perceive_now()  # already home and looking: the fault hits the action
         cell.fail_next = "fault"
         with pytest.raises(CellFault, match="protective stop"):
             runner.run_once()
@@ -224,6 +228,7 @@ def test_a_stop_request_halts_the_action_and_sends_nothing_more(tmp_path, mode):
         return Action("grasp", r, c, 0)
     cfg, cell, store, replay, runner = _setup(tmp_path, script={0: grasp_object, 1: grasp_object})
     try:
+        runner.current = runner.perceive_now()  # already home and looking: the stop hits the grasp
         cell.stop_during, cell.fail_next = runner, mode
         rec = runner.run_once()
         assert rec.outcome == "stopped" and STOPPED_ON_REQUEST in rec.failure
@@ -233,5 +238,40 @@ def test_a_stop_request_halts_the_action_and_sends_nothing_more(tmp_path, mode):
         # Once stopped, a further cycle sends nothing either.
         again = runner.run_once()
         assert again.outcome == "stopped" and cell.executions == 1
+    finally:
+        cell.close()
+
+
+def test_a_fresh_runner_homes_the_arm_before_its_first_capture(tmp_path):
+    """At start (or after a reset or a stop mid-motion) the arm may stand in the camera's view."""
+    cfg, cell, store, replay, runner = _setup(tmp_path)
+    order = []
+    inner_execute, inner_capture = cell.execute, cell.capture
+    cell.execute = lambda plan: order.append(("execute", plan.plan.primitive)) or inner_execute(plan)
+    cell.capture = lambda: order.append(("capture", None)) or inner_capture()
+    try:
+        # put the arm over the table first, as a stop mid-motion leaves it
+        low = Plan("push", (MoveL(ToolPose.top_down(-0.50, 0.0, 0.05, 0.0), 0.2, 1.0, "down"),), target=(-0.5, 0.0, 0.05))
+        assert inner_execute(check_plan(low, cfg)).completed
+        rec = runner.run_once()
+        assert rec.step == 0
+        assert order[:2] == [("execute", "home"), ("capture", None)]
+        tcp = cell.inner._tcp()[:3, 3]
+        # the runner keeps its state: the next cycle starts with its action, not with a home
+        mark = len(order)
+        runner.run_once()
+        assert order[mark][0] == "execute" and order[mark][1] != "home"
+    finally:
+        cell.close()
+
+
+def test_a_fault_while_homing_is_raised_before_anything_is_captured(tmp_path):
+    cfg, cell, store, replay, runner = _setup(tmp_path)
+    try:
+        cell.fail_next = "fault"
+        with pytest.raises(CellFault, match="protective stop"):
+            runner.run_once()
+        assert cell.captures == 0 and runner.current is None and runner.step == 0
+        assert store.transition_count() == 0
     finally:
         cell.close()
