@@ -91,7 +91,9 @@ CARRY_TRIAL_TICKS = 10      # control ticks (0.33 s) a freshly gripped object is
 SIDE_CONTACT_NZ = 0.5       # |vertical part| of a pad contact normal below which it is a side (gripping) contact
 GRIPPER_TIMEOUT = 0.8       # s for a finger motion to come to rest
 MAX_OBJECT_SPEED = 4.0      # m/s; faster = unstable
-MAX_PENETRATION = 0.015     # m
+MAX_PENETRATION = 0.015     # m of interpenetration that is unstable when it lasts PENETRATION_CHECKS deep checks
+PENETRATION_CHECKS = 3      # deep checks (0.2 s apart): a finger wedging a prism can dip it 15-30 mm for a moment
+GROSS_PENETRATION = 0.04    # m: unstable at once
 PRESS_DEPTH = 0.006           # m an object may be squeezed into the table/another object
 YIELD_DEPTH = 0.003           # m of squeeze at which an intended press starts to give way
 PROTECTIVE_STOP_FORCE = 100.0  # N of vertical push on the gripper that stops the arm (UR: 150 N at the TCP)
@@ -151,6 +153,7 @@ class SimCell(Cell):
         self._sim_time = 0.0
         self._steps = 0
         self._iterations = SOLVER_ITERATIONS
+        self._deep_contacts: dict[tuple[int, int], int] = {}  # body pair -> consecutive deep checks
         self._light = ((0.3, -0.2, 1.0), 0.6, 0.4)
         self._camera = simcam.CameraModel.from_config(config.camera)
         ws = config.workspace
@@ -417,9 +420,20 @@ class SimCell(Cell):
             if pos[2] > self._ws.z[0] + 1.0:
                 raise _Unstable(f"object {body} thrown {pos[2]:.2f} m up")
         if deep:
+            # A deep contact the solver resolves within a few checks is a transient (a closing finger
+            # wedging a sloped block into the table); one that persists, or is gross, is not.
+            deep_now: dict[tuple[int, int], float] = {}
             for cp in p.getContactPoints(physicsClientId=c):
                 if cp[8] < -MAX_PENETRATION and (cp[1] in self._objects or cp[2] in self._objects):
-                    raise _Unstable(f"bodies {cp[1]} and {cp[2]} interpenetrate by {-cp[8] * 1000:.0f} mm")
+                    pair = (min(cp[1], cp[2]), max(cp[1], cp[2]))
+                    deep_now[pair] = max(deep_now.get(pair, 0.0), -cp[8])
+            self._deep_contacts = {pair: self._deep_contacts.get(pair, 0) + 1 for pair in deep_now}
+            for pair, depth in deep_now.items():
+                if depth > GROSS_PENETRATION or self._deep_contacts[pair] >= PENETRATION_CHECKS:
+                    lasting = "" if depth > GROSS_PENETRATION else f" for {self._deep_contacts[pair]} checks"
+                    self._deep_contacts = {}
+                    raise _Unstable(f"bodies {pair[0]} and {pair[1]} interpenetrate by {depth * 1000:.0f} mm"
+                                    f"{lasting}")
 
     def _settle(self, seconds: float) -> None:
         try:
@@ -607,15 +621,16 @@ class SimCell(Cell):
         touches an object).  Rigid blocks squeezed between gripper and table would stop a
         real arm at once; pybullet's soft contacts let them sink instead, so depth counts too."""
         total = 0.0
-        touching = False
+        touched: set[int] = set()
         for cp in p.getContactPoints(bodyA=self._robot.body, physicsClientId=self._client):
             if cp[3] in self._robot.gripper_links:
                 total += abs(cp[7][2]) * cp[9]
-                touching = touching or cp[2] in self._objects
+                if cp[2] in self._objects:
+                    touched.add(cp[2])
         depth = 0.0
-        if touching:
-            for cp in p.getContactPoints(physicsClientId=self._client):
-                if cp[1] != self._robot.body and cp[2] != self._robot.body:
+        for body in touched:  # only what the gripper presses on: a deep contact elsewhere is not its doing
+            for cp in p.getContactPoints(bodyA=body, physicsClientId=self._client):
+                if cp[2] != self._robot.body:
                     depth = max(depth, -cp[8])
         return total, depth
 
@@ -705,6 +720,7 @@ class SimCell(Cell):
         for body in list(self._objects):
             p.removeBody(body, physicsClientId=self._client)
         self._objects.clear()
+        self._deep_contacts = {}
         self._held.clear()
         if self._client is not None:
             self._robot.teleport(self._home_joints, self.config.gripper.open_width)

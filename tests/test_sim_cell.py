@@ -216,3 +216,42 @@ def test_guarded_descent_closes_above_a_neighbour_instead_of_a_protective_stop(e
     else:
         assert not result.completed
         assert result.failure.startswith("collision stop"), result.failure
+
+
+def test_a_momentary_deep_contact_is_tolerated_a_lasting_one_is_unstable(empty_cell):
+    """A block dipped 2 cm into the table is pushed out by the solver: not unstable.  Held there, it is.
+
+    A push of another block far away keeps the physics stepping (free moves are not simulated)."""
+    cfg = empty_cell.config
+    c = empty_cell._client
+
+    def push_the_far_block():
+        far = cube_at(empty_cell, -0.62, -0.12)
+        return empty_cell.execute(check_plan(plan_push(-0.67, -0.12, 0.0, cfg), cfg))
+
+    body = cube_at(empty_cell, -0.45, 0.10, size=(0.04, 0.04, 0.04))
+    pos, orn = p.getBasePositionAndOrientation(body, physicsClientId=c)
+    dipped = (pos[0], pos[1], pos[2] - 0.02)
+    p.resetBasePositionAndOrientation(body, dipped, orn, physicsClientId=c)
+    result = push_the_far_block()
+    assert result.completed, result.failure
+    assert empty_cell.stats["unstable_resets"] == 0
+    assert p.getBasePositionAndOrientation(body, physicsClientId=c)[0][2] > dipped[2] + 0.015, "the solver lifted it"
+    # the same dip, seen at three deep checks in a row (held there between them), is unstable;
+    # the rule counts per body pair and forgets a pair as soon as one check finds it shallow
+    from sim_cell.cell import _Unstable
+
+    def deep_check_with(dip: float) -> None:
+        p.resetBasePositionAndOrientation(body, (pos[0], pos[1], pos[2] - dip), orn, physicsClientId=c)
+        p.performCollisionDetection(physicsClientId=c)
+        empty_cell._check_stable(deep=True)
+
+    deep_check_with(0.02)
+    deep_check_with(0.02)
+    deep_check_with(0.0)              # resolved in between: the count starts again
+    deep_check_with(0.02)
+    deep_check_with(0.02)
+    with pytest.raises(_Unstable, match="interpenetrate by 2[0-9] mm for 3 checks"):
+        deep_check_with(0.02)
+    with pytest.raises(_Unstable, match="interpenetrate by [4-9][0-9] mm$"):
+        deep_check_with(0.041 + 0.005)  # gross: at once
