@@ -95,8 +95,10 @@ def read_run(directory: Path, spec: RunSpec, steps: int) -> RunResult | None:
 
 # ---------------------------------------------------------------------- running
 
-def train_all(specs: list[RunSpec], root: Path, config: Path, objects: int, steps: int, jobs: int) -> None:
-    """Start or continue every unfinished run, ``jobs`` at a time; Ctrl-C stops them cleanly."""
+def train_all(specs: list[RunSpec], root: Path, config: Path, objects: int, steps: int, jobs: int) -> bool:
+    """Start or continue every unfinished run, ``jobs`` at a time; Ctrl-C stops them cleanly.
+
+    Returns False when interrupted (the runs resume on the next call)."""
     todo = []
     for spec in specs:
         res = read_run(root / spec.name, spec, steps)
@@ -135,6 +137,7 @@ def train_all(specs: list[RunSpec], root: Path, config: Path, objects: int, step
             time.sleep(2.0)
     finally:
         signal.signal(signal.SIGINT, old)
+    return not stopping
 
 
 def evaluate_table2(results: dict[str, RunResult], root: Path, eval_runs: int, seeds: list[int]) -> None:
@@ -267,14 +270,18 @@ def main(argv: list[str]) -> int:
     root = Path(args.root).resolve()
     root.mkdir(parents=True, exist_ok=True)
     specs = run_specs(args.variants, args.seeds, not args.no_table2)
+    interrupted = False
     if not args.report_only:
-        train_all(specs, root, Path(args.config).resolve(), args.objects, args.steps, args.jobs)
+        interrupted = not train_all(specs, root, Path(args.config).resolve(), args.objects, args.steps, args.jobs)
+        if interrupted:
+            print("flgd bench learning: interrupted; run the same command again to resume (no Table II "
+                  "evaluation started)", file=sys.stderr)
     results = {}
     for spec in specs:
         res = read_run(root / spec.name, spec, args.steps)
         if res is not None:
             results[spec.name] = res
-    if not args.report_only and not args.no_table2:
+    if not args.report_only and not args.no_table2 and not interrupted:
         evaluate_table2(results, root, args.eval_runs, args.seeds)
     report(results, args.variants, args.seeds, root, args.steps, args.objects, args.eval_runs)
-    return 0
+    return 130 if interrupted else 0

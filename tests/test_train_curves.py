@@ -4,6 +4,11 @@ from __future__ import annotations
 
 import csv
 import json
+import os
+import signal
+import sys
+import threading
+import time
 from pathlib import Path
 
 import numpy as np
@@ -122,3 +127,29 @@ def test_bench_trains_skips_finished_runs_and_continues_longer_ones(tmp_path, ca
     assert len(rows) == 1 + 3
     report = json.loads((tmp_path / "report.json").read_text())
     assert report["variants"]["flg"]["runs"]["flg-s0"] == {"step": 3, "status": "finished", "complete": True}
+
+
+class _SleepingRun(bench.RunSpec):
+    """A run whose 'training' is a child process that sleeps until it gets SIGINT (stands in for flgd train)."""
+
+    def args(self, config, objects, steps, out):
+        return [sys.executable, "-c",
+                "import pathlib, sys, time\n"
+                f"pathlib.Path({str(out)!r}, 'started').write_text('yes')\n"
+                "try:\n    time.sleep(60)\nexcept KeyboardInterrupt:\n    sys.exit(130)\n"]
+
+
+def test_ctrl_c_stops_the_bench_runs_and_reports_the_interruption(tmp_path):
+    specs = [_SleepingRun("a-s0", "flg", 0), _SleepingRun("b-s0", "dpen", 0), _SleepingRun("c-s0", "rho-fcn", 0)]
+    started = time.monotonic()
+    timer = threading.Timer(2.0, os.kill, (os.getpid(), signal.SIGINT))
+    timer.start()
+    try:
+        finished = bench.train_all(specs, tmp_path, tmp_path / "cfg.yaml", objects=3, steps=10, jobs=2)
+    finally:
+        timer.cancel()
+    assert finished is False
+    assert time.monotonic() - started < 30, "the children were stopped, not waited out"
+    assert (tmp_path / "a-s0" / "started").exists() and (tmp_path / "b-s0" / "started").exists()
+    assert not (tmp_path / "c-s0").exists(), "no new run starts after Ctrl-C"
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
