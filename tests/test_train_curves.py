@@ -136,20 +136,26 @@ class _SleepingRun(bench.RunSpec):
         return [sys.executable, "-c",
                 "import pathlib, sys, time\n"
                 f"pathlib.Path({str(out)!r}, 'started').write_text('yes')\n"
-                "try:\n    time.sleep(60)\nexcept KeyboardInterrupt:\n    sys.exit(130)\n"]
+                "try:\n    time.sleep(600)\nexcept KeyboardInterrupt:\n    sys.exit(130)\n"]
 
 
 def test_ctrl_c_stops_the_bench_runs_and_reports_the_interruption(tmp_path):
     specs = [_SleepingRun("a-s0", "flg", 0), _SleepingRun("b-s0", "dpen", 0), _SleepingRun("c-s0", "rho-fcn", 0)]
-    started = time.monotonic()
-    timer = threading.Timer(2.0, os.kill, (os.getpid(), signal.SIGINT))
-    timer.start()
-    try:
-        finished = bench.train_all(specs, tmp_path, tmp_path / "cfg.yaml", objects=3, steps=10, jobs=2)
-    finally:
-        timer.cancel()
+    interrupted_at = []
+
+    def press_ctrl_c_once_both_run() -> None:
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline and not all((tmp_path / n / "started").exists() for n in ("a-s0", "b-s0")):
+            time.sleep(0.05)
+        interrupted_at.append(time.monotonic())
+        os.kill(os.getpid(), signal.SIGINT)
+
+    presser = threading.Thread(target=press_ctrl_c_once_both_run, daemon=True)
+    presser.start()
+    finished = bench.train_all(specs, tmp_path, tmp_path / "cfg.yaml", objects=3, steps=10, jobs=2)
+    presser.join()
     assert finished is False
-    assert time.monotonic() - started < 30, "the children were stopped, not waited out"
+    assert time.monotonic() - interrupted_at[0] < 300, "the children were stopped, not waited out (they sleep 600 s)"
     assert (tmp_path / "a-s0" / "started").exists() and (tmp_path / "b-s0" / "started").exists()
     assert not (tmp_path / "c-s0").exists(), "no new run starts after Ctrl-C"
     assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
