@@ -6,7 +6,7 @@ A *run* is one attempt to clear one scene.  Definitions:
   changed the scene less than the paper's mu/eta thresholds), or a plan the
   safety envelope refused (nothing happened).
 * **completed run**: the workspace was cleared -- every object left it in the
-  gripper (none is left, none was pushed out of the workspace) -- without
+  gripper (none is left, none was pushed off or dropped outside it) -- without
   more than ``FAILURE_LIMIT`` (10) consecutive failed actions.  The evaluator
   stops a run at the 11th consecutive failure.
 * **completion rate**: completed runs / counted runs.  Runs aborted by the

@@ -95,7 +95,7 @@ def format_table(report: dict[str, Any]) -> str:
            f"seed {opts.get('seed')})", line(header), rule, *map(line, rows), rule, *map(line, tail),
            "complete: cleared without more than "
            f"{opts.get('failure_limit', FAILURE_LIMIT)} consecutive failed actions; grasp ok: successful/attempted "
-           "grasps; act.eff: objects/actions over completed runs; lost: objects pushed out of the workspace"]
+           "grasps; act.eff: objects/actions over completed runs; lost: objects that left the workspace other than in the gripper (pushed off, or dropped on the way out)"]
     return "\n".join(out)
 
 
