@@ -150,6 +150,7 @@ def test_ctrl_c_stops_the_bench_runs_and_reports_the_interruption(tmp_path):
         interrupted_at.append(time.monotonic())
         os.kill(os.getpid(), signal.SIGINT)
 
+    handler_before = signal.getsignal(signal.SIGINT)
     presser = threading.Thread(target=press_ctrl_c_once_both_run, daemon=True)
     presser.start()
     finished = bench.train_all(specs, tmp_path, tmp_path / "cfg.yaml", objects=3, steps=10, jobs=2)
@@ -158,4 +159,4 @@ def test_ctrl_c_stops_the_bench_runs_and_reports_the_interruption(tmp_path):
     assert time.monotonic() - interrupted_at[0] < 300, "the children were stopped, not waited out (they sleep 600 s)"
     assert (tmp_path / "a-s0" / "started").exists() and (tmp_path / "b-s0" / "started").exists()
     assert not (tmp_path / "c-s0").exists(), "no new run starts after Ctrl-C"
-    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    assert signal.getsignal(signal.SIGINT) is handler_before, "the bench's own handler is removed again"

@@ -157,8 +157,7 @@ def main(argv: list[str]) -> int:
             os._exit(130)
         controller.request_stop(f"signal {signal.Signals(signum).name}")
 
-    signal.signal(signal.SIGTERM, on_signal)
-    signal.signal(signal.SIGINT, on_signal)
+    previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGTERM, signal.SIGINT)}
 
     server = None
     status_stop = threading.Event()
@@ -179,6 +178,8 @@ def main(argv: list[str]) -> int:
         print(f"flgd run: {exc}", file=sys.stderr)
         notifier.status(f"failed to start: {exc}")
         controller.shutdown()
+        for sig, previous_handler in previous.items():
+            signal.signal(sig, previous_handler)
         return EXIT_STARTUP
     finally:
         status_stop.set()
@@ -189,6 +190,8 @@ def main(argv: list[str]) -> int:
     controller.shutdown()
     log.info("stopped")
     notifier.close()
+    for sig, previous_handler in previous.items():  # run in-process (tests): leave no handler behind
+        signal.signal(sig, previous_handler)
     return EXIT_OK
 
 

@@ -561,8 +561,7 @@ def main(argv: list[str]) -> int:
             os._exit(EXIT_INTERRUPTED)
         progress.message("flgd train: stopping after the current step (Ctrl-C again to exit at once)")
 
-    signal.signal(signal.SIGINT, on_signal)
-    signal.signal(signal.SIGTERM, on_signal)
+    previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
     try:
         run.setup()
         return run.train()
@@ -578,3 +577,5 @@ def main(argv: list[str]) -> int:
         return EXIT_ERROR
     finally:
         run.close()
+        for sig, handler in previous.items():  # called in-process (tests, scripts): leave no handler behind
+            signal.signal(sig, handler)
