@@ -238,6 +238,12 @@ class SimCell(Cell):
                 return ExecutionResult(completed=False, widths=widths,
                                        failure=f"collision stop: {exc}; the arm retreated home",
                                        duration=self._sim_time - t0)
+            except motion.Unreachable as exc:  # re-planning from where a guarded move stopped
+                self._press_allowance = self._press_yield = 0.0
+                self._go_home()
+                return ExecutionResult(completed=False, widths=widths,
+                                       failure=f"unreachable after a contact stop: {exc}; the arm retreated home",
+                                       duration=self._sim_time - t0)
             except _Unstable as exc:
                 self._press_allowance = self._press_yield = 0.0
                 self.stats["unstable_resets"] += 1

@@ -127,3 +127,18 @@ def test_relative_state_dir_is_relative_to_the_config_file(tmp_path: Path) -> No
     path.parent.mkdir()
     path.write_text(yaml.safe_dump(with_change("state_dir", "state")))
     assert load_config(path).state_dir == str((tmp_path / "sub" / "state").resolve())
+
+
+def test_exponent_floats_without_a_dot_are_numbers(tmp_path: Path) -> None:
+    """PyYAML (YAML 1.1) reads 5e-4 as a string; the config loader reads it as YAML 1.2 does."""
+    path = tmp_path / "cell.yaml"
+    path.write_text("learning:\n  learning_rate: 5e-4\n  weight_decay: 1E-5\nrobot:\n  descent_contact_force: +2e1\n")
+    cfg = load_config(path)
+    assert cfg.learning.learning_rate == 5e-4 and cfg.learning.weight_decay == 1e-5
+    assert cfg.robot.descent_contact_force == 20.0
+    # an integer key given as an exponent float is refused with the key named, not silently truncated
+    path.write_text("learning:\n  batch_size: 4e0\n")
+    with pytest.raises(ConfigError, match="learning.batch_size"):
+        load_config(path)
+    # the resolver is the loader's own: plain PyYAML still reads a string
+    assert yaml.safe_load("x: 5e-4")["x"] == "5e-4"

@@ -255,3 +255,26 @@ def test_a_momentary_deep_contact_is_tolerated_a_lasting_one_is_unstable(empty_c
         deep_check_with(0.02)
     with pytest.raises(_Unstable, match="interpenetrate by [4-9][0-9] mm$"):
         deep_check_with(0.041 + 0.005)  # gross: at once
+
+
+def test_a_plan_that_cannot_go_on_from_a_contact_stop_fails_and_retreats_home(empty_cell, monkeypatch):
+    """Re-planning the rest of a grasp from where its guarded descent stopped can meet an IK limit:
+    that is a failed action with a reason and the arm home, never an exception out of execute."""
+    from sim_cell import motion
+    cfg = empty_cell.config
+    target = cube_at(empty_cell, -0.50, 0.0, size=(0.03, 0.03, 0.05))
+    cube_at(empty_cell, -0.50 + 0.055, 0.0, size=(0.03, 0.08, 0.03))
+    plan_lines = empty_cell._plan_lines
+
+    def refuse_the_rest(steps, first=0):
+        if first > 0:
+            raise motion.Unreachable("no inverse-kinematics solution (injected)")
+        return plan_lines(steps, first)
+
+    monkeypatch.setattr(empty_cell, "_plan_lines", refuse_the_rest)
+    s = state(empty_cell, target)
+    plan = plan_grasp(s.position[0], s.position[1], s.top - cfg.workspace.table_z, 0.0, cfg)
+    result = empty_cell.execute(check_plan(plan, cfg))
+    assert not result.completed
+    assert result.failure.startswith("unreachable after a contact stop") and "injected" in result.failure
+    np.testing.assert_allclose(empty_cell._tcp()[:3, 3], cfg.robot.home.position, atol=2e-3)
