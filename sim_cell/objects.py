@@ -40,6 +40,13 @@ NAMED_NOVEL_OBJECTS = {
 # A mesh whose faces leave a vertex this far on the outside of some face plane is concave.
 _CONCAVITY = 0.003   # m
 _SLABS = 12          # convex slabs of a concave mesh
+# Rolling resistance (m, pybullet's rollingFriction; times the other surface's friction it is the
+# lever arm of the rolling resistance, here about 1 mm as for wood on wood).  With 0.1 mm a
+# half-disk on its rim or a half-cylinder on its round side rocked for seconds and a cylinder on
+# its side rolled on: 9 objects of 6 fresh 20-block scenes still moved when the first picture was
+# taken, some rolled out of the workspace during the first grasp, and grasps closed on rocking blocks.
+ROLLING_FRICTION = 0.002
+SPINNING_FRICTION = 0.001  # m, torsional friction about the contact normal
 
 
 @dataclass(frozen=True)
@@ -176,10 +183,7 @@ def _block_body(client: int, spec: ObjectSpec) -> tuple[int, np.ndarray]:
     vis = p.createVisualShape(p.GEOM_MESH, vertices=geom.mesh_vertices.tolist(),
                               indices=geom.mesh_indices.reshape(-1).tolist(), rgbaColor=rgba,
                               physicsClientId=client)
-    if geom.cylinder is not None:
-        col = p.createCollisionShape(p.GEOM_CYLINDER, radius=geom.cylinder[0], height=geom.cylinder[1],
-                                     physicsClientId=client)
-    elif geom.boxes:
+    if geom.boxes:
         col = p.createCollisionShapeArray([p.GEOM_BOX] * len(geom.boxes),
                                           halfExtents=[list(b[0]) for b in geom.boxes],
                                           collisionFramePositions=[list(b[1]) for b in geom.boxes],
@@ -270,7 +274,7 @@ def spawn(client: int, spec: ObjectSpec) -> SpawnedObject:
         for link in range(-1, p.getNumJoints(body, physicsClientId=client)):
             p.changeDynamics(body, link, lateralFriction=spec.friction, physicsClientId=client)
     for link in range(-1, p.getNumJoints(body, physicsClientId=client)):
-        p.changeDynamics(body, link, spinningFriction=0.001, rollingFriction=0.0001,
+        p.changeDynamics(body, link, spinningFriction=SPINNING_FRICTION, rollingFriction=ROLLING_FRICTION,
                          physicsClientId=client)
     return SpawnedObject(body=body, spec=spec, local_points=np.asarray(pts, dtype=float))
 

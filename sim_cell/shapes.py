@@ -3,8 +3,12 @@
 Every shape is a prism: one or more convex 2-D polygons extruded by a length,
 then turned so that it rests on a flat face.  That gives an exact visual mesh
 (triangulated here) and a collision model pybullet handles well: a single
-convex hull, a native box/cylinder, or a compound of boxes for the concave
-shapes (the arch's round opening is a staircase of thin boxes, < 1 mm off).
+convex hull, or a compound of boxes for the box-like and concave shapes (the
+arch's round opening is a staircase of thin boxes, < 1 mm off).  The cylinder
+is the convex hull of its 24-sided visual prism, not pybullet's native
+cylinder: a finger pad closing on a native cylinder can sink 15-20 mm into it
+instead of being stopped (about 1 grasp in 20 at its centre), which no real
+gripper does.
 """
 
 from __future__ import annotations
@@ -24,7 +28,7 @@ class BlockGeometry:
     """A block in its own frame (origin at the bounding-box centre, resting face down).
 
     ``boxes``: (half_extents, centre) of box collision parts, or ``hull`` the vertices of a
-    single convex collision hull, or ``cylinder`` (radius, height) of an upright cylinder.
+    single convex collision hull.
     ``mesh_vertices`` / ``mesh_indices``: the visual triangle mesh; ``vertices`` all
     corner points (used for footprints and heights).
     """
@@ -35,7 +39,6 @@ class BlockGeometry:
     mesh_indices: np.ndarray
     boxes: list[tuple[tuple[float, float, float], tuple[float, float, float]]] = field(default_factory=list)
     hull: np.ndarray | None = None
-    cylinder: tuple[float, float] | None = None
 
     @property
     def vertices(self) -> np.ndarray:
@@ -90,7 +93,7 @@ def _centre(v: np.ndarray) -> np.ndarray:
 
 
 def _build(shape: str, dims: tuple[float, ...], visual: list[Polygon], length: float, axes: np.ndarray,
-           boxes: list[Polygon] | None = None, cylinder: tuple[float, float] | None = None) -> BlockGeometry:
+           boxes: list[Polygon] | None = None) -> BlockGeometry:
     mv, mi = _prism_mesh(visual, length, axes)
     c = _centre(mv)
     mv = mv - c
@@ -101,10 +104,10 @@ def _build(shape: str, dims: tuple[float, ...], visual: list[Polygon], length: f
             bv, _ = _prism_mesh([rect], length, axes)
             lo, hi = bv.min(axis=0) - c, bv.max(axis=0) - c
             box_parts.append((tuple(((hi - lo) / 2).tolist()), tuple(((hi + lo) / 2).tolist())))
-    elif cylinder is None:
+    else:
         hull = mv.copy()
     return BlockGeometry(shape=shape, dims=tuple(float(d) for d in dims), mesh_vertices=mv, mesh_indices=mi,
-                         boxes=box_parts, hull=hull, cylinder=cylinder)
+                         boxes=box_parts, hull=hull)
 
 
 def _cuboid(shape: str, lx: float, ly: float, lz: float) -> BlockGeometry:
@@ -126,7 +129,7 @@ def plate(length: float, width: float, height: float) -> BlockGeometry:
 
 def cylinder(radius: float, height: float) -> BlockGeometry:
     poly = _circle(radius, 0.0, 2 * math.pi, 24)[:-1]
-    return _build("cylinder", (radius, height), [poly], height, _XY, cylinder=(radius, height))
+    return _build("cylinder", (radius, height), [poly], height, _XY)
 
 
 def half_cylinder(radius: float, length: float) -> BlockGeometry:
