@@ -103,6 +103,12 @@ YIELD_DEPTH = 0.003           # m of squeeze at which an intended press starts t
 PROTECTIVE_STOP_FORCE = 100.0  # N of vertical push on the gripper that stops the arm (UR: 150 N at the TCP)
 TABLE_MARGIN = 0.15         # m of table beyond the workspace on each side
 DROP_MARGIN = 0.05          # m inside the workspace edge where random objects are dropped
+# A dropped scene is stepped until every object is still (the camera and the first grasp must not
+# meet a block still rolling or rocking; one at the edge rolled out during the first action, counted
+# as "lost"), at most this long after the fixed 0.5 s settle.
+STILL_SPEED = 0.01          # m/s
+STILL_SPIN = 0.2            # rad/s
+MAX_EXTRA_SETTLE = 2.0      # s
 
 # VPG-like block colours (tableau), jittered per object
 _PALETTE = np.array([[78, 121, 167], [89, 161, 79], [156, 117, 95], [242, 142, 43], [237, 201, 72],
@@ -808,11 +814,30 @@ class SimCell(Cell):
                 self._step(int(0.12 / self._dt))
             try:
                 self._step(int(0.5 / self._dt))
+                self._settle_until_still(MAX_EXTRA_SETTLE)
             except _Unstable:
                 self.stats["unstable_resets"] += 1
                 self._clear_objects()
                 continue
             self._remove_outside()
+
+
+    def _moving(self) -> list[int]:
+        """Objects moving faster than STILL_SPEED or turning faster than STILL_SPIN."""
+        out = []
+        for body in self._objects:
+            lin, ang = p.getBaseVelocity(body, physicsClientId=self._client)
+            if np.linalg.norm(lin) > STILL_SPEED or np.linalg.norm(ang) > STILL_SPIN:
+                out.append(body)
+        return out
+
+    def _settle_until_still(self, limit: float) -> None:
+        """Step in 0.1 s chunks until no object moves, for at most ``limit`` s."""
+        chunk = int(round(0.1 / self._dt))
+        waited = 0.0
+        while waited < limit and self._moving():
+            self._step(chunk)
+            waited += 0.1
 
 
 class _CollisionStop(Exception):
