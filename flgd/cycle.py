@@ -258,6 +258,8 @@ class CycleRunner:
             self._reset_scene(timer)
             return finish()
         self.last_decided = (state, decision, self.step)
+        if self.learner is not None and hasattr(self.learner, "note_decision"):
+            self.learner.note_decision(state, decision, getattr(self.agent, "weights_version", -1))
         action: Action = decision.action
         record.step = self.step
         record.action = action

@@ -31,7 +31,7 @@ from __future__ import annotations
 import hashlib
 import threading
 import zlib
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Iterable
 
 import numpy as np
@@ -39,18 +39,24 @@ import numpy as np
 from flgd.actions import Action
 from flgd.perception import Heightmaps
 
-__all__ = ["Transition", "SumTree", "PrioritizedReplay", "pack_heightmaps", "unpack_heightmaps"]
+__all__ = ["Transition", "SumTree", "PrioritizedReplay", "pack_heightmaps", "unpack_heightmaps", "state_key"]
 
 
 @dataclass(frozen=True)
 class Transition:
-    """(s, a, r, s', done); ``next_state`` is None only when ``done`` is true."""
+    """(s, a, r, s', done); ``next_state`` is None only when ``done`` is true.
+
+    ``next_key`` is the replay's content key of s' (``state_key`` of the
+    heightmaps as they were added), set on transitions the replay hands out so
+    that the learner can cache per-state results; None on new transitions.
+    """
 
     state: Heightmaps
     action: Action
     reward: float
     next_state: Heightmaps | None
     done: bool
+    next_key: bytes | None = field(default=None, compare=False, repr=False)
 
 
 class SumTree:
@@ -130,7 +136,8 @@ def unpack_heightmaps(blob: bytes) -> Heightmaps:
     return Heightmaps(color=color, height=height)
 
 
-def _digest(hm: Heightmaps) -> bytes:
+def state_key(hm: Heightmaps) -> bytes:
+    """The content key under which the replay stores ``hm`` (equal content, equal key)."""
     d = hashlib.blake2b(digest_size=16)
     d.update(np.ascontiguousarray(hm.color).tobytes())
     d.update(np.ascontiguousarray(hm.height, dtype=np.float32).tobytes())
@@ -147,7 +154,7 @@ class _StateStore:
     def put(self, hm: Heightmaps) -> bytes:
         # Always hash the content (about 0.3 ms for 224 x 224): arrays are mutable, so object identity
         # would not prove equal content.
-        key = _digest(hm)
+        key = state_key(hm)
         if key not in self._blobs:
             self._blobs[key] = pack_heightmaps(hm)
             self._refs[key] = 0
@@ -333,4 +340,5 @@ class PrioritizedReplay:
     def _unpack(self, slot: _Slot | None) -> Transition:
         assert slot is not None
         nxt = self._states.get(slot.next_state) if slot.next_state is not None else None
-        return Transition(self._states.get(slot.state), slot.action, slot.reward, nxt, slot.done)
+        return Transition(self._states.get(slot.state), slot.action, slot.reward, nxt, slot.done,
+                          next_key=slot.next_state)

@@ -194,6 +194,8 @@ class TrainingRun:
                      "rolling_success_50": rolling(self.grasps, 50),
                      "rolling_success_200": rolling(self.grasps, 200),
                      "updated": _now()})
+        if hasattr(self, "learner"):  # how the double-DQN a' of the targets was found (this segment)
+            info["next_argmax"] = {"reused": self.learner.argmax_reused, "computed": self.learner.argmax_computed}
         self.run_info = info
         tmp = self.out / f".{RUN_FILE}.tmp"
         tmp.write_text(json.dumps(info, indent=2) + "\n")
