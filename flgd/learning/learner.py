@@ -15,7 +15,9 @@ One update (``update``):
   averaged over the transition's rotations, weighted by w, averaged over the
   batch; Adam with the configured learning rate and weight decay;
 * priorities of the batch become |y - Q(s, a)| + epsilon;
-* the target network copies the online one every ``target_update_every`` updates.
+* the target network copies the online one every ``target_update_every`` updates;
+* with ``mirror_probability`` p > 0 each sampled transition is trained, with
+  chance p, as its mirror image (``flgd.learning.augment``; same target).
 
 Finding a' costs a forward pass over all 16 rotations of s', four times the
 rest of an update on a CPU.  With ``next_argmax_max_age`` > 0 the learner
@@ -50,9 +52,11 @@ import torch
 import torch.nn.functional as F
 
 from flgd.clutter import grasp_mask, move_mask
+from flgd.actions import Action
 from flgd.config import CellConfig
 from flgd.perception import Heightmaps
 
+from flgd.learning.augment import mirror_action, mirror_heightmaps
 from flgd.learning.agent import Decision, WeightsMailbox, greedy_index
 from flgd.learning.networks import QMapNetwork, q_maps, rotated_inputs, unrotate_maps
 from flgd.learning.replay import PrioritizedReplay, Transition, state_key
@@ -86,6 +90,7 @@ class LossTerms:
     maps: torch.Tensor  # [N,2,H,W] predicted maps (heightmap frame) of the forwarded rotations
     owners: list[int]  # transition index of each row of maps
     rotations: list[int]  # rotation index of each row of maps
+    actions: list[Action]  # the action trained per transition (mirrored when the transition was)
 
 
 def resolve_device(device: str | torch.device | None) -> torch.device:
@@ -114,6 +119,7 @@ class Learner:
             p.requires_grad_(False)
         self.optimizer = torch.optim.Adam(self.online.parameters(), lr=lc.learning_rate,
                                           weight_decay=lc.weight_decay)
+        self._mirror_rng = np.random.default_rng([lc.seed, 0x6D69])  # its own stream: other draws unchanged
         self.mailbox = mailbox
         self.checkpoint_callback = checkpoint_callback
         self.thread_nice = thread_nice
@@ -224,7 +230,8 @@ class Learner:
     def loss_terms(self, transitions: Sequence[Transition], weights: np.ndarray) -> LossTerms:
         """The weighted Huber loss at the executed pixels (see module doc), with its intermediate maps."""
         ys = self.targets(transitions)
-        colors, heights, owners, rots = [], [], [], []
+        p_mirror = self.config.learning.mirror_probability
+        colors, heights, owners, rots, actions = [], [], [], [], []
         for k, t in enumerate(transitions):
             a = t.action
             if a.rotations != self.rotations:
@@ -233,10 +240,14 @@ class Learner:
             if not (0 <= a.row < rows_px and 0 <= a.col < cols_px):
                 raise ValueError(f"transition {k}: pixel ({a.row}, {a.col}) is outside the {rows_px}x{cols_px} "
                                  "heightmap")
+            state = t.state
+            if p_mirror > 0 and self._mirror_rng.random() < p_mirror:
+                state, a = mirror_heightmaps(state), mirror_action(a, cols_px)
+            actions.append(a)
             these = [a.rotation]
             if not a.is_move:
                 these.append((a.rotation + self.rotations // 2) % self.rotations)
-            c, h = rotated_inputs(t.state, these, self.rotations, self.online.stride, self.device)
+            c, h = rotated_inputs(state, these, self.rotations, self.online.stride, self.device)
             colors.append(c)
             heights.append(h)
             owners += [k] * len(these)
@@ -247,9 +258,9 @@ class Learner:
         (h_px, w_px), = shapes
         out = self.online(torch.cat(colors), torch.cat(heights))
         maps = unrotate_maps(out, rots, self.rotations, h_px, w_px)
-        channel = torch.tensor([transitions[k].action.channel for k in owners], device=self.device)
-        row = torch.tensor([transitions[k].action.row for k in owners], device=self.device)
-        col = torch.tensor([transitions[k].action.col for k in owners], device=self.device)
+        channel = torch.tensor([actions[k].channel for k in owners], device=self.device)
+        row = torch.tensor([actions[k].row for k in owners], device=self.device)
+        col = torch.tensor([actions[k].col for k in owners], device=self.device)
         predicted = maps[torch.arange(len(owners), device=self.device), channel, row, col]
         y = torch.tensor(ys[owners], dtype=predicted.dtype, device=self.device)
         per_row = F.huber_loss(predicted, y, reduction="none", delta=self.config.learning.huber_delta)
@@ -261,7 +272,8 @@ class Learner:
         loss = (w * per_transition / counts).mean()
         first = [owners.index(k) for k in range(len(transitions))]  # the executed rotation's row
         td = (y[first] - predicted[first]).detach().cpu().numpy().astype(np.float64)
-        return LossTerms(loss=loss, td_errors=td, targets=ys, maps=maps, owners=owners, rotations=rots)
+        return LossTerms(loss=loss, td_errors=td, targets=ys, maps=maps, owners=owners, rotations=rots,
+                         actions=actions)
 
     def update(self) -> UpdateStats | None:
         """One gradient step on a prioritized batch; None while the replay is empty."""
