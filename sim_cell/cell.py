@@ -74,7 +74,7 @@ from pathlib import Path
 import numpy as np
 import pybullet as p
 
-from flgd.cell import Cell, CellFault, ExecutionResult, Frame
+from flgd.cell import Cell, CellFault, ContactStop, ExecutionResult, Frame
 from flgd.config import CellConfig
 from flgd.geometry import ToolPose
 from flgd.plans import GripperCommand, MeasureWidth, MoveL
@@ -217,6 +217,7 @@ class SimCell(Cell):
                 return ExecutionResult(completed=False, failure=f"unreachable: {exc}; the arm did not move",
                                        duration=0.0)
             widths: list[float] = []
+            stops: list[ContactStop] = []
             # A shift presses the closed fingers ``robot.shift_press`` into the object's top on purpose:
             # that much extra squeeze is the intended press, not a collision.
             self._press_allowance = self.config.robot.shift_press if planned.primitive == "shift" else 0.0
@@ -225,6 +226,8 @@ class SimCell(Cell):
                 for i, step in enumerate(steps):
                     if isinstance(step, MoveL):
                         if self._run_line(lines[i], step.stop_on_contact):
+                            short = float(np.linalg.norm(self._tcp()[:3, 3] - np.asarray(step.pose.position)))
+                            stops.append(ContactStop(step.label, short))
                             # a guarded move met resistance: the rest of the plan starts where it stopped
                             lines.update(self._plan_lines(steps, first=i + 1))
                     elif isinstance(step, GripperCommand):
@@ -237,13 +240,13 @@ class SimCell(Cell):
                 self._go_home()
                 return ExecutionResult(completed=False, widths=widths,
                                        failure=f"collision stop: {exc}; the arm retreated home",
-                                       duration=self._sim_time - t0)
+                                       duration=self._sim_time - t0, contact_stops=stops)
             except motion.Unreachable as exc:  # re-planning from where a guarded move stopped
                 self._press_allowance = self._press_yield = 0.0
                 self._go_home()
                 return ExecutionResult(completed=False, widths=widths,
                                        failure=f"unreachable after a contact stop: {exc}; the arm retreated home",
-                                       duration=self._sim_time - t0)
+                                       duration=self._sim_time - t0, contact_stops=stops)
             except _Unstable as exc:
                 self._press_allowance = self._press_yield = 0.0
                 self.stats["unstable_resets"] += 1
@@ -251,10 +254,11 @@ class SimCell(Cell):
                 where = f"{planned.primitive} step {i} ({steps[i].label or type(steps[i]).__name__})"
                 return ExecutionResult(completed=False, widths=widths,
                                        failure=f"unstable simulation ({exc}) during {where}; scene reset",
-                                       duration=self._sim_time - t0)
+                                       duration=self._sim_time - t0, contact_stops=stops)
             self._press_allowance = self._press_yield = 0.0
             self._remove_outside()
-            return ExecutionResult(completed=True, widths=widths, duration=self._sim_time - t0)
+            return ExecutionResult(completed=True, widths=widths, duration=self._sim_time - t0,
+                                   contact_stops=stops)
 
     def gripper_width(self) -> float:
         """Distance between the finger pads, from the finger joint positions (m)."""

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from flgd.actions import Action
-from flgd.cell import STOPPED_ON_REQUEST, Cell, CellFault, ExecutionResult, make_cell
+from flgd.cell import STOPPED_ON_REQUEST, Cell, CellFault, ContactStop, ExecutionResult, make_cell
 from flgd.clutter import judge_move
 from flgd.config import load_config
 from flgd.geometry import ToolPose
@@ -39,7 +39,9 @@ class FaultInjectingCell(Cell):
         self.captures = 0
         self.executions = 0
         self.resets = 0
-        self.fail_next: str | None = None  # "unstable", "fault", "stop-mid-motion" or "stop-after-motion"
+        # "unstable", "fault", "stop-mid-motion", "stop-after-motion" or "contact-stop" (the descent
+        # of the real execution is reported as stopped 12.34 mm short)
+        self.fail_next: str | None = None
         self.stop_during: CycleRunner | None = None  # whose request_stop a "stop-*" mode calls
         self.stop_motion_calls = 0
 
@@ -58,6 +60,8 @@ class FaultInjectingCell(Cell):
         result = self.inner.execute(plan)
         if mode == "stop-after-motion":  # SIGTERM arrives just as the plan completed
             self.stop_during.request_stop()
+        if mode == "contact-stop":
+            return dataclasses.replace(result, contact_stops=[ContactStop("descend", 0.01234)])
         if mode == "unstable":
             return ExecutionResult(completed=False, widths=result.widths,
                                    failure="unstable simulation (injected)", duration=result.duration)
@@ -194,6 +198,19 @@ def test_unstable_execution_is_discarded_and_the_scene_reset(tmp_path):
     finally:
         cell.close()
     assert store.action_log()[1]["outcome"] == "discarded"
+
+
+def test_a_contact_stop_of_the_descent_goes_into_the_action_log(tmp_path):
+    cfg, cell, store, replay, runner = _setup(tmp_path)
+    try:
+        first = runner.run_once()
+        cell.fail_next = "contact-stop"
+        second = runner.run_once()
+    finally:
+        cell.close()
+    assert first.contact_stop_mm is None or first.contact_stop_mm > 0
+    assert second.outcome == "executed" and second.contact_stop_mm == 12.3
+    assert store.action_log()[-1]["contact_stop_mm"] == 12.3
 
 
 def test_cell_fault_is_logged_and_propagated_without_a_transition(tmp_path):

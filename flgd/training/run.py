@@ -449,7 +449,7 @@ class TrainingRun:
 
 _LOG_KEYS = frozenset({"step", "time", "outcome", "primitive", "kind", "row", "col", "rotation", "reward",
                        "success", "rule", "epsilon",
-                       "q_value", "mu", "eta", "refused", "failure", "t_capture", "t_perceive", "t_decide",
+                       "q_value", "mu", "eta", "refused", "failure", "contact_stop_mm", "t_capture", "t_perceive", "t_decide",
                        "t_plan", "t_execute", "t_judge", "duration"})
 
 
