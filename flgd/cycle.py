@@ -208,7 +208,7 @@ class CycleRunner:
         if self.store is not None:
             record.transition_id = self.store.commit_cycle(record.row(), transition)
         if transition is not None and self.replay is not None:
-            self.replay.add(transition)
+            self.replay.add(transition, tag=record.transition_id)
             if self.learner is not None:
                 self.learner.notify_new_transition()
         record.timings["store"] = time.perf_counter() - t0

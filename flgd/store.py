@@ -371,6 +371,18 @@ class Store:
     def state_count(self) -> int:
         return int(self._read("SELECT COUNT(*) FROM states")[0][0])
 
+    def save_priorities(self, pairs: list[tuple[int, float]]) -> None:
+        """Write the replay priorities the learner set ((transition id, raw priority)), in one transaction.
+
+        Ids pruned meanwhile are simply not there any more.
+        """
+        rows = [(float(p), int(tid)) for tid, p in pairs]
+        for p, tid in rows:
+            if not (np.isfinite(p) and p > 0):
+                raise ValueError(f"save_priorities: transition {tid}: got priority {p!r}, expected > 0")
+        if rows:
+            self._write(lambda db: db.executemany("UPDATE transitions SET priority=? WHERE id=?", rows))
+
     def iter_transitions(self, limit: int | None = None) -> Iterator[StoredTransition]:
         """The last ``limit`` transitions (all if None), oldest first.
 

@@ -292,3 +292,35 @@ def test_a_fault_while_homing_is_raised_before_anything_is_captured(tmp_path):
         assert store.transition_count() == 0
     finally:
         cell.close()
+
+
+def test_learned_priorities_are_written_to_the_store_and_come_back_after_a_restart(tmp_path):
+    from flgd.wiring import build_agent_and_learner, rebuild_replay
+
+    cfg, cell, store, replay, runner = _setup(tmp_path)
+    agent, learner = build_agent_and_learner(cfg, runner.agent.agent.network, replay, checkpoint_callback=None,
+                                             store=store)
+    runner.learner = learner
+    try:
+        for _ in range(4):
+            runner.run_once()
+            learner.update_pending()
+    finally:
+        cell.close()
+    ids = [r[0] for r in store.query("SELECT id FROM transitions ORDER BY id")]
+    assert len(ids) == len(replay) >= 3
+    stored = dict(store.query("SELECT id, priority FROM transitions"))
+    live = {replay.tag(i): replay.priority(i) for i in range(len(replay))}
+    assert set(live) == set(ids)
+    sampled = {tid for tid, p in stored.items() if p is not None}
+    assert sampled, "the learner's updates set priorities"
+    for tid in sampled:
+        assert stored[tid] == pytest.approx(live[tid], rel=1e-12)
+    # a restart (power cut) rebuilds the replay with exactly these priorities
+    rebuilt, problem = rebuild_replay(cfg, store)
+    assert problem == "" and len(rebuilt) == len(replay)
+    for i in range(len(rebuilt)):
+        assert rebuilt.tag(i) == replay.tag(i)
+        if replay.tag(i) in sampled:
+            assert rebuilt.priority(i) == pytest.approx(replay.priority(i), rel=1e-12)
+    store.close()

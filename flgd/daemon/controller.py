@@ -159,7 +159,7 @@ class Controller:
             self.store_problem = problem
         self.agent, self.learner = build_agent_and_learner(
             self.config, network, self.replay, checkpoint_callback=self._write_checkpoint,
-            updates=self.resumed_from_updates)
+            updates=self.resumed_from_updates, store=self.store)
 
     # ================================================================== checkpoints
     def _write_checkpoint(self, network: Any, updates: int) -> None:

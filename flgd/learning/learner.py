@@ -14,7 +14,8 @@ One update (``update``):
 * loss: Huber (delta = huber_delta) at the executed channel and pixel only,
   averaged over the transition's rotations, weighted by w, averaged over the
   batch; Adam with the configured learning rate and weight decay;
-* priorities of the batch become |y - Q(s, a)| + epsilon;
+* priorities of the batch become |y - Q(s, a)| + epsilon (and are written back
+  to the store through ``priority_sink``, so a restart keeps them);
 * the target network copies the online one every ``target_update_every`` updates;
 * with ``mirror_probability`` p > 0 each sampled transition is trained, with
   chance p, as its mirror image (``flgd.learning.augment``; same target).
@@ -66,6 +67,7 @@ __all__ = ["Learner", "UpdateStats", "LossTerms", "resolve_device"]
 log = logging.getLogger(__name__)
 
 CheckpointCallback = Callable[[QMapNetwork, int], None]
+PrioritySink = Callable[[list[tuple[int, float]]], None]  # (store transition id, raw priority) pairs
 
 
 @dataclass(frozen=True)
@@ -105,7 +107,8 @@ def resolve_device(device: str | torch.device | None) -> torch.device:
 class Learner:
     def __init__(self, config: CellConfig, network: QMapNetwork, replay: PrioritizedReplay,
                  device: str | torch.device | None = None, mailbox: WeightsMailbox | None = None,
-                 checkpoint_callback: CheckpointCallback | None = None, thread_nice: int = 10) -> None:
+                 checkpoint_callback: CheckpointCallback | None = None, thread_nice: int = 10,
+                 priority_sink: PrioritySink | None = None) -> None:
         lc = config.learning
         if lc.threads > 0:
             torch.set_num_threads(lc.threads)
@@ -122,6 +125,7 @@ class Learner:
         self._mirror_rng = np.random.default_rng([lc.seed, 0x6D69])  # its own stream: other draws unchanged
         self.mailbox = mailbox
         self.checkpoint_callback = checkpoint_callback
+        self.priority_sink = priority_sink
         self.thread_nice = thread_nice
         self.updates = 0
         self.failed_updates = 0
@@ -287,7 +291,13 @@ class Learner:
             self.optimizer.zero_grad(set_to_none=True)
             terms.loss.backward()
             self.optimizer.step()
-            self.replay.update_priorities(indices, np.abs(terms.td_errors))
+            tagged = self.replay.update_priorities(indices, np.abs(terms.td_errors))
+            if self.priority_sink is not None and tagged:
+                try:
+                    self.priority_sink(tagged)
+                except Exception as exc:  # a full disk must not stop learning; the priorities are a hint
+                    log.exception("writing replay priorities failed at update %d", self.updates + 1)
+                    self.last_error = f"saving priorities at update {self.updates + 1}: {exc}"
             self.updates += 1
             if self.updates % self.config.learning.target_update_every == 0:
                 self.target.load_state_dict(self.online.state_dict())
