@@ -147,7 +147,7 @@ class SimCell(Cell):
         self._noise_rng = np.random.default_rng(seeds[1])
         self._object_count = config.sim.objects
         self._object_kinds = objects.resolve_object_set(config.sim.object_set)
-        self._natural_sizes: dict[str, float] = {}
+        self._natural_extents: dict[str, tuple[float, float, float]] = {}
         self._objects: dict[int, objects.SpawnedObject] = {}
         self._held: set[int] = set()
         self._carry_tried: set[int] = set()   # gripped objects whose grip survived a simulated trial carry
@@ -773,9 +773,10 @@ class SimCell(Cell):
             volume = float(np.prod(geom.extents)) * 0.7
             return objects.ObjectSpec(shape=shape, size=dims, color=colour, mass=max(volume * density, 0.02),
                                       friction=friction)
-        if kind not in self._natural_sizes:
-            self._natural_sizes[kind] = objects.natural_size(kind, self._client)
-        scale = float(rng.uniform(0.05, 0.09)) / self._natural_sizes[kind]
+        if kind not in self._natural_extents:
+            self._natural_extents[kind] = objects.natural_extents(kind, self._client)
+        scale = objects.graspable_scale(self._natural_extents[kind], float(rng.uniform(0.05, 0.09)),
+                                        self.config.gripper.open_width)
         mass = float(rng.uniform(0.03, 0.15)) if dr else None
         return objects.ObjectSpec(urdf=kind, scale=scale, color=colour, mass=mass, friction=friction)
 
