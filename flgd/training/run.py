@@ -267,8 +267,12 @@ class TrainingRun:
         self.runner = CycleRunner(self.config, cell, self.agent, store=self.store, replay=self.replay,
                                   learner=self.learner, step=step, backend=self.config.backend)
         segments = list(self.run_info.get("segments", []))
+        # the learning and exploration settings in force, so that a run whose config.yaml was edited
+        # between segments (e.g. more updates per action) says so
         segments.append({"started": _now(), "from_step": step, "from_updates": self.learner.updates,
-                         "source": start.source, "code": _code_version()})
+                         "source": start.source, "code": _code_version(),
+                         "learning": dataclasses.asdict(self.config.learning),
+                         "exploration": dataclasses.asdict(self.config.exploration)})
         self.run_info["segments"] = segments
         self.run_info.setdefault("created", _now())
         self.run_info["config_source"] = self.config.source
