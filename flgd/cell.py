@@ -24,6 +24,7 @@ from flgd.safety import CheckedPlan
 __all__ = [
     "Frame",
     "ExecutionResult",
+    "ContactStop",
     "Cell",
     "CellFault",
     "STOPPED_ON_REQUEST",
@@ -61,19 +62,33 @@ class Frame:
             raise ValueError(f"Frame.depth_scale: expected > 0, got {self.depth_scale!r}")
 
 
+@dataclass(frozen=True)
+class ContactStop:
+    """A guarded move (``MoveL.stop_on_contact``) that ended at a contact, short of its pose.
+
+    Reported so that an engineer tuning ``robot.descent_contact_force`` can see
+    how often a descent stopped and how far above its planned depth.
+    """
+
+    label: str  # the move's step label, e.g. "descend"
+    short_by: float  # metres between where the TCP stopped and the move's pose
+
+
 @dataclass
 class ExecutionResult:
     """What happened when a cell ran a plan.
 
     ``completed`` is False when a motion could not be carried out (unreachable
     pose, collision stop); the cell is then left safe and the caller decides.
-    ``widths`` holds the gripper widths measured at the plan's MeasureWidth steps.
+    ``widths`` holds the gripper widths measured at the plan's MeasureWidth steps;
+    ``contact_stops`` the guarded moves that stopped at a contact.
     """
 
     completed: bool
     widths: list[float] = field(default_factory=list)
     failure: str = ""
     duration: float = 0.0
+    contact_stops: list[ContactStop] = field(default_factory=list)
 
 
 # ExecutionResult.failure of a plan interrupted by Cell.stop_motion() contains this text.

@@ -214,6 +214,10 @@ class LearningConfig:
     batch_size: int = param(4, ge=1)
     updates_per_action: int = param(1, ge=0)
     target_update_every: int = param(50, ge=1, unit="updates")
+    mirror_probability: float = param(0.0, ge=0.0, le=1.0,
+                                      help="chance a replayed transition is trained as its mirror image")
+    next_argmax_max_age: int = param(0, ge=0, unit="updates",
+                                     help="reuse a next state's double-DQN argmax this long (0 = always recompute)")
     replay_capacity: int = param(20000, ge=1)
     priority_alpha: float = param(0.6, ge=0.0, le=1.0)
     priority_beta_start: float = param(0.4, ge=0.0, le=1.0)

@@ -69,6 +69,7 @@ class CycleRecord:
     q_value: float | None = None
     refused: str = ""
     failure: str = ""
+    contact_stop_mm: float | None = None  # a guarded move of the action stopped this far short of its pose
     done: bool = False
     duration: float = 0.0
     timings: dict[str, float] = field(default_factory=dict)
@@ -88,6 +89,7 @@ class CycleRecord:
             "success": None if self.success is None else int(self.success),
             "mu": self.mu, "eta": self.eta, "rule": self.rule, "epsilon": self.epsilon,
             "q_value": self.q_value, "refused": self.refused, "failure": self.failure,
+            "contact_stop_mm": self.contact_stop_mm,
             "done": int(self.done), "duration": self.duration,
         }
         for phase, seconds in self.timings.items():
@@ -206,7 +208,7 @@ class CycleRunner:
         if self.store is not None:
             record.transition_id = self.store.commit_cycle(record.row(), transition)
         if transition is not None and self.replay is not None:
-            self.replay.add(transition)
+            self.replay.add(transition, tag=record.transition_id)
             if self.learner is not None:
                 self.learner.notify_new_transition()
         record.timings["store"] = time.perf_counter() - t0
@@ -258,6 +260,8 @@ class CycleRunner:
             self._reset_scene(timer)
             return finish()
         self.last_decided = (state, decision, self.step)
+        if self.learner is not None and hasattr(self.learner, "note_decision"):
+            self.learner.note_decision(state, decision, getattr(self.agent, "weights_version", -1))
         action: Action = decision.action
         record.step = self.step
         record.action = action
@@ -289,6 +293,8 @@ class CycleRunner:
         try:
             with timer.phase("execute"):
                 result = self.cell.execute(checked)
+                if result.contact_stops:
+                    record.contact_stop_mm = round(1000.0 * result.contact_stops[0].short_by, 1)
                 if _was_stopped(result) or self._stop.is_set():
                     return self._stopped(record, result.failure or "after execution", finish, timer)
                 held = False

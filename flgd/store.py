@@ -6,7 +6,7 @@ leaves either the whole cycle or none of it, and readers (``flgctl stats``)
 never block the writer.  ``synchronous=NORMAL`` is durable against a killed
 process; only a power cut may lose the last few commits, never corrupt them.
 
-Schema (``SCHEMA_VERSION`` 1), file ``<state_dir>/flgd.sqlite``:
+Schema (``SCHEMA_VERSION`` 2), file ``<state_dir>/flgd.sqlite``:
 
 * ``states(id, rows, cols, color, height)`` -- one heightmap pair per row,
   zlib-compressed; colour HxWx3 uint8, height as uint16 in units of
@@ -16,13 +16,16 @@ Schema (``SCHEMA_VERSION`` 1), file ``<state_dir>/flgd.sqlite``:
   rotation, rotations, reward, done, priority)`` -- the replay buffer.
 * ``actions(step PRIMARY KEY, time, backend, outcome, primitive, kind, row,
   col, rotation, reward, success, mu, eta, rule, epsilon, q_value, refused,
-  failure, done, duration, t_capture, t_perceive, t_decide, t_plan, t_execute,
+  failure, contact_stop_mm, done, duration, t_capture, t_perceive, t_decide, t_plan, t_execute,
   t_judge, t_store, transition_id)`` -- one row per cycle, whatever happened.
   ``t_store`` of a row is written with the next cycle's commit (a commit cannot
   time itself).
 * ``events(id, time, kind, message)`` -- state changes, faults, policy loads.
 * ``counters(name PRIMARY KEY, value)`` -- e.g. learner updates.
 * ``meta(key PRIMARY KEY, value)`` -- schema version.
+
+A version-1 store (before ``contact_stop_mm``) is upgraded in place when it is
+opened: the column is added (empty for the old rows) and nothing else changes.
 
 Retention: with ``keep_transitions`` (the daemon passes the replay capacity)
 only the newest transitions and their states are kept, so the file stops
@@ -65,14 +68,15 @@ __all__ = [
     "TIMING_PHASES",
 ]
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
 HEIGHT_QUANTUM = 1e-4  # metres per stored height unit
 DB_NAME = "flgd.sqlite"
 TIMING_PHASES = ("capture", "perceive", "decide", "plan", "execute", "judge", "store")
 
 ACTION_COLUMNS = (
     "step", "time", "backend", "outcome", "primitive", "kind", "row", "col", "rotation", "reward",
-    "success", "mu", "eta", "rule", "epsilon", "q_value", "refused", "failure", "done", "duration",
+    "success", "mu", "eta", "rule", "epsilon", "q_value", "refused", "failure", "contact_stop_mm", "done",
+    "duration",
     *(f"t_{p}" for p in TIMING_PHASES), "transition_id",
 )
 
@@ -92,7 +96,7 @@ CREATE TABLE IF NOT EXISTS actions(
     step INTEGER PRIMARY KEY, time REAL NOT NULL, backend TEXT, outcome TEXT NOT NULL,
     primitive TEXT, kind TEXT, row INTEGER, col INTEGER, rotation INTEGER, reward REAL,
     success INTEGER, mu INTEGER, eta INTEGER, rule TEXT, epsilon REAL, q_value REAL,
-    refused TEXT, failure TEXT, done INTEGER, duration REAL,
+    refused TEXT, failure TEXT, contact_stop_mm REAL, done INTEGER, duration REAL,
     t_capture REAL, t_perceive REAL, t_decide REAL, t_plan REAL, t_execute REAL,
     t_judge REAL, t_store REAL, transition_id INTEGER REFERENCES transitions(id));
 CREATE TABLE IF NOT EXISTS events(id INTEGER PRIMARY KEY, time REAL NOT NULL,
@@ -217,6 +221,8 @@ class Store:
             if row is None:
                 self._db.execute("INSERT INTO meta(key, value) VALUES('schema_version', ?)",
                                  (str(SCHEMA_VERSION),))
+            elif row[0] == "1":
+                self._upgrade_from_1()
             elif row[0] != str(SCHEMA_VERSION):
                 raise StoreError(f"store {self.path}: schema version {row[0]} is not the supported "
                                  f"version {SCHEMA_VERSION}; use a new state directory")
@@ -226,6 +232,21 @@ class Store:
             raise StoreError(_explain(exc, self.path)) from exc
 
     # ------------------------------------------------------------------ internals
+    def _upgrade_from_1(self) -> None:
+        """Version 1 -> 2: the action log gains ``contact_stop_mm``; one transaction, nothing else touched."""
+        db = self._db
+        db.execute("BEGIN IMMEDIATE")
+        try:
+            columns = {r[1] for r in db.execute("PRAGMA table_info(actions)")}
+            if "contact_stop_mm" not in columns:
+                db.execute("ALTER TABLE actions ADD COLUMN contact_stop_mm REAL")
+            db.execute("UPDATE meta SET value=? WHERE key='schema_version'", (str(SCHEMA_VERSION),))
+            db.execute("COMMIT")
+        except BaseException:
+            if db.in_transaction:
+                db.execute("ROLLBACK")
+            raise
+
     def _write(self, fn: Callable[[sqlite3.Connection], Any]) -> Any:
         """Run ``fn`` in one write transaction; map storage failures to StoreError."""
         with self._lock:
@@ -349,6 +370,18 @@ class Store:
 
     def state_count(self) -> int:
         return int(self._read("SELECT COUNT(*) FROM states")[0][0])
+
+    def save_priorities(self, pairs: list[tuple[int, float]]) -> None:
+        """Write the replay priorities the learner set ((transition id, raw priority)), in one transaction.
+
+        Ids pruned meanwhile are simply not there any more.
+        """
+        rows = [(float(p), int(tid)) for tid, p in pairs]
+        for p, tid in rows:
+            if not (np.isfinite(p) and p > 0):
+                raise ValueError(f"save_priorities: transition {tid}: got priority {p!r}, expected > 0")
+        if rows:
+            self._write(lambda db: db.executemany("UPDATE transitions SET priority=? WHERE id=?", rows))
 
     def iter_transitions(self, limit: int | None = None) -> Iterator[StoredTransition]:
         """The last ``limit`` transitions (all if None), oldest first.

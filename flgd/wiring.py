@@ -4,7 +4,7 @@ The daemon (``flgd run``) and ``flgd train`` both build their learning state
 here, so that resuming from a state directory means the same thing for both:
 the newest readable checkpoint wins over a given policy, which wins over a
 fresh network; the replay is rebuilt from the store's newest transitions with
-their stored priorities.
+their stored priorities, and the priorities the learner sets are written back.
 """
 
 from __future__ import annotations
@@ -72,7 +72,8 @@ def rebuild_replay(config: CellConfig, store: Store | None, seed: int | None = N
     if store is not None:
         try:
             for st in store.iter_transitions(limit=lc.replay_capacity):
-                replay.add(Transition(st.state, st.action, st.reward, st.next_state, st.done), st.priority)
+                replay.add(Transition(st.state, st.action, st.reward, st.next_state, st.done), st.priority,
+                           tag=st.id)
         except StoreError as exc:
             problem = str(exc)
     log.info("replay rebuilt with %d transitions", len(replay))
@@ -81,12 +82,16 @@ def rebuild_replay(config: CellConfig, store: Store | None, seed: int | None = N
 
 def build_agent_and_learner(config: CellConfig, network: Any, replay: Any, *,
                             checkpoint_callback: Callable[[Any, int], None] | None, updates: int = 0,
-                            agent_seed: int | None = None) -> tuple[Any, Any]:
-    """The acting agent and its learner (which trains a copy of ``network`` and posts to the agent)."""
+                            agent_seed: int | None = None, store: Store | None = None) -> tuple[Any, Any]:
+    """The acting agent and its learner (which trains a copy of ``network`` and posts to the agent).
+
+    With ``store`` the learner writes the replay priorities it sets back to it.
+    """
     from flgd.learning.agent import Agent
     from flgd.learning.learner import Learner
 
     agent = Agent(config, network, seed=config.learning.seed if agent_seed is None else agent_seed)
-    learner = Learner(config, network, replay, mailbox=agent.mailbox, checkpoint_callback=checkpoint_callback)
+    learner = Learner(config, network, replay, mailbox=agent.mailbox, checkpoint_callback=checkpoint_callback,
+                      priority_sink=None if store is None else store.save_priorities)
     learner.updates = int(updates)
     return agent, learner

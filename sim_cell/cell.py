@@ -76,7 +76,7 @@ from pathlib import Path
 import numpy as np
 import pybullet as p
 
-from flgd.cell import Cell, CellFault, ExecutionResult, Frame
+from flgd.cell import Cell, CellFault, ContactStop, ExecutionResult, Frame
 from flgd.config import CellConfig
 from flgd.geometry import ToolPose
 from flgd.plans import GripperCommand, MeasureWidth, MoveL
@@ -156,7 +156,7 @@ class SimCell(Cell):
         self._noise_rng = np.random.default_rng(seeds[1])
         self._object_count = config.sim.objects
         self._object_kinds = objects.resolve_object_set(config.sim.object_set)
-        self._natural_sizes: dict[str, float] = {}
+        self._natural_extents: dict[str, tuple[float, float, float]] = {}
         self._objects: dict[int, objects.SpawnedObject] = {}
         self._held: set[int] = set()
         self._carry_tried: set[int] = set()   # gripped objects whose grip survived a simulated trial carry
@@ -226,6 +226,7 @@ class SimCell(Cell):
                 return ExecutionResult(completed=False, failure=f"unreachable: {exc}; the arm did not move",
                                        duration=0.0)
             widths: list[float] = []
+            stops: list[ContactStop] = []
             # A shift presses the closed fingers ``robot.shift_press`` into the object's top on purpose:
             # that much extra squeeze is the intended press, not a collision.
             self._press_allowance = self.config.robot.shift_press if planned.primitive == "shift" else 0.0
@@ -234,6 +235,8 @@ class SimCell(Cell):
                 for i, step in enumerate(steps):
                     if isinstance(step, MoveL):
                         if self._run_line(lines[i], step.stop_on_contact):
+                            short = float(np.linalg.norm(self._tcp()[:3, 3] - np.asarray(step.pose.position)))
+                            stops.append(ContactStop(step.label, short))
                             # a guarded move met resistance: the rest of the plan starts where it stopped
                             lines.update(self._plan_lines(steps, first=i + 1))
                     elif isinstance(step, GripperCommand):
@@ -246,13 +249,13 @@ class SimCell(Cell):
                 self._go_home()
                 return ExecutionResult(completed=False, widths=widths,
                                        failure=f"collision stop: {exc}; the arm retreated home",
-                                       duration=self._sim_time - t0)
+                                       duration=self._sim_time - t0, contact_stops=stops)
             except motion.Unreachable as exc:  # re-planning from where a guarded move stopped
                 self._press_allowance = self._press_yield = 0.0
                 self._go_home()
                 return ExecutionResult(completed=False, widths=widths,
                                        failure=f"unreachable after a contact stop: {exc}; the arm retreated home",
-                                       duration=self._sim_time - t0)
+                                       duration=self._sim_time - t0, contact_stops=stops)
             except _Unstable as exc:
                 self._press_allowance = self._press_yield = 0.0
                 self.stats["unstable_resets"] += 1
@@ -260,7 +263,7 @@ class SimCell(Cell):
                 where = f"{planned.primitive} step {i} ({steps[i].label or type(steps[i]).__name__})"
                 return ExecutionResult(completed=False, widths=widths,
                                        failure=f"unstable simulation ({exc}) during {where}; scene reset",
-                                       duration=self._sim_time - t0)
+                                       duration=self._sim_time - t0, contact_stops=stops)
             self._press_allowance = self._press_yield = 0.0
             try:
                 # the world goes on between actions: a block dropped or nudged comes to rest before the
@@ -273,7 +276,8 @@ class SimCell(Cell):
                                        failure=f"unstable simulation ({exc}) after {planned.primitive}; scene reset",
                                        duration=self._sim_time - t0)
             self._remove_outside()
-            return ExecutionResult(completed=True, widths=widths, duration=self._sim_time - t0)
+            return ExecutionResult(completed=True, widths=widths, duration=self._sim_time - t0,
+                                   contact_stops=stops)
 
     def gripper_width(self) -> float:
         """Distance between the finger pads, from the finger joint positions (m)."""
@@ -788,9 +792,10 @@ class SimCell(Cell):
             volume = float(np.prod(geom.extents)) * 0.7
             return objects.ObjectSpec(shape=shape, size=dims, color=colour, mass=max(volume * density, 0.02),
                                       friction=friction)
-        if kind not in self._natural_sizes:
-            self._natural_sizes[kind] = objects.natural_size(kind, self._client)
-        scale = float(rng.uniform(0.05, 0.09)) / self._natural_sizes[kind]
+        if kind not in self._natural_extents:
+            self._natural_extents[kind] = objects.natural_extents(kind, self._client)
+        scale = objects.graspable_scale(self._natural_extents[kind], float(rng.uniform(0.05, 0.09)),
+                                        self.config.gripper.open_width)
         mass = float(rng.uniform(0.03, 0.15)) if dr else None
         return objects.ObjectSpec(urdf=kind, scale=scale, color=colour, mass=mass, friction=friction)
 

@@ -22,10 +22,11 @@ import pybullet_data
 from sim_cell import shapes
 
 __all__ = ["ObjectSpec", "SpawnedObject", "spawn", "read_obj", "resolve_object_set", "PYBULLET_DATA",
-           "NAMED_NOVEL_OBJECTS", "body_aabb", "natural_size",
+           "NAMED_NOVEL_OBJECTS", "body_aabb", "natural_size", "natural_extents", "graspable_scale",
            "quaternion_from_matrix"]
 
 PYBULLET_DATA = Path(pybullet_data.getDataPath())
+GRASPABLE_FRACTION = 0.9  # a novel object's middle extent is at most this share of the gripper opening
 # Short names for pybullet_data models usable in sim.object_set.
 NAMED_NOVEL_OBJECTS = {
     "duck": "duck_vhacd.urdf",
@@ -313,12 +314,33 @@ def resolve_object_set(object_set: str) -> list[str]:
     return out
 
 
-def natural_size(urdf: str, client: int) -> float:
-    """Largest extent of a URDF model at scale 1 (used to scale novel objects to 2.5-10 cm)."""
+def natural_extents(urdf: str, client: int) -> tuple[float, float, float]:
+    """Extents of a URDF model at scale 1, as loaded (axis-aligned box), smallest first."""
     body = p.loadURDF(str(_urdf_path(urdf)), [0, 0, 5], physicsClientId=client)
     lo, hi = body_aabb(body, client)
     p.removeBody(body, physicsClientId=client)
-    return float(np.max(hi - lo))
+    a, b, c = sorted(float(v) for v in (hi - lo))
+    return a, b, c
+
+
+def natural_size(urdf: str, client: int) -> float:
+    """Largest extent of a URDF model at scale 1."""
+    return natural_extents(urdf, client)[2]
+
+
+def graspable_scale(extents: tuple[float, float, float], largest: float, open_width: float) -> float:
+    """The scale that gives the model the ``largest`` extent (m), reduced if the gripper could not span it.
+
+    Why: an object lying on its largest face shows its middle extent as the
+    narrower horizontal side, which the fingers must close across; with that
+    side wider than the opening less a few mm on either side no grasp can
+    succeed, and the evaluation would count the object's size, not the policy.
+    (pybullet's cube_small scaled to a 9 cm largest extent is a 9 cm cube:
+    wider than the RG2's 8.5 cm opening.)  Only those are shrunk, to 90 % of the
+    opening; anything a well-placed grasp can span keeps its drawn size.
+    """
+    scale = largest / extents[2]
+    return min(scale, GRASPABLE_FRACTION * open_width / extents[1])
 
 
 def quaternion_from_matrix(r: np.ndarray) -> tuple[float, float, float, float]:

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from flgd.actions import Action
-from flgd.cell import STOPPED_ON_REQUEST, Cell, CellFault, ExecutionResult, make_cell
+from flgd.cell import STOPPED_ON_REQUEST, Cell, CellFault, ContactStop, ExecutionResult, make_cell
 from flgd.clutter import judge_move
 from flgd.config import load_config
 from flgd.geometry import ToolPose
@@ -39,7 +39,9 @@ class FaultInjectingCell(Cell):
         self.captures = 0
         self.executions = 0
         self.resets = 0
-        self.fail_next: str | None = None  # "unstable", "fault", "stop-mid-motion" or "stop-after-motion"
+        # "unstable", "fault", "stop-mid-motion", "stop-after-motion" or "contact-stop" (the descent
+        # of the real execution is reported as stopped 12.34 mm short)
+        self.fail_next: str | None = None
         self.stop_during: CycleRunner | None = None  # whose request_stop a "stop-*" mode calls
         self.stop_motion_calls = 0
 
@@ -58,6 +60,8 @@ class FaultInjectingCell(Cell):
         result = self.inner.execute(plan)
         if mode == "stop-after-motion":  # SIGTERM arrives just as the plan completed
             self.stop_during.request_stop()
+        if mode == "contact-stop":
+            return dataclasses.replace(result, contact_stops=[ContactStop("descend", 0.01234)])
         if mode == "unstable":
             return ExecutionResult(completed=False, widths=result.widths,
                                    failure="unstable simulation (injected)", duration=result.duration)
@@ -196,6 +200,19 @@ def test_unstable_execution_is_discarded_and_the_scene_reset(tmp_path):
     assert store.action_log()[1]["outcome"] == "discarded"
 
 
+def test_a_contact_stop_of_the_descent_goes_into_the_action_log(tmp_path):
+    cfg, cell, store, replay, runner = _setup(tmp_path)
+    try:
+        first = runner.run_once()
+        cell.fail_next = "contact-stop"
+        second = runner.run_once()
+    finally:
+        cell.close()
+    assert first.contact_stop_mm is None or first.contact_stop_mm > 0
+    assert second.outcome == "executed" and second.contact_stop_mm == 12.3
+    assert store.action_log()[-1]["contact_stop_mm"] == 12.3
+
+
 def test_cell_fault_is_logged_and_propagated_without_a_transition(tmp_path):
     cfg, cell, store, replay, runner = _setup(tmp_path)
     try:
@@ -275,3 +292,35 @@ def test_a_fault_while_homing_is_raised_before_anything_is_captured(tmp_path):
         assert store.transition_count() == 0
     finally:
         cell.close()
+
+
+def test_learned_priorities_are_written_to_the_store_and_come_back_after_a_restart(tmp_path):
+    from flgd.wiring import build_agent_and_learner, rebuild_replay
+
+    cfg, cell, store, replay, runner = _setup(tmp_path)
+    agent, learner = build_agent_and_learner(cfg, runner.agent.agent.network, replay, checkpoint_callback=None,
+                                             store=store)
+    runner.learner = learner
+    try:
+        for _ in range(4):
+            runner.run_once()
+            learner.update_pending()
+    finally:
+        cell.close()
+    ids = [r[0] for r in store.query("SELECT id FROM transitions ORDER BY id")]
+    assert len(ids) == len(replay) >= 3
+    stored = dict(store.query("SELECT id, priority FROM transitions"))
+    live = {replay.tag(i): replay.priority(i) for i in range(len(replay))}
+    assert set(live) == set(ids)
+    sampled = {tid for tid, p in stored.items() if p is not None}
+    assert sampled, "the learner's updates set priorities"
+    for tid in sampled:
+        assert stored[tid] == pytest.approx(live[tid], rel=1e-12)
+    # a restart (power cut) rebuilds the replay with exactly these priorities
+    rebuilt, problem = rebuild_replay(cfg, store)
+    assert problem == "" and len(rebuilt) == len(replay)
+    for i in range(len(rebuilt)):
+        assert rebuilt.tag(i) == replay.tag(i)
+        if replay.tag(i) in sampled:
+            assert rebuilt.priority(i) == pytest.approx(replay.priority(i), rel=1e-12)
+    store.close()

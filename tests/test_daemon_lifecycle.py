@@ -81,6 +81,8 @@ def test_start_pause_reset_start_stop_and_stats_match_the_log(daemon_factory, tm
     assert human.returncode == 0 and f"cycles               {db['cycles']}" in human.stdout
     status = d.ok("status")
     assert status["stored_transitions"] == db["transitions"] == status["replay_size"]
+    assert isinstance(status["learner_backlog"], int) and status["learner_backlog"] >= 0
+    assert "waiting), replay" in d.ctl("status").stdout
 
     p = d.ctl("stop")
     assert p.returncode == 0

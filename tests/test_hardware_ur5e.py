@@ -683,6 +683,10 @@ def test_guarded_descent_stops_at_contact_and_the_grasp_goes_on_from_there(ctl, 
     (at_stop,) = ctl.stop_positions
     assert surface - 0.003 < at_stop[2] <= surface
     np.testing.assert_allclose(at_stop[:2], descend.pose.position[:2], atol=1e-9)
+    # reported: which move stopped, and how far short of its pose (the arm's own TCP reading)
+    (stop,) = result.contact_stops
+    assert stop.label == "descend"
+    assert stop.short_by == pytest.approx(at_stop[2] - descend.pose.position[2], abs=1e-6)
     # the fingers closed there and the plan went on: lift to its absolute pose, home
     grips = [c for c in rg2.calls if c[0] == "rg_grip"]
     assert [g[2] for g in grips] == [pytest.approx(85.0), pytest.approx(0.0)]
@@ -712,7 +716,7 @@ def test_free_descent_reaches_the_planned_depth(ctl, rg2):
     ctl.at(2, 1.0, lambda: reached.append(ctl.tcp[2]))
     result = cell.execute(checked)
     assert result.completed, result.failure
-    assert ctl.calls("stopL") == []
+    assert ctl.calls("stopL") == [] and result.contact_stops == []
     assert reached == [pytest.approx(_descend_step(checked).pose.position[2])]
 
 

@@ -16,7 +16,7 @@ from flgd.config import CellConfig
 from flgd.learning.agent import Agent, masked_maps
 from flgd.learning.learner import Learner
 from flgd.learning.networks import build_network, q_maps
-from flgd.learning.replay import PrioritizedReplay, Transition
+from flgd.learning.replay import PrioritizedReplay, Transition, state_key
 from flgd.perception import Heightmaps
 
 N = 32
@@ -90,6 +90,85 @@ def test_double_dqn_target_uses_online_argmax_under_masks_and_target_value():
     assert ys[1] == 1.0
     # The target's own argmax is generally elsewhere: the value is not max(target).
     assert target[rot, ch, row, col] != pytest.approx(target.max())
+
+
+def test_grasp_only_targets_ignore_the_move_channel():
+    cfg = config(gamma=0.5)
+    cfg = dataclasses.replace(cfg, exploration=dataclasses.replace(cfg.exploration, grasp_only=True))
+    lrn = learner(cfg)
+    s2 = scene(4)
+    with torch.no_grad():
+        lrn.online.eval()
+        online = q_maps(lrn.online, s2).numpy()
+        target = q_maps(lrn.target, s2).numpy()
+    gmask, mmask = Agent(cfg, lrn.online).masks(s2.height)
+    masked = masked_maps(online, gmask, mmask)
+    masked[:, 1] = -np.inf
+    rot, ch, row, col = np.unravel_index(np.argmax(masked), masked.shape)
+    assert ch == 0
+    y = lrn.targets([Transition(scene(3), Action("grasp", 5, 5, 0), 0.0, s2, False)])[0]
+    assert y == pytest.approx(0.5 * target[rot, 0, row, col], abs=1e-5)
+
+
+def _replayed(replay: PrioritizedReplay, transition: Transition) -> Transition:
+    return replay.get(replay.add(transition))
+
+
+def test_replayed_transitions_carry_the_content_key_of_their_next_state():
+    replay = PrioritizedReplay(8, seed=0)
+    s2 = scene(4)
+    got = _replayed(replay, Transition(scene(3), Action("grasp", 5, 5, 0), 0.0, s2, False))
+    assert got.next_key == state_key(s2)
+    assert got.next_key != state_key(scene(3))
+    assert _replayed(replay, Transition(scene(3), Action("push", 5, 5, 0), 0.0, None, True)).next_key is None
+
+
+def test_cached_next_argmax_from_the_agent_gives_the_exact_target_without_a_forward_pass():
+    cfg = config(gamma=0.5, next_argmax_max_age=10, target_update_every=1000)
+    replay = PrioritizedReplay(8, seed=0)
+    lrn = learner(cfg, replay)
+    lrn.target.load_state_dict(build_network("fast", 16, seed=5).state_dict())
+    s2 = scene(4)
+    t = _replayed(replay, Transition(scene(3), Action("grasp", 5, 5, 0), 0.25, s2, False))
+    exact = learner(config(gamma=0.5), PrioritizedReplay(8, seed=0))
+    exact.target.load_state_dict(lrn.target.state_dict())
+    expected = exact.targets([t])[0]
+
+    agent = Agent(cfg, lrn.online)
+    decision = agent.decide(s2, step=10_000)
+    lrn.note_decision(s2, decision, weights_version=0)
+    assert lrn.targets([t])[0] == pytest.approx(expected, abs=1e-6)
+    assert (lrn.argmax_reused, lrn.argmax_computed) == (1, 0)
+
+
+def test_a_cached_argmax_older_than_the_limit_is_recomputed_with_the_current_network():
+    cfg = config(gamma=0.5, next_argmax_max_age=3, target_update_every=1000)
+    replay = PrioritizedReplay(8, seed=0)
+    lrn = learner(cfg, replay)
+    s2 = scene(4)
+    t = _replayed(replay, Transition(scene(3), Action("grasp", 5, 5, 0), 0.25, s2, False))
+    gmask, _ = Agent(cfg, lrn.online).masks(s2.height)
+    rows, cols = np.nonzero(gmask == 0)  # a (deliberately wrong) cached a' off the objects
+    stale = (0, 0, int(rows[0]), int(cols[0]))
+    lrn._next_argmax[t.next_key] = (0, stale)
+    with torch.no_grad():
+        q_stale = q_maps(lrn.target, s2, rotation_indices=[0])[0, 0, stale[2], stale[3]].item()
+    assert lrn.targets([t])[0] == pytest.approx(0.25 + 0.5 * q_stale, abs=1e-6)  # fresh enough: used as is
+    lrn.updates = 4  # now 4 updates old > 3
+    exact = learner(config(gamma=0.5), PrioritizedReplay(8, seed=0))
+    exact.online.load_state_dict(lrn.online.state_dict())
+    exact.target.load_state_dict(lrn.target.state_dict())
+    assert lrn.targets([t])[0] == pytest.approx(exact.targets([t])[0], abs=1e-6)
+    assert lrn.argmax_computed == 1 and lrn._next_argmax[t.next_key][0] == 4
+
+
+def test_decisions_of_old_weights_are_not_cached_and_nothing_is_cached_with_age_zero():
+    s2 = scene(4)
+    for max_age, version, updates in ((0, 0, 0), (3, 0, 5), (3, -1, 0)):
+        lrn = learner(config(next_argmax_max_age=max_age))
+        lrn.updates = updates
+        lrn.note_decision(s2, Agent(lrn.config, lrn.online).decide(s2, step=10_000), weights_version=version)
+        assert lrn._next_argmax == {}
 
 
 def test_importance_weights_scale_the_loss_and_priorities_become_td_plus_epsilon():

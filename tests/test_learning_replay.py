@@ -176,3 +176,26 @@ def test_concurrent_adds_and_samples_keep_the_tree_consistent():
     assert len(replay) == 50
     tree_total = replay._tree.total
     assert tree_total == pytest.approx(leaves.sum())
+
+
+def test_tagged_slots_report_their_new_priorities_for_the_store():
+    replay = PrioritizedReplay(3, epsilon=0.01, seed=0)
+    replay.add(transition(0), tag=40)
+    replay.add(transition(1))  # untagged (no store): never reported
+    replay.add(transition(2), tag=42)
+    assert (replay.tag(0), replay.tag(1), replay.tag(2)) == (40, None, 42)
+    assert replay.update_priorities([0, 1, 2], [0.5, -2.0, 0.25]) == [(40, 0.51), (42, 0.26)]
+    replay.add(transition(3), tag=43)  # overwrites slot 0: its tag goes with it
+    assert replay.tag(0) == 43 and replay.update_priorities([0], [1.0]) == [(43, 1.01)]
+    with pytest.raises(ValueError, match="tag"):
+        replay.add(transition(4), tag=-3)
+
+
+def test_a_bad_td_error_changes_no_priority_of_the_batch():
+    replay = PrioritizedReplay(4, seed=0)
+    for i in range(3):
+        replay.add(transition(i), tag=i)
+    before = [replay.priority(i) for i in range(3)]
+    with pytest.raises(ValueError, match="slot 2"):
+        replay.update_priorities([0, 1, 2], [0.3, 0.2, float("nan")])
+    assert [replay.priority(i) for i in range(3)] == before

@@ -213,6 +213,8 @@ def test_guarded_descent_closes_above_a_neighbour_instead_of_a_protective_stop(e
         assert result.completed, result.failure
         assert grasp_reward(result.widths[0], cfg.gripper) == 1.0
         assert abs(result.widths[0] - 0.03) < 0.006, "the pads hold the target's upper part"
+        (stop,) = result.contact_stops  # reported: the descent ended on the neighbour, ~1 cm short
+        assert stop.label == "descend" and 0.004 < stop.short_by < 0.016, stop
     else:
         assert not result.completed
         assert result.failure.startswith("collision stop"), result.failure

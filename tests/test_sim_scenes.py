@@ -112,3 +112,28 @@ def test_novel_objects_from_pybullet_data(tmp_path):
     bad = dataclasses.replace(CFG, sim=dataclasses.replace(CFG.sim, object_set="no_such_thing_*.urdf"))
     with pytest.raises(ValueError, match="sim.object_set"):
         SimCell(bad)
+
+
+def test_novel_objects_are_never_wider_than_the_gripper_can_span():
+    from sim_cell.objects import GRASPABLE_FRACTION, graspable_scale
+
+    open_width = CFG.gripper.open_width
+    # a 5 cm cube model asked to be 9 cm: shrunk so its side is 90 % of the opening
+    assert graspable_scale((0.05, 0.05, 0.05), 0.09, open_width) * 0.05 == pytest.approx(
+        GRASPABLE_FRACTION * open_width)
+    # a long thin model keeps the drawn size: its middle extent fits anyway
+    assert graspable_scale((0.01, 0.02, 0.20), 0.09, open_width) == pytest.approx(0.09 / 0.20)
+    cfg = dataclasses.replace(CFG, sim=dataclasses.replace(CFG.sim, objects=6, object_set="cube_small", seed=4))
+    cell = SimCell(cfg)
+    try:
+        sides = []
+        for _ in range(2):
+            cell.reset_scene()
+            for s in cell.object_states():
+                d = np.linalg.norm(s.points[:, None] - s.points[None], axis=-1)
+                sides.append(d[d > 1e-6].min())  # a cube's edge: the shortest distance between its corners
+        assert len(sides) >= 10
+        assert max(sides) <= GRASPABLE_FRACTION * open_width + 1e-3
+        assert min(sides) < 0.07  # smaller ones keep their drawn size (5-9 cm asked for)
+    finally:
+        cell.close()

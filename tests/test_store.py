@@ -215,3 +215,42 @@ def test_full_disk_is_a_clear_store_error(tmp_path):
         assert store.integrity_check() == "ok"
         assert store.transition_count() == done  # the failed cycle left nothing behind
         store.close()
+
+
+def test_a_version_1_store_is_upgraded_in_place_without_losing_anything(tmp_path):
+    store = Store(tmp_path)
+    store.commit_cycle(_row(0), Transition(_hm(0), Action("grasp", 0, 0, 0), 1.0, _hm(1), False))
+    store.close()
+    db = sqlite3.connect(tmp_path / "flgd.sqlite")  # make it exactly what version 1 wrote
+    db.execute("ALTER TABLE actions DROP COLUMN contact_stop_mm")
+    db.execute("UPDATE meta SET value='1' WHERE key='schema_version'")
+    db.commit()
+    db.close()
+
+    store = Store(tmp_path)
+    try:
+        assert store.query("SELECT value FROM meta WHERE key='schema_version'") == [("2",)]
+        assert store.transition_count() == 1 and store.next_step() == 1
+        assert store.query("SELECT step, success, contact_stop_mm FROM actions") == [(0, 1, None)]
+        store.commit_cycle(_row(1, contact_stop_mm=7.5),
+                           Transition(_hm(1), Action("grasp", 0, 0, 0), 0.0, _hm(2), False))
+        assert store.query("SELECT contact_stop_mm FROM actions WHERE step=1") == [(7.5,)]
+        assert store.integrity_check() == "ok"
+    finally:
+        store.close()
+
+
+def test_stats_count_the_grasps_whose_descent_stopped_at_a_contact(tmp_path):
+    from flgd.daemon.metrics import compute_stats, format_stats
+
+    store = Store(tmp_path)
+    try:
+        for step, mm in enumerate([None, 4.0, None, 12.0, 9.0]):
+            store.commit_cycle(_row(step, contact_stop_mm=mm))
+        store.commit_cycle(_row(5, primitive="push", kind="push", success=None, contact_stop_mm=3.0))
+        stats = compute_stats(store)
+    finally:
+        store.close()
+    assert stats["grasp_attempts"] == 5
+    assert (stats["contact_stops"], stats["contact_stop_share"], stats["contact_stop_mm_median"]) == (3, 0.6, 9.0)
+    assert "contact stops        3 of the grasps (60.0%), median 9.0 mm" in format_stats(stats)

@@ -65,6 +65,8 @@ def test_a_short_run_writes_log_checkpoint_and_curve_then_resumes(tmp_path):
     assert info["segments"][1]["from_updates"] == 3
     assert "checkpoint-0000000003" in info["segments"][1]["source"]
     assert info["segments"][1]["code"] not in ("", None)
+    assert info["segments"][1]["learning"]["updates_per_action"] == 1
+    assert info["segments"][0]["exploration"]["epsilon_start"] == 0.5
     store = Store(out)
     try:
         assert store.transition_count() == 5  # the replay of the first segment was kept and extended
@@ -87,6 +89,27 @@ def test_a_short_run_writes_log_checkpoint_and_curve_then_resumes(tmp_path):
     assert saved == json.loads(json.dumps(info)) and saved["run_settings"]["seed"] == 5
     assert saved["resume_command"] == f"flgd train --out {out}"
     assert (tmp_path / "policies" / "p-curve.png").read_bytes()[:8] == PNG_MAGIC
+
+
+def test_cached_next_argmax_and_several_updates_per_action_in_a_real_run(tmp_path):
+    """The agent's decisions feed the learner's a' cache through the cycle; the run reports its use."""
+    import yaml
+
+    cfg = yaml.safe_load(Path(CONFIG).read_text())
+    cfg["learning"].update({"next_argmax_max_age": 100, "updates_per_action": 2, "batch_size": 2})
+    cfg["policy"] = ""  # train from scratch
+    cfg["state_dir"] = str(tmp_path / "state")
+    config = tmp_path / "sim-cached.yaml"
+    config.write_text(yaml.safe_dump(cfg))
+    out = tmp_path / "run"
+    assert train_main(["--config", str(config), "--out", str(out), "--threads", "1", "--steps", "4",
+                       "--seed", "3"]) == 0
+    rows = read_rows(out / "actions.csv")
+    assert [int(r["updates"]) for r in rows] == [2, 4, 6, 8]
+    info = json.loads((out / "run.json").read_text())
+    used = info["next_argmax"]
+    assert used["reused"] > 0  # s' of the newest transition was decided on before it was sampled
+    assert used["reused"] + used["computed"] <= 8 * 2  # at most one a' per sampled non-terminal transition
 
 
 def test_same_seed_same_actions(tmp_path):

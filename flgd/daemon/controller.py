@@ -159,7 +159,7 @@ class Controller:
             self.store_problem = problem
         self.agent, self.learner = build_agent_and_learner(
             self.config, network, self.replay, checkpoint_callback=self._write_checkpoint,
-            updates=self.resumed_from_updates)
+            updates=self.resumed_from_updates, store=self.store)
 
     # ================================================================== checkpoints
     def _write_checkpoint(self, network: Any, updates: int) -> None:
@@ -364,6 +364,7 @@ class Controller:
             "stored_transitions": stored,
             "learner_updates": lr.updates if lr is not None else 0,
             "learner_running": bool(lr is not None and lr.running),
+            "learner_backlog": lr.pending if lr is not None else 0,  # scheduled updates not run yet
             "learner_error": getattr(lr, "last_error", None) if lr is not None else None,
             "resumed_from_updates": self.resumed_from_updates,
             "last_checkpoint": self.last_checkpoint,

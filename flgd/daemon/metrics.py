@@ -8,6 +8,9 @@ Definitions (VPG's where they exist):
     of all cycles, so pauses and idle time do not count).
   * action efficiency: grasp successes / executed actions (objects per action).
   * moves by kind: executed pushes and shifts.
+  * contact stops: executed grasps whose guarded descent stopped at a contact,
+    and the median of how far short of the planned depth (mm) -- what
+    ``robot.descent_contact_force`` tunes.
   * plans refused: decisions the safety envelope refused (never sent to the cell).
   * faults: fault events recorded by the daemon.
   * timing: medians over the last ``TIMING_WINDOW`` cycles of each phase, the
@@ -44,6 +47,8 @@ def compute_stats(store: Store) -> dict[str, Any]:
         window[f"grasp_success_last_{n}"] = _rate(rows)
     moves = dict(q("SELECT kind, COUNT(*) FROM actions WHERE outcome='executed' AND primitive!='grasp' "
                    "GROUP BY kind"))
+    stopped_short = [r[0] for r in q("SELECT contact_stop_mm FROM actions WHERE outcome='executed' "
+                                     "AND primitive='grasp' AND contact_stop_mm IS NOT NULL")]
     cycle_time = q("SELECT COALESCE(SUM(duration), 0) FROM actions")[0][0]
     faults = q("SELECT COUNT(*) FROM events WHERE kind='fault'")[0][0]
     cols = ", ".join(f"t_{p}" for p in TIMING_PHASES)
@@ -67,6 +72,9 @@ def compute_stats(store: Store) -> dict[str, Any]:
         "action_efficiency": (successes / executed) if executed else None,
         "moves": {"push": moves.get("push", 0), "shift": moves.get("shift", 0)},
         "plans_refused": by_outcome.get("refused", 0),
+        "contact_stops": len(stopped_short),
+        "contact_stop_share": (len(stopped_short) / attempts) if attempts else None,
+        "contact_stop_mm_median": statistics.median(stopped_short) if stopped_short else None,
         "faults": faults,
         "cycle_time_total": cycle_time,
         "timing_median": timing,
@@ -105,6 +113,8 @@ def format_stats(s: dict[str, Any]) -> str:
         f"picks per hour       {_num(s['picks_per_hour'])}",
         f"action efficiency    {_pct(s['action_efficiency'])}",
         f"moves                push {s['moves']['push']}, shift {s['moves']['shift']}",
+        f"contact stops        {s['contact_stops']} of the grasps ({_pct(s['contact_stop_share'])}), median "
+        f"{_num(s['contact_stop_mm_median'], '{:.1f}')} mm short of the planned depth",
         f"plans refused        {s['plans_refused']}",
         f"faults               {s['faults']}",
         f"cycle time (median of last {s['timing_window']}):",

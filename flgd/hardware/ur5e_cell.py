@@ -17,12 +17,12 @@ from __future__ import annotations
 import time
 from typing import Any, Callable
 
-from flgd.cell import STOPPED_ON_REQUEST, Cell, CellFault, ExecutionResult, Frame
+from flgd.cell import STOPPED_ON_REQUEST, Cell, CellFault, ContactStop, ExecutionResult, Frame
 from flgd.config import CellConfig
 from flgd.plans import GripperCommand, MeasureWidth, MoveL, plan_home
 from flgd.safety import CheckedPlan, check_plan
 from flgd.hardware.rg2 import GripperDriver, GripperFault, make_gripper_driver
-from flgd.hardware.ur_arm import MotionStopped, PoseUnreachable, RTDEFactory, URArm
+from flgd.hardware.ur_arm import MotionStopped, PoseUnreachable, RTDEFactory, URArm, pose_error
 
 __all__ = ["UR5eCell"]
 
@@ -79,6 +79,7 @@ class UR5eCell(Cell):
             self.arm.begin()
             sf, gr = self.config.safety, self.config.gripper
             widths: list[float] = []
+            stops: list[ContactStop] = []
             for i, step in enumerate(steps):
                 where = f"step {i} ({step.label or type(step).__name__})"
                 try:
@@ -86,9 +87,11 @@ class UR5eCell(Cell):
                         raise MotionStopped("stop requested")
                     if isinstance(step, MoveL):
                         # a guarded move may end short of its pose; the next (absolute) pose goes on from there
-                        self.arm.move_linear(step.pose.as_ur_pose(), min(step.speed, sf.max_speed),
-                                             min(step.acceleration, sf.max_acceleration), step.label,
-                                             stop_force=step.stop_on_contact)
+                        target = step.pose.as_ur_pose()
+                        if self.arm.move_linear(target, min(step.speed, sf.max_speed),
+                                                min(step.acceleration, sf.max_acceleration), step.label,
+                                                stop_force=step.stop_on_contact):
+                            stops.append(ContactStop(step.label, pose_error(self.arm.tcp_pose(), target)[0]))
                     elif isinstance(step, GripperCommand):
                         self.arm.check()
                         self.gripper.move(step.width, min(step.force, gr.force))
@@ -97,13 +100,14 @@ class UR5eCell(Cell):
                     else:  # verify() refuses unknown steps; this guards a future step type
                         raise CellFault(f"{where}: the ur5e cell cannot run {type(step).__name__}")
                 except PoseUnreachable as exc:
-                    return ExecutionResult(False, widths, f"{where}: {exc}", self._clock() - start)
+                    return ExecutionResult(False, widths, f"{where}: {exc}", self._clock() - start, stops)
                 except MotionStopped:
-                    return ExecutionResult(False, widths, f"{where}: {STOPPED_ON_REQUEST}", self._clock() - start)
+                    return ExecutionResult(False, widths, f"{where}: {STOPPED_ON_REQUEST}", self._clock() - start,
+                                           stops)
                 except GripperFault as exc:
                     self.arm.latch(f"gripper: {exc}")
                     raise CellFault(f"{where}: {exc}") from exc
-            return ExecutionResult(True, widths, "", self._clock() - start)
+            return ExecutionResult(True, widths, "", self._clock() - start, stops)
 
     def stop_motion(self) -> None:
         """Halt arm and fingers now; safe from a signal handler or another thread (no cell lock taken)."""

@@ -43,7 +43,7 @@ from flgd.perception import Heightmaps
 
 from flgd.learning.networks import QMapNetwork, q_maps
 
-__all__ = ["Decision", "Agent", "WeightsMailbox", "RULES", "epsilon_at", "masked_maps"]
+__all__ = ["Decision", "Agent", "WeightsMailbox", "RULES", "epsilon_at", "masked_maps", "greedy_index"]
 
 RULES: tuple[str, ...] = ("greedy", "epsilon", "anti-repeat", "two-failures", "curriculum")
 
@@ -99,6 +99,22 @@ def masked_maps(q: np.ndarray, grasp: np.ndarray, move: np.ndarray) -> np.ndarra
     out[:, 0][:, grasp == 0] = -np.inf
     out[:, 1][:, move == 0] = -np.inf
     return out
+
+
+def greedy_index(q: np.ndarray, grasp: np.ndarray, move: np.ndarray,
+                 grasp_only: bool = False) -> tuple[int, int, int, int] | None:
+    """(rotation, channel, row, col) of the best action under the masks, or None when nothing is allowed.
+
+    The value the policy would act on greedily (rule 3), and so the a' of a
+    double-DQN target; ``grasp_only`` leaves moves out, as the agent does.
+    """
+    masked = masked_maps(q, grasp, move)
+    if grasp_only:
+        masked[:, 1] = -np.inf
+    flat = int(np.argmax(masked))
+    if not np.isfinite(masked.reshape(-1)[flat]):
+        return None
+    return tuple(int(v) for v in np.unravel_index(flat, masked.shape))  # type: ignore[return-value]
 
 
 class Agent:

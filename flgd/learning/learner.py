@@ -5,16 +5,29 @@ One update (``update``):
 * sample ``batch_size`` transitions with importance weights w from the replay;
 * target y = r + gamma * Q_target(s', a') * (1 - done), where a' is the argmax
   of the *online* network over all rotations of s' under the masks of s' (the
-  same masks the agent acts with; none for the DPEN ablation) and only a'`s
-  rotation is forwarded through the target network (double DQN);
+  same masks the agent acts with; none for the DPEN ablation; no moves in
+  grasp-only mode) and only a'`s rotation is forwarded through the target
+  network (double DQN);
 * prediction: only the executed rotation i is forwarded through the online
   network, plus its twin (i + R/2) % R for a grasp, since the two-finger
   gripper closing along u or -u is the same grasp; both are trained towards y;
 * loss: Huber (delta = huber_delta) at the executed channel and pixel only,
   averaged over the transition's rotations, weighted by w, averaged over the
   batch; Adam with the configured learning rate and weight decay;
-* priorities of the batch become |y - Q(s, a)| + epsilon;
-* the target network copies the online one every ``target_update_every`` updates.
+* priorities of the batch become |y - Q(s, a)| + epsilon (and are written back
+  to the store through ``priority_sink``, so a restart keeps them);
+* the target network copies the online one every ``target_update_every`` updates;
+* with ``mirror_probability`` p > 0 each sampled transition is trained, with
+  chance p, as its mirror image (``flgd.learning.augment``; same target).
+
+Finding a' costs a forward pass over all 16 rotations of s', four times the
+rest of an update on a CPU.  With ``next_argmax_max_age`` > 0 the learner
+keeps a' per next state (by the replay's content key) and reuses it while it
+is at most that many updates old; the agent's own decisions feed the cache
+(``note_decision``: when it acted on s' it computed the same masked argmax
+with the then-current weights), so most targets need no extra pass.  The
+target network's value at a' is kept until the next target sync.  0 keeps the
+exact double-DQN target (recomputed at every sampling).
 
 ``flgd train`` uses the synchronous mode instead of the thread
 (``update_pending`` after each cycle, same updates), so that a training run is
@@ -40,17 +53,21 @@ import torch
 import torch.nn.functional as F
 
 from flgd.clutter import grasp_mask, move_mask
+from flgd.actions import Action
 from flgd.config import CellConfig
+from flgd.perception import Heightmaps
 
-from flgd.learning.agent import WeightsMailbox, masked_maps
+from flgd.learning.augment import mirror_action, mirror_heightmaps
+from flgd.learning.agent import Decision, WeightsMailbox, greedy_index
 from flgd.learning.networks import QMapNetwork, q_maps, rotated_inputs, unrotate_maps
-from flgd.learning.replay import PrioritizedReplay, Transition
+from flgd.learning.replay import PrioritizedReplay, Transition, state_key
 
 __all__ = ["Learner", "UpdateStats", "LossTerms", "resolve_device"]
 
 log = logging.getLogger(__name__)
 
 CheckpointCallback = Callable[[QMapNetwork, int], None]
+PrioritySink = Callable[[list[tuple[int, float]]], None]  # (store transition id, raw priority) pairs
 
 
 @dataclass(frozen=True)
@@ -75,6 +92,7 @@ class LossTerms:
     maps: torch.Tensor  # [N,2,H,W] predicted maps (heightmap frame) of the forwarded rotations
     owners: list[int]  # transition index of each row of maps
     rotations: list[int]  # rotation index of each row of maps
+    actions: list[Action]  # the action trained per transition (mirrored when the transition was)
 
 
 def resolve_device(device: str | torch.device | None) -> torch.device:
@@ -89,7 +107,8 @@ def resolve_device(device: str | torch.device | None) -> torch.device:
 class Learner:
     def __init__(self, config: CellConfig, network: QMapNetwork, replay: PrioritizedReplay,
                  device: str | torch.device | None = None, mailbox: WeightsMailbox | None = None,
-                 checkpoint_callback: CheckpointCallback | None = None, thread_nice: int = 10) -> None:
+                 checkpoint_callback: CheckpointCallback | None = None, thread_nice: int = 10,
+                 priority_sink: PrioritySink | None = None) -> None:
         lc = config.learning
         if lc.threads > 0:
             torch.set_num_threads(lc.threads)
@@ -103,14 +122,22 @@ class Learner:
             p.requires_grad_(False)
         self.optimizer = torch.optim.Adam(self.online.parameters(), lr=lc.learning_rate,
                                           weight_decay=lc.weight_decay)
+        self._mirror_rng = np.random.default_rng([lc.seed, 0x6D69])  # its own stream: other draws unchanged
         self.mailbox = mailbox
         self.checkpoint_callback = checkpoint_callback
+        self.priority_sink = priority_sink
         self.thread_nice = thread_nice
         self.updates = 0
         self.failed_updates = 0
         self.last_error: str | None = None
         self.last_stats: UpdateStats | None = None
         self._update_lock = threading.Lock()
+        # next-state key -> (update count when a' was found, a' or None); and -> (a', Q_target(s', a'))
+        self._argmax_lock = threading.Lock()
+        self._next_argmax: dict[bytes, tuple[int, tuple[int, int, int, int] | None]] = {}
+        self._next_value: dict[bytes, tuple[tuple[int, int, int, int], float]] = {}
+        self.argmax_reused = 0
+        self.argmax_computed = 0
         self._cond = threading.Condition()
         self._pending = 0
         self._busy = False
@@ -130,6 +157,60 @@ class Learner:
         ones = np.ones(height.shape, dtype=np.uint8)
         return ones, ones
 
+    def note_decision(self, state: Heightmaps, decision: Decision, weights_version: int) -> None:
+        """Remember the greedy a' the agent found on ``state`` with weights ``weights_version`` (an update count).
+
+        Only used when ``next_argmax_max_age`` > 0; the decision's Q-maps and
+        masks are the ones the learner would compute for ``state`` as s'.
+        """
+        max_age = self.config.learning.next_argmax_max_age
+        if max_age <= 0 or weights_version < 0 or self.updates - weights_version > max_age:
+            return
+        index = greedy_index(decision.q_maps, decision.grasp_mask, decision.move_mask,
+                             self.config.exploration.grasp_only)
+        with self._argmax_lock:
+            self._next_argmax[state_key(state)] = (int(weights_version), index)
+
+    def _greedy_next(self, t: Transition) -> tuple[int, int, int, int] | None:
+        """a' for ``t.next_state``: from the cache while fresh enough, else from the online network."""
+        max_age = self.config.learning.next_argmax_max_age
+        key = t.next_key
+        if max_age > 0 and key is not None:
+            with self._argmax_lock:
+                hit = self._next_argmax.get(key)
+            if hit is not None and self.updates - hit[0] <= max_age:
+                self.argmax_reused += 1
+                return hit[1]
+        height = np.nan_to_num(np.asarray(t.next_state.height, dtype=np.float32), nan=0.0)
+        gmask, mmask = self._masks(height)
+        q_next = q_maps(self.online, t.next_state, self.rotations).cpu().numpy()
+        index = greedy_index(q_next, gmask, mmask, self.config.exploration.grasp_only)
+        self.argmax_computed += 1
+        if max_age > 0 and key is not None:
+            with self._argmax_lock:
+                self._next_argmax[key] = (self.updates, index)
+                if len(self._next_argmax) > 2 * self.config.learning.replay_capacity:
+                    self._forget_old_argmax(max_age)
+        return index
+
+    def _forget_old_argmax(self, max_age: int) -> None:
+        """Drop entries too old to be used (states that left the replay end up here)."""
+        self._next_argmax = {k: v for k, v in self._next_argmax.items() if self.updates - v[0] <= max_age}
+        self._next_value = {k: v for k, v in self._next_value.items() if k in self._next_argmax}
+
+    def _target_value(self, t: Transition, index: tuple[int, int, int, int]) -> float:
+        key = t.next_key
+        if key is not None:
+            cached = self._next_value.get(key)
+            if cached is not None and cached[0] == index:
+                return cached[1]
+        rot, ch, row, col = index
+        q_t = q_maps(self.target, t.next_state, self.rotations, rotation_indices=[rot])
+        value = float(q_t[0, ch, row, col])
+        if key is not None and self.config.learning.next_argmax_max_age > 0:
+            self._next_value[key] = (index, value)
+        return value
+
     @torch.no_grad()
     def targets(self, transitions: Sequence[Transition]) -> np.ndarray:
         """y = r + gamma * Q_target(s', argmax_a' online(s')) * (1 - done) for each transition."""
@@ -142,16 +223,10 @@ class Learner:
                 ys[k] = t.reward
                 if t.done or t.next_state is None or gamma == 0.0:
                     continue
-                height = np.nan_to_num(np.asarray(t.next_state.height, dtype=np.float32), nan=0.0)
-                gmask, mmask = self._masks(height)
-                q_next = q_maps(self.online, t.next_state, self.rotations).cpu().numpy()
-                masked = masked_maps(q_next, gmask, mmask)
-                flat = int(np.argmax(masked))
-                if not np.isfinite(masked.reshape(-1)[flat]):
+                index = self._greedy_next(t)
+                if index is None:
                     continue  # nothing left to act on in s': no future value
-                rot, ch, row, col = np.unravel_index(flat, masked.shape)
-                q_t = q_maps(self.target, t.next_state, self.rotations, rotation_indices=[int(rot)])
-                ys[k] += gamma * float(q_t[0, ch, row, col])
+                ys[k] += gamma * self._target_value(t, index)
         finally:
             self.online.train(was_training)
         return ys
@@ -159,7 +234,8 @@ class Learner:
     def loss_terms(self, transitions: Sequence[Transition], weights: np.ndarray) -> LossTerms:
         """The weighted Huber loss at the executed pixels (see module doc), with its intermediate maps."""
         ys = self.targets(transitions)
-        colors, heights, owners, rots = [], [], [], []
+        p_mirror = self.config.learning.mirror_probability
+        colors, heights, owners, rots, actions = [], [], [], [], []
         for k, t in enumerate(transitions):
             a = t.action
             if a.rotations != self.rotations:
@@ -168,10 +244,14 @@ class Learner:
             if not (0 <= a.row < rows_px and 0 <= a.col < cols_px):
                 raise ValueError(f"transition {k}: pixel ({a.row}, {a.col}) is outside the {rows_px}x{cols_px} "
                                  "heightmap")
+            state = t.state
+            if p_mirror > 0 and self._mirror_rng.random() < p_mirror:
+                state, a = mirror_heightmaps(state), mirror_action(a, cols_px)
+            actions.append(a)
             these = [a.rotation]
             if not a.is_move:
                 these.append((a.rotation + self.rotations // 2) % self.rotations)
-            c, h = rotated_inputs(t.state, these, self.rotations, self.online.stride, self.device)
+            c, h = rotated_inputs(state, these, self.rotations, self.online.stride, self.device)
             colors.append(c)
             heights.append(h)
             owners += [k] * len(these)
@@ -182,9 +262,9 @@ class Learner:
         (h_px, w_px), = shapes
         out = self.online(torch.cat(colors), torch.cat(heights))
         maps = unrotate_maps(out, rots, self.rotations, h_px, w_px)
-        channel = torch.tensor([transitions[k].action.channel for k in owners], device=self.device)
-        row = torch.tensor([transitions[k].action.row for k in owners], device=self.device)
-        col = torch.tensor([transitions[k].action.col for k in owners], device=self.device)
+        channel = torch.tensor([actions[k].channel for k in owners], device=self.device)
+        row = torch.tensor([actions[k].row for k in owners], device=self.device)
+        col = torch.tensor([actions[k].col for k in owners], device=self.device)
         predicted = maps[torch.arange(len(owners), device=self.device), channel, row, col]
         y = torch.tensor(ys[owners], dtype=predicted.dtype, device=self.device)
         per_row = F.huber_loss(predicted, y, reduction="none", delta=self.config.learning.huber_delta)
@@ -196,7 +276,8 @@ class Learner:
         loss = (w * per_transition / counts).mean()
         first = [owners.index(k) for k in range(len(transitions))]  # the executed rotation's row
         td = (y[first] - predicted[first]).detach().cpu().numpy().astype(np.float64)
-        return LossTerms(loss=loss, td_errors=td, targets=ys, maps=maps, owners=owners, rotations=rots)
+        return LossTerms(loss=loss, td_errors=td, targets=ys, maps=maps, owners=owners, rotations=rots,
+                         actions=actions)
 
     def update(self) -> UpdateStats | None:
         """One gradient step on a prioritized batch; None while the replay is empty."""
@@ -210,10 +291,17 @@ class Learner:
             self.optimizer.zero_grad(set_to_none=True)
             terms.loss.backward()
             self.optimizer.step()
-            self.replay.update_priorities(indices, np.abs(terms.td_errors))
+            tagged = self.replay.update_priorities(indices, np.abs(terms.td_errors))
+            if self.priority_sink is not None and tagged:
+                try:
+                    self.priority_sink(tagged)
+                except Exception as exc:  # a full disk must not stop learning; the priorities are a hint
+                    log.exception("writing replay priorities failed at update %d", self.updates + 1)
+                    self.last_error = f"saving priorities at update {self.updates + 1}: {exc}"
             self.updates += 1
             if self.updates % self.config.learning.target_update_every == 0:
                 self.target.load_state_dict(self.online.state_dict())
+                self._next_value.clear()
             stats = UpdateStats(update=self.updates, loss=float(terms.loss.detach()),
                                 mean_abs_td=float(np.mean(np.abs(terms.td_errors))),
                                 batch_size=len(transitions), beta=beta, seconds=time.perf_counter() - start,
@@ -247,6 +335,9 @@ class Learner:
         with self._update_lock:
             self.online.load_state_dict(network.state_dict())
             self.target.load_state_dict(network.state_dict())
+            with self._argmax_lock:
+                self._next_argmax.clear()
+            self._next_value.clear()
         self.publish()
 
     # ------------------------------------------------------------------ background thread

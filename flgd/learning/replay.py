@@ -22,6 +22,10 @@ with flat colours (simulation), 86 KiB with 3 grey levels of colour noise,
 20,000 transitions holds about 20,000 distinct states: 0.25 GB (sim) to about
 2.1 GB (noisy real camera colour).
 
+Each slot may carry a ``tag`` (the store's transition id), so that the
+priorities the learner sets can be written back to the store and survive a
+restart (``update_priorities`` returns the tagged slots' new priorities).
+
 Thread safety: one lock guards every public method, because the daemon adds
 transitions while the learner thread samples and updates priorities.
 """
@@ -31,7 +35,7 @@ from __future__ import annotations
 import hashlib
 import threading
 import zlib
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Iterable
 
 import numpy as np
@@ -39,18 +43,24 @@ import numpy as np
 from flgd.actions import Action
 from flgd.perception import Heightmaps
 
-__all__ = ["Transition", "SumTree", "PrioritizedReplay", "pack_heightmaps", "unpack_heightmaps"]
+__all__ = ["Transition", "SumTree", "PrioritizedReplay", "pack_heightmaps", "unpack_heightmaps", "state_key"]
 
 
 @dataclass(frozen=True)
 class Transition:
-    """(s, a, r, s', done); ``next_state`` is None only when ``done`` is true."""
+    """(s, a, r, s', done); ``next_state`` is None only when ``done`` is true.
+
+    ``next_key`` is the replay's content key of s' (``state_key`` of the
+    heightmaps as they were added), set on transitions the replay hands out so
+    that the learner can cache per-state results; None on new transitions.
+    """
 
     state: Heightmaps
     action: Action
     reward: float
     next_state: Heightmaps | None
     done: bool
+    next_key: bytes | None = field(default=None, compare=False, repr=False)
 
 
 class SumTree:
@@ -130,7 +140,8 @@ def unpack_heightmaps(blob: bytes) -> Heightmaps:
     return Heightmaps(color=color, height=height)
 
 
-def _digest(hm: Heightmaps) -> bytes:
+def state_key(hm: Heightmaps) -> bytes:
+    """The content key under which the replay stores ``hm`` (equal content, equal key)."""
     d = hashlib.blake2b(digest_size=16)
     d.update(np.ascontiguousarray(hm.color).tobytes())
     d.update(np.ascontiguousarray(hm.height, dtype=np.float32).tobytes())
@@ -147,7 +158,7 @@ class _StateStore:
     def put(self, hm: Heightmaps) -> bytes:
         # Always hash the content (about 0.3 ms for 224 x 224): arrays are mutable, so object identity
         # would not prove equal content.
-        key = _digest(hm)
+        key = state_key(hm)
         if key not in self._blobs:
             self._blobs[key] = pack_heightmaps(hm)
             self._refs[key] = 0
@@ -204,6 +215,7 @@ class PrioritizedReplay:
         self._tree = SumTree(capacity)
         self._raw = np.zeros(capacity, dtype=np.float64)  # |TD| + epsilon, before the exponent
         self._slots: list[_Slot | None] = [None] * capacity
+        self._tags = np.full(capacity, -1, dtype=np.int64)  # store transition id per slot, -1 = none
         self._states = _StateStore()
         self._next = 0
         self._size = 0
@@ -249,12 +261,14 @@ class PrioritizedReplay:
             self._check_index(index)
             return float(self._raw[index])
 
-    def add(self, transition: Transition, priority: float | None = None) -> int:
+    def add(self, transition: Transition, priority: float | None = None, tag: int | None = None) -> int:
         """Store a transition (overwriting the oldest when full); returns its slot index.
 
         ``priority`` is a raw priority |TD| + epsilon as returned by ``priority``;
-        None gives the current maximum.
+        None gives the current maximum.  ``tag``: the store's id of the transition.
         """
+        if tag is not None and not (isinstance(tag, (int, np.integer)) and tag >= 0):
+            raise ValueError(f"replay tag: got {tag!r}, expected a transition id >= 0 or None")
         if not isinstance(transition, Transition):
             raise TypeError(f"expected a Transition, got {type(transition).__name__}")
         if transition.next_state is None and not transition.done:
@@ -276,6 +290,7 @@ class PrioritizedReplay:
             self._slots[index] = _Slot(state, transition.action, float(transition.reward), nxt,
                                        bool(transition.done))
             self._set_priority(index, raw)
+            self._tags[index] = -1 if tag is None else int(tag)
             self._next = (index + 1) % self.capacity
             self._size = min(self._size + 1, self.capacity)
             return index
@@ -283,6 +298,12 @@ class PrioritizedReplay:
     def extend(self, items: Iterable[tuple[Transition, float | None]]) -> list[int]:
         """Rebuild after a restart: re-add (transition, raw priority) pairs in their original order."""
         return [self.add(t, p) for t, p in items]
+
+    def tag(self, index: int) -> int | None:
+        with self._lock:
+            self._check_index(index)
+            t = int(self._tags[index])
+            return None if t < 0 else t
 
     def get(self, index: int) -> Transition:
         with self._lock:
@@ -309,16 +330,24 @@ class PrioritizedReplay:
             self._samples += 1
             return indices, transitions, weights.astype(np.float32)
 
-    def update_priorities(self, indices: Iterable[int], td_errors: Iterable[float]) -> None:
-        """Set raw priorities |TD error| + epsilon of the sampled slots."""
+    def update_priorities(self, indices: Iterable[int], td_errors: Iterable[float]) -> list[tuple[int, float]]:
+        """Set raw priorities |TD error| + epsilon of the sampled slots.
+
+        Returns (tag, raw priority) of the tagged ones, for the store.  All TD
+        errors are checked before any priority changes.
+        """
+        pairs = [(int(i), float(td)) for i, td in zip(indices, td_errors)]
         with self._lock:
-            for i, td in zip(indices, td_errors):
-                i = int(i)
+            for i, td in pairs:
                 self._check_index(i)
-                td = float(td)
                 if not np.isfinite(td):
                     raise ValueError(f"TD error for slot {i}: got {td!r}, expected a finite number")
+            tagged = {}
+            for i, td in pairs:
                 self._set_priority(i, abs(td) + self.epsilon)
+                if self._tags[i] >= 0:
+                    tagged[int(self._tags[i])] = float(self._raw[i])
+            return list(tagged.items())
 
     # ------------------------------------------------------------------ internals
 
@@ -333,4 +362,5 @@ class PrioritizedReplay:
     def _unpack(self, slot: _Slot | None) -> Transition:
         assert slot is not None
         nxt = self._states.get(slot.next_state) if slot.next_state is not None else None
-        return Transition(self._states.get(slot.state), slot.action, slot.reward, nxt, slot.done)
+        return Transition(self._states.get(slot.state), slot.action, slot.reward, nxt, slot.done,
+                          next_key=slot.next_state)

@@ -20,7 +20,7 @@ __all__ = ["COLUMNS", "ActionLog", "read_rows"]
 
 COLUMNS = ("step", "time", "outcome", "primitive", "kind", "row", "col", "rotation", "reward", "success", "rule",
            "epsilon", "q_value",
-           "mu", "eta", "refused", "failure", "objects_left", "scene", "scene_kind", "updates", "loss",
+           "mu", "eta", "refused", "failure", "contact_stop_mm", "objects_left", "scene", "scene_kind", "updates", "loss",
            "t_capture", "t_perceive", "t_decide", "t_plan", "t_execute", "t_judge", "t_store", "t_update",
            "duration")
 

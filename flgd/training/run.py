@@ -194,6 +194,8 @@ class TrainingRun:
                      "rolling_success_50": rolling(self.grasps, 50),
                      "rolling_success_200": rolling(self.grasps, 200),
                      "updated": _now()})
+        if hasattr(self, "learner"):  # how the double-DQN a' of the targets was found (this segment)
+            info["next_argmax"] = {"reused": self.learner.argmax_reused, "computed": self.learner.argmax_computed}
         self.run_info = info
         tmp = self.out / f".{RUN_FILE}.tmp"
         tmp.write_text(json.dumps(info, indent=2) + "\n")
@@ -265,8 +267,12 @@ class TrainingRun:
         self.runner = CycleRunner(self.config, cell, self.agent, store=self.store, replay=self.replay,
                                   learner=self.learner, step=step, backend=self.config.backend)
         segments = list(self.run_info.get("segments", []))
+        # the learning and exploration settings in force, so that a run whose config.yaml was edited
+        # between segments (e.g. more updates per action) says so
         segments.append({"started": _now(), "from_step": step, "from_updates": self.learner.updates,
-                         "source": start.source, "code": _code_version()})
+                         "source": start.source, "code": _code_version(),
+                         "learning": dataclasses.asdict(self.config.learning),
+                         "exploration": dataclasses.asdict(self.config.exploration)})
         self.run_info["segments"] = segments
         self.run_info.setdefault("created", _now())
         self.run_info["config_source"] = self.config.source
@@ -447,7 +453,7 @@ class TrainingRun:
 
 _LOG_KEYS = frozenset({"step", "time", "outcome", "primitive", "kind", "row", "col", "rotation", "reward",
                        "success", "rule", "epsilon",
-                       "q_value", "mu", "eta", "refused", "failure", "t_capture", "t_perceive", "t_decide",
+                       "q_value", "mu", "eta", "refused", "failure", "contact_stop_mm", "t_capture", "t_perceive", "t_decide",
                        "t_plan", "t_execute", "t_judge", "duration"})
 
 
