@@ -242,6 +242,7 @@ class SimCell(Cell):
                     elif isinstance(step, GripperCommand):
                         self._run_gripper(step.width, step.force)
                     elif isinstance(step, MeasureWidth):
+                        self._fingers_at_rest()
                         widths.append(self.gripper_width())
                         self._note_held()
             except _CollisionStop as exc:
@@ -688,6 +689,19 @@ class SimCell(Cell):
             self._step(4)
             if k >= 12 and self._robot.finger_speed() < 2e-3:
                 break
+
+    def _fingers_at_rest(self) -> None:
+        """Step until the fingers have stopped (as the real cell reads a settled width), at most 1 s.
+
+        Why: a block slipping out as the arm arrives home is still between the
+        pads for a moment; the fingers go on closing after it.
+        """
+        still = 0
+        for _ in range(int(1.0 / self._dt) // 4):
+            still = still + 1 if self._robot.finger_speed() < 2e-3 else 0
+            if still >= 2:
+                return
+            self._step(4)
 
     def _pads_touch(self) -> bool:
         """Whether a finger pad touches any object."""

@@ -30,7 +30,9 @@ class LoopbackRG2:
 
     The fingers take ``move_time`` seconds to travel; closing stops at
     ``object_width_mm`` when an object is between them.  ``delay`` makes every
-    reply slow, ``fault`` makes calls answer with an XML-RPC fault.
+    reply slow, ``fault`` makes calls answer with an XML-RPC fault.  ``slip_mm``:
+    replies of the next ``rg_get_width`` calls (an object slipping out of the
+    fingers after the grip: the width keeps falling), one per call.
     """
 
     def __init__(self, move_time: float = 0.03):
@@ -41,6 +43,7 @@ class LoopbackRG2:
         self.delay = 0.0
         self.fault: str | None = None
         self.safety_failed = False
+        self.slip_mm: list[float] = []
         self._target = self.width_mm
         self._busy_until = 0.0
         self._lock = threading.Lock()
@@ -83,6 +86,8 @@ class LoopbackRG2:
         return time.monotonic() < self._busy_until
 
     def _rg_get_width(self, tool_index: int) -> float:
+        if self.slip_mm:
+            self.width_mm = self._target = self.slip_mm.pop(0)
         return float(self.width_mm)
 
     def _rg_get_safety_failed(self, tool_index: int) -> bool:

@@ -23,6 +23,7 @@ import pytest
 from flgd.cell import CellFault, make_cell
 from flgd.config import CellConfig, load_config
 from flgd.geometry import ToolPose
+from flgd.clutter import grasp_reward
 from flgd.plans import GripperCommand, MeasureWidth, MoveL, Plan, plan_grasp, plan_home, plan_push
 from flgd.safety import CheckedPlan, PlanRefused, check_plan
 from flgd.hardware.rg2 import RG2XmlRpcDriver
@@ -464,6 +465,25 @@ def test_grasp_plan_runs_as_checked_async_moves_and_measures_the_width(ctl, rg2)
     grips = [c for c in rg2.calls if c[0] == "rg_grip"]
     assert [g[2] for g in grips] == [pytest.approx(85.0), pytest.approx(0.0)]
     np.testing.assert_allclose(ctl.tcp[:3], cfg.robot.home.position, atol=1e-9)
+
+
+def test_the_width_is_read_once_the_fingers_stop_so_a_block_slipping_out_at_home_is_a_failure(ctl, rg2):
+    cell = make_ur5e(ctl, rg2)
+    rg2.object_width_mm = 31.0
+    rg2.slip_mm = [31.0, 22.0, 9.0, 0.0]  # the block slides out as the arm arrives home
+    t0 = ctl.clock()
+    result = cell.execute(grasp(cell.config))
+    assert result.completed, result.failure
+    assert result.widths == [0.0]
+    assert grasp_reward(result.widths[0], cell.config.gripper) == 0.0
+    # a steady width is read twice and that is all: one settle interval
+    rg2.slip_mm = []
+    rg2.object_width_mm = 31.0
+    reads = rg2.names().count("rg_get_width")
+    result = cell.execute(grasp(cell.config))
+    assert result.widths == [pytest.approx(0.031)]
+    assert rg2.names().count("rg_get_width") - reads == 2
+    assert ctl.clock() > t0
 
 
 def test_a_plan_outside_the_envelope_never_reaches_the_robot(ctl, rg2):

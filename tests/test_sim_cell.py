@@ -380,3 +380,15 @@ def test_a_block_dropped_in_mid_air_lands_before_the_next_picture(empty_cell):
     s = state(empty_cell, body)
     assert s is not None and s.top < 0.05, f"the block hangs at {s.top:.3f} m"
     assert empty_cell._may_jump(set(), set(), True, 99), "all still: free spans may be jumped again"
+
+
+def test_the_width_is_read_once_the_fingers_have_stopped(empty_cell):
+    """Fingers still closing (as after a block slid out) are waited for before the width is read."""
+    robot = empty_cell._robot
+    robot.set_fingers(0.085, 40.0)
+    robot.command_gripper(0.0, 40.0)
+    empty_cell._step(4)
+    assert robot.finger_speed() > 2e-3 and robot.width() > 0.03  # mid-stroke
+    empty_cell._fingers_at_rest()
+    assert robot.finger_speed() < 2e-3
+    assert robot.width() < 0.005  # closed: an empty grasp reads as empty

@@ -27,6 +27,11 @@ from flgd.hardware.ur_arm import MotionStopped, PoseUnreachable, RTDEFactory, UR
 __all__ = ["UR5eCell"]
 
 
+WIDTH_SETTLE_INTERVAL = 0.1  # s between width readings at a MeasureWidth step
+WIDTH_STEADY = 0.0005        # m: two readings this close mean the fingers have stopped
+WIDTH_SETTLE_TIMEOUT = 1.0   # s: after this the last reading counts
+
+
 def _open_d415(config: CellConfig) -> Any:
     from flgd.hardware.d415 import D415Camera
 
@@ -44,6 +49,7 @@ class UR5eCell(Cell):
                  sleep: Callable[[float], None] = time.sleep, require_width: bool = True):
         super().__init__(config)
         self._clock = clock
+        self._sleep = sleep
         self.arm = arm
         self.gripper = gripper
         self.camera: Any = None
@@ -96,7 +102,7 @@ class UR5eCell(Cell):
                         self.arm.check()
                         self.gripper.move(step.width, min(step.force, gr.force))
                     elif isinstance(step, MeasureWidth):
-                        widths.append(self.gripper.width())
+                        widths.append(self._settled_width())
                     else:  # verify() refuses unknown steps; this guards a future step type
                         raise CellFault(f"{where}: the ur5e cell cannot run {type(step).__name__}")
                 except PoseUnreachable as exc:
@@ -108,6 +114,22 @@ class UR5eCell(Cell):
                     self.arm.latch(f"gripper: {exc}")
                     raise CellFault(f"{where}: {exc}") from exc
             return ExecutionResult(True, widths, "", self._clock() - start, stops)
+
+    def _settled_width(self) -> float:
+        """The finger width once it has stopped changing (at most ``WIDTH_SETTLE_TIMEOUT`` s).
+
+        Why: a block slipping out of the fingers as the arm arrives home is still
+        between them at the first reading; the fingers go on closing after it, so
+        a width read once would call an empty grasp held.
+        """
+        last = self.gripper.width()
+        deadline = self._clock() + WIDTH_SETTLE_TIMEOUT
+        while True:
+            self._sleep(WIDTH_SETTLE_INTERVAL)
+            now = self.gripper.width()
+            if abs(now - last) <= WIDTH_STEADY or self._clock() >= deadline:
+                return now
+            last = now
 
     def stop_motion(self) -> None:
         """Halt arm and fingers now; safe from a signal handler or another thread (no cell lock taken)."""
