@@ -727,10 +727,24 @@ class SimCell(Cell):
         self._held.clear()
 
     def _note_held(self) -> None:
+        """What the width measurement found in the gripper: objects touching both pads, and also objects
+        pinched together between them (one per pad, pressed against each other) if none touches the table."""
         c, rb = self._client, self._robot
-        left = {cp[2] for cp in p.getContactPoints(bodyA=rb.body, linkIndexA=rb.finger_links[0], physicsClientId=c)}
-        right = {cp[2] for cp in p.getContactPoints(bodyA=rb.body, linkIndexA=rb.finger_links[1], physicsClientId=c)}
-        self._held = {b for b in left & right if b in self._objects}
+        pads = [{cp[2] for cp in p.getContactPoints(bodyA=rb.body, linkIndexA=link, physicsClientId=c)
+                 if cp[2] in self._objects} for link in rb.finger_links]
+        held = pads[0] & pads[1]
+        # grow groups of mutually touching objects from the left pad's; a group reaching the right pad is held
+        group, frontier = set(pads[0]), list(pads[0])
+        while frontier:
+            b = frontier.pop()
+            for cp in p.getContactPoints(bodyA=b, physicsClientId=c):
+                if cp[2] in self._objects and cp[2] not in group:
+                    group.add(cp[2])
+                    frontier.append(cp[2])
+        if group & pads[1] and not any(p.getContactPoints(bodyA=b, bodyB=self._table, physicsClientId=c)
+                                       for b in group):
+            held |= group
+        self._held = held
 
     def _go_home(self) -> None:
         gr = self.config.gripper

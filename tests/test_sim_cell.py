@@ -392,3 +392,17 @@ def test_the_width_is_read_once_the_fingers_have_stopped(empty_cell):
     empty_cell._fingers_at_rest()
     assert robot.finger_speed() < 2e-3
     assert robot.width() < 0.005  # closed: an empty grasp reads as empty
+
+
+def test_two_blocks_pinched_one_per_pad_are_held_and_carried_out_not_lost(empty_cell):
+    """Two 2 cm bars side by side, closed across both: each pad touches one bar, the bars press on each other."""
+    cfg = empty_cell.config
+    a = cube_at(empty_cell, -0.50, -0.0105, size=(0.06, 0.02, 0.03))
+    b = cube_at(empty_cell, -0.50, 0.0105, size=(0.06, 0.02, 0.03))
+    plan = plan_grasp(-0.50, 0.0, 0.03, math.pi / 2, cfg)  # fingers close along y, across both bars
+    result = empty_cell.execute(check_plan(plan, cfg))
+    assert result.completed, result.failure
+    assert abs(result.widths[0] - 0.041) < 0.006, result.widths
+    # both hang from the gripper at home, outside the workspace: counted as carried out, not as lost
+    assert state(empty_cell, a) is None and state(empty_cell, b) is None
+    assert empty_cell.stats["grasped_out"] == 2 and empty_cell.stats["left_workspace"] == 0
