@@ -43,14 +43,14 @@ def test_a_short_run_writes_log_checkpoint_and_curve_then_resumes(tmp_path):
         assert float(r["epsilon"]) > 0 and r["rule"]
         assert int(r["objects_left"]) >= 0 and r["scene_kind"] == "random 10"
         assert float(r["t_update"]) > 0 and float(r["duration"]) > 0
-    assert [int(r["updates"]) for r in rows] == [1, 2, 3]  # updates_per_action = 1, synchronous
+    assert [int(r["updates"]) for r in rows] == [3, 6, 9]  # sim.yaml: updates_per_action = 3, synchronous
 
     ckpts = _checkpoints(out)
-    assert [c.name for c in ckpts] == ["checkpoint-0000000003.safetensors"]
+    assert [c.name for c in ckpts] == ["checkpoint-0000000009.safetensors"]
     policy = load_policy(ckpts[0], expected_variant="fast")
     assert policy.metadata["training_steps"] == 3
     assert policy.metadata["train_variant"] == "flg" and policy.metadata["method"] == "FLG"
-    assert policy.metadata["seed"] == 5 and policy.metadata["learner_updates"] == 3
+    assert policy.metadata["seed"] == 5 and policy.metadata["learner_updates"] == 9
     assert (out / "curve.png").read_bytes()[:8] == PNG_MAGIC
     info = json.loads((out / "run.json").read_text())
     assert info["status"] == "finished" and info["step"] == 3 and info["settings"]["seed"] == 5
@@ -59,13 +59,13 @@ def test_a_short_run_writes_log_checkpoint_and_curve_then_resumes(tmp_path):
     assert train_main(["--out", str(out), "--steps", "5", "--threads", "1"]) == 0
     rows = read_rows(out / "actions.csv")
     assert [int(r["step"]) for r in rows] == [0, 1, 2, 3, 4]
-    assert [int(r["updates"]) for r in rows[3:]] == [4, 5]  # the learner's count continues too
+    assert [int(r["updates"]) for r in rows[3:]] == [12, 15]  # the learner's count continues too
     info = json.loads((out / "run.json").read_text())
     assert [s["from_step"] for s in info["segments"]] == [0, 3]
-    assert info["segments"][1]["from_updates"] == 3
-    assert "checkpoint-0000000003" in info["segments"][1]["source"]
+    assert info["segments"][1]["from_updates"] == 9
+    assert "checkpoint-0000000009" in info["segments"][1]["source"]
     assert info["segments"][1]["code"] not in ("", None)
-    assert info["segments"][1]["learning"]["updates_per_action"] == 1
+    assert info["segments"][1]["learning"]["updates_per_action"] == 3
     assert info["segments"][0]["exploration"]["epsilon_start"] == 0.5
     store = Store(out)
     try:
@@ -73,7 +73,7 @@ def test_a_short_run_writes_log_checkpoint_and_curve_then_resumes(tmp_path):
         assert store.next_step() == 5
     finally:
         store.close()
-    assert _checkpoints(out)[-1].name == "checkpoint-0000000005.safetensors"
+    assert _checkpoints(out)[-1].name == "checkpoint-0000000015.safetensors"
 
     # other settings for an existing run directory are refused, naming the flag
     assert train_main(["--out", str(out), "--variant", "dpen"]) == 2
