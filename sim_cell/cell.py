@@ -275,7 +275,7 @@ class SimCell(Cell):
                 self.reset_scene()
                 return ExecutionResult(completed=False, widths=widths,
                                        failure=f"unstable simulation ({exc}) after {planned.primitive}; scene reset",
-                                       duration=self._sim_time - t0)
+                                       duration=self._sim_time - t0, contact_stops=stops)
             self._remove_outside()
             return ExecutionResult(completed=True, widths=widths, duration=self._sim_time - t0,
                                    contact_stops=stops)
@@ -866,7 +866,6 @@ class SimCell(Cell):
                 self._clear_objects()
                 continue
             self._remove_outside()
-
 
     def _moving(self, exclude: set[int] | frozenset[int] = frozenset()) -> list[int]:
         """Objects (other than ``exclude``) moving faster than STILL_SPEED or turning faster than STILL_SPIN."""
