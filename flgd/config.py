@@ -235,7 +235,8 @@ class SimConfig:
     """Used only by the simulated cell."""
 
     objects: int = param(10, ge=0, le=60)
-    object_set: str = param("blocks", help="'blocks', or a glob/list of pybullet_data URDFs")
+    object_set: str = param("blocks", help="comma-separated items, each drawn equally often: 'blocks', a block shape, "
+                                             "a named novel object, or a pybullet_data URDF glob")
     depth_noise: bool = param(True)
     domain_randomization: bool = param(True)
     seed: int = param(0, ge=0)

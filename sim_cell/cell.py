@@ -155,7 +155,7 @@ class SimCell(Cell):
         self._scene_rng = np.random.default_rng(seeds[0])
         self._noise_rng = np.random.default_rng(seeds[1])
         self._object_count = config.sim.objects
-        self._object_kinds = objects.resolve_object_set(config.sim.object_set)
+        self._object_groups = objects.resolve_object_groups(config.sim.object_set)
         self._natural_extents: dict[str, tuple[float, float, float]] = {}
         self._objects: dict[int, objects.SpawnedObject] = {}
         self._held: set[int] = set()
@@ -808,7 +808,7 @@ class SimCell(Cell):
 
     def _random_spec(self) -> objects.ObjectSpec:
         rng = self._scene_rng
-        kind = self._object_kinds[int(rng.integers(len(self._object_kinds)))]
+        kind = objects.draw_object_kind(self._object_groups, rng)
         colour = tuple(np.clip(_PALETTE[int(rng.integers(len(_PALETTE)))] + rng.uniform(-0.06, 0.06, 3), 0, 1).tolist())
         dr = self.config.sim.domain_randomization
         friction = float(rng.uniform(0.4, 0.9)) if dr else 0.6

@@ -21,7 +21,8 @@ import pybullet_data
 
 from sim_cell import shapes
 
-__all__ = ["ObjectSpec", "SpawnedObject", "spawn", "read_obj", "resolve_object_set", "PYBULLET_DATA",
+__all__ = ["ObjectSpec", "SpawnedObject", "spawn", "read_obj", "resolve_object_set", "resolve_object_groups",
+           "draw_object_kind", "PYBULLET_DATA",
            "NAMED_NOVEL_OBJECTS", "body_aabb", "natural_size", "natural_extents", "graspable_scale",
            "quaternion_from_matrix"]
 
@@ -280,25 +281,30 @@ def spawn(client: int, spec: ObjectSpec) -> SpawnedObject:
     return SpawnedObject(body=body, spec=spec, local_points=np.asarray(pts, dtype=float))
 
 
-def resolve_object_set(object_set: str) -> list[str]:
-    """The object kinds named by ``sim.object_set``.
+def resolve_object_groups(object_set: str) -> list[list[str]]:
+    """The object kinds named by ``sim.object_set``, one group per comma-separated item.
 
-    'blocks' -> the procedural shapes (``shapes.SHAPES``); otherwise a comma-separated
-    list of URDF paths, globs or short names, relative to pybullet_data, e.g.
-    'random_urdfs/00[0-9]/*.urdf' or 'duck,teddy,mug'.  Each item must match something.
+    A random object first draws an item, then a kind within it, so ``'blocks,random_urdfs/0??/*.urdf'``
+    is half blocks and half URDF models however many files the glob matches.  Items: 'blocks' (the
+    procedural shapes, ``shapes.SHAPES``), a block shape, a short name (``NAMED_NOVEL_OBJECTS``), or a
+    URDF path or glob relative to pybullet_data, e.g. 'random_urdfs/00[0-9]/*.urdf'.  Each item must
+    match something.
     """
     text = object_set.strip()
-    if text in ("", "blocks"):
-        return [f"block:{s}" for s in shapes.SHAPES]
-    out: list[str] = []
+    if text == "":
+        text = "blocks"
+    groups: list[list[str]] = []
     for item in (t.strip() for t in text.split(",")):
         if not item:
             continue
+        if item == "blocks":
+            groups.append([f"block:{s}" for s in shapes.SHAPES])
+            continue
         if item in shapes.SHAPES:
-            out.append(f"block:{item}")
+            groups.append([f"block:{item}"])
             continue
         if item in NAMED_NOVEL_OBJECTS:
-            out.append(NAMED_NOVEL_OBJECTS[item])
+            groups.append([NAMED_NOVEL_OBJECTS[item]])
             continue
         base = Path(item) if os.path.isabs(item) else PYBULLET_DATA / item
         matches = sorted(glob.glob(str(base)))
@@ -307,11 +313,26 @@ def resolve_object_set(object_set: str) -> list[str]:
             raise ValueError(f"sim.object_set: item {item!r} matches no URDF under {PYBULLET_DATA} "
                              f"(expected 'blocks', a block shape, one of {', '.join(NAMED_NOVEL_OBJECTS)}, "
                              f"or a glob such as 'random_urdfs/0[0-4]?/*.urdf')")
-        out.extend(os.path.relpath(m, PYBULLET_DATA) if m.startswith(str(PYBULLET_DATA)) else m
-                   for m in matches)
-    if not out:
+        groups.append([os.path.relpath(m, PYBULLET_DATA) if m.startswith(str(PYBULLET_DATA)) else m
+                       for m in matches])
+    if not groups:
         raise ValueError(f"sim.object_set: got {object_set!r}, expected at least one object kind")
-    return out
+    return groups
+
+
+def resolve_object_set(object_set: str) -> list[str]:
+    """Every object kind named by ``sim.object_set`` (see ``resolve_object_groups``), in order."""
+    return [kind for group in resolve_object_groups(object_set) for kind in group]
+
+
+def draw_object_kind(groups: list[list[str]], rng: np.random.Generator) -> str:
+    """One kind: an item uniformly, then a kind of it uniformly.
+
+    A draw the choice does not need is skipped, so a single item, or a list of single kinds,
+    uses the random stream exactly as one uniform draw over all kinds did before groups existed.
+    """
+    group = groups[int(rng.integers(len(groups)))] if len(groups) > 1 else groups[0]
+    return group[int(rng.integers(len(group)))] if len(group) > 1 else group[0]
 
 
 def natural_extents(urdf: str, client: int) -> tuple[float, float, float]:

@@ -137,3 +137,26 @@ def test_novel_objects_are_never_wider_than_the_gripper_can_span():
         assert min(sides) < 0.07  # smaller ones keep their drawn size (5-9 cm asked for)
     finally:
         cell.close()
+
+
+def test_object_set_items_are_drawn_evenly_however_many_files_a_glob_matches():
+    from sim_cell.objects import draw_object_kind, resolve_object_groups, resolve_object_set
+
+    groups = resolve_object_groups("blocks, random_urdfs/0[0-9][0-9]/*.urdf")
+    assert len(groups) == 2 and len(groups[1]) == 100
+    assert all(k.startswith("block:") for k in groups[0]) and not any(k.startswith("block:") for k in groups[1])
+    rng = np.random.default_rng(0)
+    draws = [draw_object_kind(groups, rng) for _ in range(2000)]
+    blocks = sum(k.startswith("block:") for k in draws) / len(draws)
+    assert 0.45 < blocks < 0.55                       # one item in two, not 8 kinds in 108
+    assert len({k for k in draws if not k.startswith("block:")}) > 80   # and the glob's files all come up
+    # sets of single kinds, or a single item, draw exactly as one uniform draw over all kinds
+    for text in ("blocks", "duck,teddy,mug", "random_urdfs/00[0-4]/*.urdf"):
+        kinds = resolve_object_set(text)
+        a, b = np.random.default_rng(3), np.random.default_rng(3)
+        assert [draw_object_kind(resolve_object_groups(text), a) for _ in range(50)] == \
+               [kinds[int(b.integers(len(kinds)))] for _ in range(50)]
+    with pytest.raises(ValueError, match="matches no URDF"):
+        resolve_object_groups("blocks,nothing_like_this_*.urdf")
+    with pytest.raises(ValueError, match="at least one object kind"):
+        resolve_object_groups(" , ")
