@@ -823,7 +823,7 @@ class SimCell(Cell):
         if kind not in self._natural_extents:
             self._natural_extents[kind] = objects.natural_extents(kind, self._client)
         scale = objects.graspable_scale(self._natural_extents[kind], float(rng.uniform(0.05, 0.09)),
-                                        self.config.gripper.open_width)
+                                        self.config.gripper.open_width, self.config.learning.rotations)
         mass = float(rng.uniform(0.03, 0.15)) if dr else None
         return objects.ObjectSpec(urdf=kind, scale=scale, color=colour, mass=mass, friction=friction)
 

@@ -27,7 +27,7 @@ __all__ = ["ObjectSpec", "SpawnedObject", "spawn", "read_obj", "resolve_object_s
            "quaternion_from_matrix"]
 
 PYBULLET_DATA = Path(pybullet_data.getDataPath())
-GRASPABLE_FRACTION = 0.9  # a novel object's middle extent is at most this share of the gripper opening
+GRASPABLE_FRACTION = 0.9  # a novel object's worst-case width across the fingers is at most this share of the opening
 # Short names for pybullet_data models usable in sim.object_set.
 NAMED_NOVEL_OBJECTS = {
     "duck": "duck_vhacd.urdf",
@@ -349,19 +349,26 @@ def natural_size(urdf: str, client: int) -> float:
     return natural_extents(urdf, client)[2]
 
 
-def graspable_scale(extents: tuple[float, float, float], largest: float, open_width: float) -> float:
+def graspable_scale(extents: tuple[float, float, float], largest: float, open_width: float,
+                    rotations: int = 16) -> float:
     """The scale that gives the model the ``largest`` extent (m), reduced if the gripper could not span it.
 
     Why: an object lying on its largest face shows its middle extent as the
     narrower horizontal side, which the fingers must close across; with that
     side wider than the opening less a few mm on either side no grasp can
     succeed, and the evaluation would count the object's size, not the policy.
-    (pybullet's cube_small scaled to a 9 cm largest extent is a 9 cm cube:
-    wider than the RG2's 8.5 cm opening.)  Only those are shrunk, to 90 % of the
-    opening; anything a well-placed grasp can span keeps its drawn size.
+    The gripper turns in steps of 2*pi/``rotations``, so the best grasp can still
+    be half a step off the object's axes; a square side ``b`` then measures
+    ``b (cos + sin)(pi/rotations)`` across the fingers (1.18 b at 16 rotations).
+    pybullet's cube_small drawn at 7.65 cm (90 % of the RG2's 8.5 cm) was 9.0 cm
+    across at that error, so a random yaw left it ungraspable more often than not.
+    Only such objects are shrunk, until that worst-case width is 90 % of the
+    opening; anything a grasp at the nearest rotation can span keeps its drawn size.
     """
     scale = largest / extents[2]
-    return min(scale, GRASPABLE_FRACTION * open_width / extents[1])
+    half_step = math.pi / max(1, rotations)
+    worst_width = extents[1] * (math.cos(half_step) + math.sin(half_step))
+    return min(scale, GRASPABLE_FRACTION * open_width / worst_width)
 
 
 def quaternion_from_matrix(r: np.ndarray) -> tuple[float, float, float, float]:
