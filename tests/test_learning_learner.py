@@ -13,7 +13,7 @@ import torch
 
 from flgd.actions import Action
 from flgd.config import CellConfig
-from flgd.learning.agent import Agent, masked_maps
+from flgd.learning.agent import Agent, greedy_index, masked_maps
 from flgd.learning.learner import Learner
 from flgd.learning.networks import build_network, q_maps
 from flgd.learning.replay import PrioritizedReplay, Transition, state_key
@@ -136,6 +136,8 @@ def test_cached_next_argmax_from_the_agent_gives_the_exact_target_without_a_forw
 
     agent = Agent(cfg, lrn.online)
     decision = agent.decide(s2, step=10_000)
+    # the decision carries the masked argmax it already computed: the one the learner would compute
+    assert decision.greedy == greedy_index(decision.q_maps, decision.grasp_mask, decision.move_mask)
     lrn.note_decision(s2, decision, weights_version=0)
     assert lrn.targets([t])[0] == pytest.approx(expected, abs=1e-6)
     assert (lrn.argmax_reused, lrn.argmax_computed) == (1, 0)

@@ -57,6 +57,7 @@ class Decision:
     q_value: float  # Q of the chosen action
     rule: str
     epsilon: float
+    greedy: tuple[int, int, int, int] | None = None  # (rotation, channel, row, col) of the masked argmax
 
 
 class WeightsMailbox:
@@ -111,6 +112,10 @@ def greedy_index(q: np.ndarray, grasp: np.ndarray, move: np.ndarray,
     masked = masked_maps(q, grasp, move)
     if grasp_only:
         masked[:, 1] = -np.inf
+    return _argmax_allowed(masked)
+
+
+def _argmax_allowed(masked: np.ndarray) -> tuple[int, int, int, int] | None:
     flat = int(np.argmax(masked))
     if not np.isfinite(masked.reshape(-1)[flat]):
         return None
@@ -210,7 +215,8 @@ class Agent:
         action = Action(primitive, row, col, rot, self.rotations)
         self.previous = action
         return Decision(action=action, q_maps=q, grasp_mask=gmask, move_mask=mmask,
-                        q_value=float(q[rot, channel, row, col]), rule=rule, epsilon=eps)
+                        q_value=float(q[rot, channel, row, col]), rule=rule, epsilon=eps,
+                        greedy=_argmax_allowed(masked))
 
     def record_outcome(self, action: Action, grasp_success: bool | None) -> None:
         """Feed the executed action's result: grasp streaks for rule 1, location for rule 5.

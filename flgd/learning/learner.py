@@ -166,8 +166,10 @@ class Learner:
         max_age = self.config.learning.next_argmax_max_age
         if max_age <= 0 or weights_version < 0 or self.updates - weights_version > max_age:
             return
-        index = greedy_index(decision.q_maps, decision.grasp_mask, decision.move_mask,
-                             self.config.exploration.grasp_only)
+        index = decision.greedy
+        if index is None:   # a Decision built without it (older callers): the same argmax, computed here
+            index = greedy_index(decision.q_maps, decision.grasp_mask, decision.move_mask,
+                                 self.config.exploration.grasp_only)
         with self._argmax_lock:
             self._next_argmax[state_key(state)] = (int(weights_version), index)
 
