@@ -39,13 +39,15 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from flgd.training.actionlog import read_rows
-from flgd.training.curve import grasp_series, plot_curves, rolling_success, spread, steps_to_threshold
+from flgd.training.curve import (grasp_series, plot_curves, rolling_success, spread, steps_to_threshold,
+                                success_by_rule)
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_CONFIG = REPO / "cell_config" / "sim.yaml"
 VARIANTS = ("flg", "dpen", "rho-fcn")
 THRESHOLDS = (0.8, 0.9)
 WINDOWS = (200, 50)
+RULE_SPLIT_STEPS = 200  # the greedy-vs-random split is reported over this many final steps
 
 
 @dataclass(frozen=True)
@@ -205,6 +207,24 @@ def report(results: dict[str, RunResult], variants: list[str], seeds: list[int],
             lines.append(f"| {v} | {w} | {spreads[0.8].text() if runs else '-'} | "
                          f"{spreads[0.9].text() if runs else '-'} | {seeds_txt or 'no runs'} | {finals} |")
         out["variants"][v] = entry
+    rule_lines = []
+    for v in variants:
+        for s in seeds:
+            r = results.get(f"{v}-s{s}")
+            if r is None or not r.rows:
+                continue
+            split = success_by_rule(r.rows, last_steps=RULE_SPLIT_STEPS)
+            cells = []
+            for rule in ("greedy", "epsilon"):
+                done, tried = split.get(rule, (0, 0))
+                cells.append(f"{100 * done / tried:.0f} % ({done}/{tried})" if tried else "-")
+            rule_lines.append(f"| {r.spec.name} | {cells[0]} | {cells[1]} |")
+            out["variants"][v]["runs"][r.spec.name]["grasps_by_rule_last_steps"] = {
+                k: {"successes": a, "attempts": b} for k, (a, b) in split.items()}
+    if rule_lines:
+        lines += ["", f"Grasp success by decision rule over each run's last {RULE_SPLIT_STEPS} steps (greedy = the "
+                  "policy's own choice; epsilon = a random point inside the mask):", "",
+                  "| run | greedy | epsilon |", "|---|---|---|", *rule_lines]
     curves = {}
     groups = {}
     for v in variants:

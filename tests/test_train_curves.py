@@ -14,8 +14,9 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks import learning as bench
+from flgd.learning.agent import RULES
 from flgd.training.actionlog import COLUMNS
-from flgd.training.curve import grasp_series, move_fraction, rolling_success, spread, steps_to_threshold
+from flgd.training.curve import grasp_series, move_fraction, rolling_success, spread, steps_to_threshold, success_by_rule
 
 
 def _rows(pattern: list[str]) -> list[dict]:
@@ -61,6 +62,16 @@ def test_move_fraction_per_window_of_actions():
     assert steps.tolist() == [3, 4, 5] and frac.tolist() == [0.5, 0.5, 0.25]
 
 
+def test_success_by_rule_splits_greedy_from_random_grasps_over_the_last_steps():
+    rows = _rows(["g", "g", "G", "p", "G", "g", "r", "G"])
+    for r, rule in zip(rows, ["epsilon", "greedy", "greedy", "greedy", "epsilon", "greedy", "greedy", "greedy"]):
+        r["rule"] = rule
+    assert success_by_rule(rows) == {"epsilon": (1, 2), "greedy": (2, 4)}   # the push and the refusal left out
+    assert success_by_rule(rows, last_steps=4) == {"epsilon": (1, 1), "greedy": (1, 2)}  # steps 4..7
+    del rows[0]["rule"]
+    assert success_by_rule(rows)["unknown"] == (0, 1)
+
+
 def test_spread_ranks_never_reached_last():
     s = spread([400, 300, 500])
     assert (s.median, s.low, s.high, s.reached, s.total) == (400, 300, 500, 3, 3)
@@ -100,6 +111,10 @@ def test_bench_report_medians_over_seeds_and_marks_unfinished_runs(tmp_path):
     assert w200["steps_to_80"]["reached"] == 2 and w200["steps_to_80"]["total"] == 3
     text = (tmp_path / "report.md").read_text()
     assert "not yet (at 150)*" in text and "s2: > 400 / > 400" in text
+    # hand-made logs carry no rule: their grasps are counted as such, not as greedy
+    assert "| flg-s0 | - | - |" in text
+    assert out["variants"]["flg"]["runs"]["flg-s0"]["grasps_by_rule_last_steps"]["unknown"] == {
+        "successes": 200, "attempts": 200}
     assert (tmp_path / "curves.png").read_bytes()[:4] == b"\x89PNG"
     assert json.loads((tmp_path / "report.json").read_text())["variants"]["dpen"]["runs"]["dpen-s0"]["step"] == 150
 
@@ -126,7 +141,13 @@ def test_bench_trains_skips_finished_runs_and_continues_longer_ones(tmp_path, ca
     rows = (tmp_path / "flg-s0" / "actions.csv").read_text().splitlines()
     assert len(rows) == 1 + 3
     report = json.loads((tmp_path / "report.json").read_text())
-    assert report["variants"]["flg"]["runs"]["flg-s0"] == {"step": 3, "status": "finished", "complete": True}
+    run = report["variants"]["flg"]["runs"]["flg-s0"]
+    assert {k: run[k] for k in ("step", "status", "complete")} == {"step": 3, "status": "finished", "complete": True}
+    # a real run's log carries its decision rules; every grasp is counted under one of them
+    by_rule = run.get("grasps_by_rule_last_steps", {})
+    logged = list(csv.DictReader((tmp_path / "flg-s0" / "actions.csv").open()))
+    assert set(by_rule) <= set(RULES) and sum(v["attempts"] for v in by_rule.values()) == sum(
+        1 for r in logged if r["primitive"] == "grasp" and r["outcome"] == "executed" and r["success"] != "")
 
 
 class _SleepingRun(bench.RunSpec):

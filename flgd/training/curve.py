@@ -18,7 +18,7 @@ from typing import Iterable, Mapping, Sequence
 import numpy as np
 
 __all__ = ["GraspSeries", "grasp_series", "rolling_success", "steps_to_threshold", "move_fraction",
-           "Spread", "spread", "plot_curves"]
+           "success_by_rule", "Spread", "spread", "plot_curves"]
 
 
 @dataclass(frozen=True)
@@ -48,6 +48,29 @@ def grasp_series(rows: Iterable[Mapping]) -> GraspSeries:
             success.append(float(ok))
     order = np.argsort(np.asarray(steps, dtype=np.int64), kind="stable")
     return GraspSeries(np.asarray(steps, dtype=np.int64)[order], np.asarray(success, dtype=np.float64)[order], last)
+
+
+def success_by_rule(rows: Iterable[Mapping], last_steps: int | None = None) -> dict[str, tuple[int, int]]:
+    """{decision rule: (successful, attempted)} of executed grasps, over the last ``last_steps`` steps.
+
+    Why: the rolling success mixes greedy grasps with ε-random ones; split by
+    the action log's ``rule`` it says whether a plateau is the policy's or the
+    exploration's.
+    """
+    rows = list(rows)
+    steps = [s for s in (_as_int(r.get("step")) for r in rows) if s is not None]
+    first = (max(steps) + 1 - last_steps) if (steps and last_steps is not None) else None
+    out: dict[str, tuple[int, int]] = {}
+    for r in rows:
+        step, ok = _as_int(r.get("step")), _as_int(r.get("success"))
+        if step is None or ok is None or r.get("primitive") != "grasp" or r.get("outcome", "executed") != "executed":
+            continue
+        if first is not None and step < first:
+            continue
+        rule = str(r.get("rule") or "unknown")
+        done, tried = out.get(rule, (0, 0))
+        out[rule] = (done + int(ok > 0), tried + 1)
+    return out
 
 
 def rolling_success(series: GraspSeries, window: int, full_only: bool = True) -> tuple[np.ndarray, np.ndarray]:
