@@ -271,3 +271,18 @@ def test_the_installed_command_reports_a_corrupt_policy_without_a_traceback(tmp_
     assert p.returncode == 1
     assert "flgd eval: policy file" in p.stderr and "junk.safetensors" in p.stderr
     assert "Traceback" not in p.stderr
+
+
+def test_bench_eval_runs_the_novel_clutter_its_own_number_of_times(tmp_path, capsys):
+    from benchmarks import eval as bench_eval
+
+    assert bench_eval.main(["--fresh", "--clutter-runs", "0"]) == 1
+    assert "--clutter-runs must be >= 1" in capsys.readouterr().err
+    out = tmp_path / "bench.json"
+    assert bench_eval.main(["--fresh", "--parts", "novel", "--runs", "1", "--clutter-runs", "2",
+                            "--max-actions", "1", "--json", str(out)]) == 0
+    reports = json.loads(out.read_text())
+    isolated, clutter = reports["novel objects, isolated"], reports["novel objects, clutter of 10"]
+    assert {s["runs"] for s in isolated["scenes"]} == {1} and len(isolated["scenes"]) == 8
+    assert [s["runs"] for s in clutter["scenes"]] == [2]
+    assert "(2 of the novel clutter)" in capsys.readouterr().out
