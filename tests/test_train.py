@@ -67,6 +67,7 @@ def test_a_short_run_writes_log_checkpoint_and_curve_then_resumes(tmp_path):
     assert info["segments"][1]["code"] not in ("", None)
     assert info["segments"][1]["learning"]["updates_per_action"] == 3
     assert info["segments"][0]["exploration"]["epsilon_start"] == 0.5
+    assert info["segments"][0]["objects"]["object_set"] == "blocks"
     store = Store(out)
     try:
         assert store.transition_count() == 5  # the replay of the first segment was kept and extended

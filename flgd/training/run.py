@@ -267,12 +267,15 @@ class TrainingRun:
         self.runner = CycleRunner(self.config, cell, self.agent, store=self.store, replay=self.replay,
                                   learner=self.learner, step=step, backend=self.config.backend)
         segments = list(self.run_info.get("segments", []))
-        # the learning and exploration settings in force, so that a run whose config.yaml was edited
-        # between segments (e.g. more updates per action) says so
+        # the learning, exploration and object settings in force, so that a run whose config.yaml was
+        # edited between segments (more updates per action, another object set) says so
+        sim = self.config.sim
         segments.append({"started": _now(), "from_step": step, "from_updates": self.learner.updates,
                          "source": start.source, "code": _code_version(),
                          "learning": dataclasses.asdict(self.config.learning),
-                         "exploration": dataclasses.asdict(self.config.exploration)})
+                         "exploration": dataclasses.asdict(self.config.exploration),
+                         "objects": {"object_set": sim.object_set, "domain_randomization": sim.domain_randomization,
+                                     "depth_noise": sim.depth_noise}})
         self.run_info["segments"] = segments
         self.run_info.setdefault("created", _now())
         self.run_info["config_source"] = self.config.source
