@@ -85,3 +85,15 @@ def test_the_tally_counts_grasps_per_object_and_restores_the_cell():
     assert tally.rows() == [("small", 1, 2), ("wide", 0, 2)]   # the unmeasured grasp is a failure on "small"
     assert tally.off_object == 1
     assert FakeSimCell.execute is original
+
+
+def test_bad_arguments_are_clear_errors_before_any_simulation(capsys, tmp_path):
+    from benchmarks.grasp_objects import REPO, main
+
+    shipped = str(REPO / "policies" / "flg-sim.safetensors")
+    assert main(["--policy", str(tmp_path / "missing.safetensors")]) == 1
+    assert "missing.safetensors" in capsys.readouterr().err
+    assert main(["--policy", shipped, "--objects", "nothing_like_this_*.urdf"]) == 1
+    assert "matches no URDF" in capsys.readouterr().err
+    assert main(["--policy", shipped, "--runs", "0"]) == 1
+    assert "--runs and --count must be >= 1" in capsys.readouterr().err
