@@ -96,6 +96,14 @@ def test_start_pause_reset_start_stop_and_stats_match_the_log(daemon_factory, tm
     kinds = [e["message"] for e in store.events("state")]
     assert any("PAUSED -> IDLE" in k for k in kinds)
     assert not d.socket.exists()  # removed on a clean stop
+    store.close()
+
+    # a restart after a clean stop resumes the final checkpoint with its target network and Adam moments
+    again = daemon_factory(config=d.config, state_dir=d.state_dir).start().wait_ready()
+    st = again.ok("status")
+    assert st["resumed_from_updates"] >= status["learner_updates"] > 0  # the learner ran on until the stop
+    assert st["trainer_state"] == f"restored at update {st['resumed_from_updates']}"
+    assert "restored at update" in again.log()
 
 
 def test_kill_9_at_random_points_then_resume(daemon_factory, tmp_path):
@@ -104,6 +112,7 @@ def test_kill_9_at_random_points_then_resume(daemon_factory, tmp_path):
     state_dir = tmp_path / "state"
     config = write_config(tmp_path, state_dir)
     last_updates = 0
+    restored = 0
     for run in range(5):
         d = daemon_factory(config=config, state_dir=state_dir, args=["--autostart"]).start().wait_ready()
         st = d.ok("status")
@@ -118,6 +127,10 @@ def test_kill_9_at_random_points_then_resume(daemon_factory, tmp_path):
             assert st["resumed_from_updates"] == newest and "checkpoint" in st["policy"]
             assert newest >= last_updates  # never goes back
             last_updates = newest
+            # restored with its checkpoint, unless the kill fell between the checkpoint and its trainer state
+            ts = st["trainer_state"]
+            restored += ts == f"restored at update {newest}"
+            assert ts == f"restored at update {newest}" or ("is of update" in ts or "not found" in ts), ts
         stored.close()
         # let some cycles and updates happen, then kill at a random moment (maybe mid-cycle, mid-checkpoint)
         target = st["cycles"] + rng.randint(1, 4)
@@ -131,6 +144,7 @@ def test_kill_9_at_random_points_then_resume(daemon_factory, tmp_path):
     assert store.integrity_check() == "ok"
     assert store.transition_count() == store.query("SELECT COUNT(*) FROM actions WHERE transition_id IS NOT NULL")[0][0]
     assert last_updates > 0
+    assert restored >= 1, "no resumed run got its trainer state back"
 
 
 def test_notify_messages_and_sigterm(daemon_factory, tmp_path):

@@ -73,6 +73,7 @@ class Controller:
         self.runner: CycleRunner | None = None
         self.policy_source = ""
         self.resumed_from_updates = 0
+        self.trainer_state = "fresh"  # what the learner's target network and Adam moments started from
         self.last_checkpoint: str = ""
         self.last_record: CycleRecord | None = None
         self.cycle_in_flight = False
@@ -95,6 +96,7 @@ class Controller:
             log.warning("cannot clean %s: %s", self.checkpoints.directory, exc)
         network = self._initial_network()
         self._build_learning(network)
+        self._restore_trainer_state()
         try:
             self.cell = make_cell(self.config)
         except CellFault as exc:
@@ -161,6 +163,39 @@ class Controller:
             self.config, network, self.replay, checkpoint_callback=self._write_checkpoint,
             updates=self.resumed_from_updates, store=self.store)
 
+    def _restore_trainer_state(self) -> None:
+        """Give a resumed learner back its target network and Adam moments, saved with its checkpoint.
+
+        Only a trainer state written with the very checkpoint the daemon resumed from is used; anything
+        else (none, another update count, unreadable, not fitting the network) leaves the learner as
+        built, target = the checkpoint's weights and fresh moments, and says why in the log and status.
+        """
+        from flgd.training.state import TRAINER_STATE, load_trainer_state, restore_learner
+
+        path = self.state_dir / TRAINER_STATE
+        if not self.last_checkpoint:
+            self.trainer_state = "fresh (no checkpoint to resume)"
+            return
+        if not path.exists():
+            self.trainer_state = f"fresh ({path.name} not found)"
+            log.info("trainer state: %s", self.trainer_state)
+            return
+        try:
+            state = load_trainer_state(path)
+            if state.updates != self.resumed_from_updates:
+                self.trainer_state = (f"fresh ({path.name} is of update {state.updates}, the checkpoint of "
+                                      f"{self.resumed_from_updates})")
+                log.warning("trainer state: %s", self.trainer_state)
+                return
+            restore_learner(self.learner, state)
+        except (OSError, ValueError, RuntimeError, KeyError) as exc:
+            self.learner.reset_trainer_state()
+            self.trainer_state = f"fresh ({path}: {exc})"
+            log.warning("trainer state not used: %s", self.trainer_state)
+            return
+        self.trainer_state = f"restored at update {state.updates}"
+        log.info("trainer state %s from %s", self.trainer_state, path)
+
     # ================================================================== checkpoints
     def _write_checkpoint(self, network: Any, updates: int) -> None:
         """Learner thread: write a checkpoint; a storage failure puts the daemon in FAULT."""
@@ -179,6 +214,24 @@ class Controller:
             raise
         self.last_checkpoint = str(path)
         log.info("checkpoint %s", path)
+        self._write_trainer_state()
+
+    def _write_trainer_state(self) -> None:
+        """Target network and Adam moments beside the checkpoint, so a restart keeps learning where it was.
+
+        Called with the learner quiet (inside its update, or after it stopped).  Replay priorities are
+        not in it: the store has them.  A failure here is logged, not a fault: the checkpoint holds
+        what was learned, and a restart without this file only restarts the optimizer.
+        """
+        import numpy as np
+
+        from flgd.training.state import TRAINER_STATE, save_trainer_state
+
+        try:
+            save_trainer_state(self.state_dir / TRAINER_STATE, self.learner, np.zeros(0, dtype=np.int64),
+                               np.zeros(0, dtype=np.float64))
+        except (OSError, RuntimeError) as exc:
+            log.error("trainer state not saved (a restart will start Adam afresh): %s", exc)
 
     # ================================================================== the run loop
     def run_loop(self, stop_requested: Callable[[], bool] = lambda: False) -> None:
@@ -367,6 +420,7 @@ class Controller:
             "learner_backlog": lr.pending if lr is not None else 0,  # scheduled updates not run yet
             "learner_error": getattr(lr, "last_error", None) if lr is not None else None,
             "resumed_from_updates": self.resumed_from_updates,
+            "trainer_state": self.trainer_state,
             "last_checkpoint": self.last_checkpoint,
             "store_problem": self.store_problem,
             "last_cycle": last,
@@ -433,7 +487,9 @@ class Controller:
                 self._fault(self.store_problem)
                 raise ProtocolError("failed", f"reset: {self.store_problem}")
             self.learner.stop(timeout=30.0)
+            updates = self.learner.updates
             self._build_learning(self.agent.network)
+            self.learner.updates = updates  # checkpoints keep counting on
             self.runner.store, self.runner.replay, self.runner.learner = self.store, self.replay, self.learner
             self.runner.agent = self.agent
             self.runner.step = self._next_step()

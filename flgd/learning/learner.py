@@ -342,6 +342,13 @@ class Learner:
             self._next_value.clear()
         self.publish()
 
+    def reset_trainer_state(self) -> None:
+        """Target = online weights and fresh Adam moments: what a learner built on the network starts with."""
+        with self._update_lock:
+            self.target.load_state_dict(self.online.state_dict())
+            self.optimizer.state.clear()
+            self._next_value.clear()
+
     # ------------------------------------------------------------------ background thread
 
     def notify_new_transition(self) -> None:

@@ -9,7 +9,8 @@ replay's default priorities, and says so.
 Tensors: ``target.<name>`` (target network), ``adam.<i>.<key>`` (per
 parameter state of torch.optim.Adam), ``priority.ids`` (int64 store
 transition ids) and ``priority.values`` (float64 raw priorities).
-Metadata: ``updates`` and ``adam_groups`` (JSON of the hyper-parameters).
+Metadata: ``updates`` and ``adam_groups`` (JSON of the hyper-parameters when saved; on restore the
+configured ones are used, so an edited learning rate takes effect).
 """
 
 from __future__ import annotations
@@ -82,13 +83,34 @@ def load_trainer_state(path: str | os.PathLike) -> TrainerState:
 
 
 def restore_learner(learner, state: TrainerState) -> None:
-    """Load target weights and Adam state into ``learner`` (shapes are checked by torch)."""
+    """Load target weights and Adam state into ``learner``.
+
+    Everything is checked against the learner's network before anything is loaded (a ValueError names the
+    first misfit), so a state of another network leaves the learner untouched instead of half restored.
+    """
+    expected = learner.target.state_dict()
+    if set(state.target) != set(expected):
+        missing, extra = sorted(set(expected) - set(state.target)), sorted(set(state.target) - set(expected))
+        raise ValueError(f"trainer state's target network does not fit: missing {missing[:3]}, "
+                         f"unexpected {extra[:3]}")
+    for name, tensor in expected.items():
+        if tuple(state.target[name].shape) != tuple(tensor.shape):
+            raise ValueError(f"trainer state's target.{name} has shape {tuple(state.target[name].shape)}, "
+                             f"the network {tuple(tensor.shape)}")
+    params = [p for g in learner.optimizer.param_groups for p in g["params"]]
+    for i, st in state.adam_state.items():
+        if not 0 <= i < len(params):
+            raise ValueError(f"trainer state has Adam state for parameter {i}; the network has {len(params)}")
+        for key in ("exp_avg", "exp_avg_sq"):
+            if key in st and tuple(st[key].shape) != tuple(params[i].shape):
+                raise ValueError(f"trainer state's adam.{i}.{key} has shape {tuple(st[key].shape)}, "
+                                 f"parameter {i} {tuple(params[i].shape)}")
+    if len(state.adam_groups) != len(learner.optimizer.param_groups):
+        raise ValueError(f"trainer state has {len(state.adam_groups)} Adam parameter groups, the learner "
+                         f"{len(learner.optimizer.param_groups)}")
     learner.target.load_state_dict(state.target)
-    opt = learner.optimizer.state_dict()
-    groups = opt["param_groups"]
-    for g, saved in zip(groups, state.adam_groups):
-        for k, v in saved.items():
-            if k != "params":
-                g[k] = v
+    # The moments are state and come back; learning rate and the other settings stay the configured
+    # ones, so that an edited config (say a lower learning rate to fine-tune) takes effect on resume.
+    groups = learner.optimizer.state_dict()["param_groups"]
     learner.optimizer.load_state_dict({"state": {i: dict(s) for i, s in state.adam_state.items()},
                                        "param_groups": groups})
