@@ -820,6 +820,11 @@ class SimCell(Cell):
             volume = float(np.prod(geom.extents)) * 0.7
             return objects.ObjectSpec(shape=shape, size=dims, color=colour, mass=max(volume * density, 0.02),
                                       friction=friction)
+        if kind.startswith(objects.MESH_PREFIX):
+            path = kind[len(objects.MESH_PREFIX):]
+            density = float(rng.uniform(400, 900)) if dr else 600.0
+            mass = max(objects.mesh_volume(path) * density, 0.02)
+            return objects.ObjectSpec(mesh=path, color=colour, mass=mass, friction=friction)
         if kind not in self._natural_extents:
             self._natural_extents[kind] = objects.natural_extents(kind, self._client)
         scale = objects.graspable_scale(self._natural_extents[kind], float(rng.uniform(0.05, 0.09)),

@@ -24,7 +24,7 @@ from sim_cell import shapes
 __all__ = ["ObjectSpec", "SpawnedObject", "spawn", "read_obj", "resolve_object_set", "resolve_object_groups",
            "draw_object_kind", "PYBULLET_DATA",
            "NAMED_NOVEL_OBJECTS", "body_aabb", "natural_size", "natural_extents", "graspable_scale",
-           "quaternion_from_matrix"]
+           "quaternion_from_matrix", "MESH_PREFIX", "mesh_volume"]
 
 PYBULLET_DATA = Path(pybullet_data.getDataPath())
 GRASPABLE_FRACTION = 0.9  # a novel object's worst-case width across the fingers is at most this share of the opening
@@ -39,6 +39,7 @@ NAMED_NOVEL_OBJECTS = {
     "sphere_small": "sphere_small.urdf",
     "soccerball": "soccerball.urdf",
 }
+MESH_PREFIX = "mesh:"  # object kinds that are OBJ files, as resolve_object_groups names them
 # A mesh whose faces leave a vertex this far on the outside of some face plane is concave.
 _CONCAVITY = 0.003   # m
 _SLABS = 12          # convex slabs of a concave mesh
@@ -204,6 +205,13 @@ def _volume(v: np.ndarray, tris: np.ndarray) -> float:
     return abs(float(np.einsum("ij,ij->i", a, np.cross(b, c)).sum()) / 6.0)
 
 
+@lru_cache(maxsize=64)
+def mesh_volume(path: str, scale: float = 1.0) -> float:
+    """Volume (m^3) enclosed by an OBJ mesh at ``scale``: a random mesh object's mass is density times it."""
+    v, tris = read_obj(path)
+    return _volume(v * scale, tris)
+
+
 def _mesh_body(client: int, spec: ObjectSpec) -> tuple[int, np.ndarray]:
     path = str(Path(spec.mesh).resolve())
     parts, verts = _mesh_parts(path, float(spec.scale))
@@ -286,9 +294,11 @@ def resolve_object_groups(object_set: str) -> list[list[str]]:
 
     A random object first draws an item, then a kind within it, so ``'blocks,random_urdfs/0??/*.urdf'``
     is half blocks and half URDF models however many files the glob matches.  Items: 'blocks' (the
-    procedural shapes, ``shapes.SHAPES``), a block shape, a short name (``NAMED_NOVEL_OBJECTS``), or a
-    URDF path or glob relative to pybullet_data, e.g. 'random_urdfs/00[0-9]/*.urdf'.  Each item must
-    match something.
+    procedural shapes, ``shapes.SHAPES``), a block shape, a short name (``NAMED_NOVEL_OBJECTS``), a
+    URDF path or glob relative to pybullet_data, e.g. 'random_urdfs/00[0-9]/*.urdf', or an OBJ mesh
+    path or glob ending in '.obj' (absolute, or relative to pybullet_data; used at its stored size, in
+    metres), e.g. VPG's toy blocks '/data/vpg/objects/blocks/*.obj' (kind 'mesh:<absolute path>').
+    Each item must match something.
     """
     text = object_set.strip()
     if text == "":
@@ -306,7 +316,15 @@ def resolve_object_groups(object_set: str) -> list[list[str]]:
         if item in NAMED_NOVEL_OBJECTS:
             groups.append([NAMED_NOVEL_OBJECTS[item]])
             continue
-        base = Path(item) if os.path.isabs(item) else PYBULLET_DATA / item
+        base = Path(os.path.expanduser(item))
+        base = base if base.is_absolute() else PYBULLET_DATA / base
+        if item.lower().endswith(".obj"):
+            meshes = sorted(m for m in glob.glob(str(base)) if os.path.isfile(m))
+            if not meshes:
+                raise ValueError(f"sim.object_set: item {item!r} matches no OBJ file ({base}); give an absolute "
+                                 f"path or glob such as '/data/vpg/objects/blocks/*.obj'")
+            groups.append([MESH_PREFIX + str(Path(m).resolve()) for m in meshes])
+            continue
         matches = sorted(glob.glob(str(base)))
         matches = [m for m in matches if m.endswith(".urdf")]
         if not matches:

@@ -165,3 +165,33 @@ def test_object_set_items_are_drawn_evenly_however_many_files_a_glob_matches():
         resolve_object_groups("blocks,nothing_like_this_*.urdf")
     with pytest.raises(ValueError, match="at least one object kind"):
         resolve_object_groups(" , ")
+
+
+@needs_vpg
+def test_random_clutter_of_obj_meshes_drops_those_meshes_at_their_size():
+    """VPG's toy blocks (OBJ files) as a random object set, the way VPG and the paper trained."""
+    from sim_cell.objects import MESH_PREFIX, mesh_volume, resolve_object_groups
+
+    item = str(VPG / "objects" / "blocks" / "*.obj")
+    groups = resolve_object_groups(f"blocks,{item}")
+    assert len(groups) == 2 and len(groups[1]) == 8
+    assert all(k.startswith(MESH_PREFIX) and k.endswith(".obj") for k in groups[1])
+    assert mesh_volume(groups[1][4][len(MESH_PREFIX):]) == pytest.approx(0.05 ** 3, rel=0.02)  # 4.obj: 5 cm cube
+    with pytest.raises(ValueError, match="matches no OBJ file"):
+        resolve_object_groups(str(VPG / "objects" / "blocks" / "no-such-*.obj"))
+
+    cfg = dataclasses.replace(CFG, sim=dataclasses.replace(CFG.sim, objects=6, object_set=item, depth_noise=False,
+                                                            seed=4))
+    cell = SimCell(cfg)
+    try:
+        assert cell.make_clutter(6) == 6
+        states = cell.object_states()
+        assert {s.label for s in states} <= {f"{n}.obj" for n in (0, 1, 2, 3, 4, 6, 7, 8)}
+        assert len({s.label for s in states}) >= 3
+        xs, ys = CFG.workspace.x, CFG.workspace.y
+        for s in states:  # settled on the table inside the workspace, nothing left in the air
+            x, y, _ = s.position
+            assert xs[0] <= x <= xs[1] and ys[0] <= y <= ys[1]
+            assert s.points[:, 2].min() < 0.01 + CFG.workspace.z[0] + 0.05 and s.top < 0.16
+    finally:
+        cell.close()
