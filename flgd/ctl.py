@@ -157,7 +157,8 @@ def _human(command: str, reply: dict, extra: dict) -> str:
                  f"policy        {r['policy']}",
                  f"learner       {r['learner_updates']} updates ({r.get('learner_backlog', 0)} waiting), "
                  f"replay {r['replay_size']} "
-                 f"(stored {r['stored_transitions']}), last checkpoint {r['last_checkpoint'] or '-'}",
+                 f"(stored {r['stored_transitions']}), last checkpoint {r['last_checkpoint'] or '-'}, "
+                 f"optimizer {r.get('trainer_state', '-')}",
                  f"state dir     {r['state_dir']}   pid {r['pid']}"]
         if r.get("learner_error"):
             lines.append(f"learner error {r['learner_error']}")

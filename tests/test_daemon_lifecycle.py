@@ -104,6 +104,7 @@ def test_start_pause_reset_start_stop_and_stats_match_the_log(daemon_factory, tm
     assert st["resumed_from_updates"] >= status["learner_updates"] > 0  # the learner ran on until the stop
     assert st["trainer_state"] == f"restored at update {st['resumed_from_updates']}"
     assert "restored at update" in again.log()
+    assert f"optimizer restored at update {st['resumed_from_updates']}" in again.ctl("status").stdout
 
 
 def test_kill_9_at_random_points_then_resume(daemon_factory, tmp_path):
