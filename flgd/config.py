@@ -218,6 +218,9 @@ class LearningConfig:
                                       help="chance a replayed transition is trained as its mirror image")
     next_argmax_max_age: int = param(0, ge=0, unit="updates",
                                      help="reuse a next state's double-DQN argmax this long (0 = always recompute)")
+    max_backlog: int = param(0, ge=0, unit="updates",
+                             help="most scheduled updates the background learner may owe; more are dropped "
+                                  "(0 = no limit)")
     replay_capacity: int = param(20000, ge=1)
     priority_alpha: float = param(0.6, ge=0.0, le=1.0)
     priority_beta_start: float = param(0.4, ge=0.0, le=1.0)

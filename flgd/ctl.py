@@ -155,7 +155,8 @@ def _human(command: str, reply: dict, extra: dict) -> str:
                  f"picks/h: {'-' if r.get('picks_per_hour') is None else format(r['picks_per_hour'], '.0f')})",
                  f"backend       {r['backend']}   config {r['config']}",
                  f"policy        {r['policy']}",
-                 f"learner       {r['learner_updates']} updates ({r.get('learner_backlog', 0)} waiting), "
+                 f"learner       {r['learner_updates']} updates ({r.get('learner_backlog', 0)} waiting, "
+                 f"{r.get('learner_dropped', 0)} dropped), "
                  f"replay {r['replay_size']} "
                  f"(stored {r['stored_transitions']}), last checkpoint {r['last_checkpoint'] or '-'}, "
                  f"optimizer {r.get('trainer_state', '-')}",

@@ -82,7 +82,7 @@ def test_start_pause_reset_start_stop_and_stats_match_the_log(daemon_factory, tm
     status = d.ok("status")
     assert status["stored_transitions"] == db["transitions"] == status["replay_size"]
     assert isinstance(status["learner_backlog"], int) and status["learner_backlog"] >= 0
-    assert "waiting), replay" in d.ctl("status").stdout
+    assert "dropped), replay" in d.ctl("status").stdout
 
     p = d.ctl("stop")
     assert p.returncode == 0

@@ -287,3 +287,22 @@ def test_learning_is_deterministic_for_a_fixed_seed():
 
     a, b = run(), run()
     assert all(torch.equal(a[k], b[k]) for k in a)
+
+
+def test_the_backlog_is_capped_and_the_dropped_updates_are_counted():
+    """A learner slower than the cell owes at most max_backlog updates (never less than one action's)."""
+    capped = learner(config(updates_per_action=3, max_backlog=7))
+    for _ in range(10):
+        capped.notify_new_transition()
+    assert capped.pending == 7 and capped.dropped_updates == 23
+    tight = learner(config(updates_per_action=3, max_backlog=2))
+    tight.notify_new_transition()
+    tight.notify_new_transition()
+    assert tight.pending == 3 and tight.dropped_updates == 3
+    unlimited = learner(config(updates_per_action=3, max_backlog=0))
+    for _ in range(10):
+        unlimited.notify_new_transition()
+    assert unlimited.pending == 30 and unlimited.dropped_updates == 0
+    # what is owed is still run: the synchronous mode drains the capped backlog exactly
+    capped.replay.add(Transition(scene(1), Action("grasp", 9, 20, 3), 1.0, None, True))
+    assert len(capped.update_pending()) == 7 and capped.pending == 0 and capped.updates == 7

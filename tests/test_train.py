@@ -11,6 +11,7 @@ import time
 from pathlib import Path
 
 import pytest
+import yaml
 
 from flgd.cell import Cell, CellFault
 from flgd.learning.policy_file import load_policy
@@ -20,6 +21,7 @@ from flgd.training.run import main as train_main
 
 REPO = Path(__file__).resolve().parents[1]
 CONFIG = str(REPO / "cell_config" / "sim.yaml")
+U = yaml.safe_load(Path(CONFIG).read_text())["learning"]["updates_per_action"]  # sim.yaml's, run synchronously
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
 
@@ -43,14 +45,14 @@ def test_a_short_run_writes_log_checkpoint_and_curve_then_resumes(tmp_path):
         assert float(r["epsilon"]) > 0 and r["rule"]
         assert int(r["objects_left"]) >= 0 and r["scene_kind"] == "random 10"
         assert float(r["t_update"]) > 0 and float(r["duration"]) > 0
-    assert [int(r["updates"]) for r in rows] == [3, 6, 9]  # sim.yaml: updates_per_action = 3, synchronous
+    assert U >= 1 and [int(r["updates"]) for r in rows] == [U, 2 * U, 3 * U]
 
     ckpts = _checkpoints(out)
-    assert [c.name for c in ckpts] == ["checkpoint-0000000009.safetensors"]
+    assert [c.name for c in ckpts] == [f"checkpoint-{3 * U:010d}.safetensors"]
     policy = load_policy(ckpts[0], expected_variant="fast")
     assert policy.metadata["training_steps"] == 3
     assert policy.metadata["train_variant"] == "flg" and policy.metadata["method"] == "FLG"
-    assert policy.metadata["seed"] == 5 and policy.metadata["learner_updates"] == 9
+    assert policy.metadata["seed"] == 5 and policy.metadata["learner_updates"] == 3 * U
     assert (out / "curve.png").read_bytes()[:8] == PNG_MAGIC
     info = json.loads((out / "run.json").read_text())
     assert info["status"] == "finished" and info["step"] == 3 and info["settings"]["seed"] == 5
@@ -59,22 +61,28 @@ def test_a_short_run_writes_log_checkpoint_and_curve_then_resumes(tmp_path):
     assert train_main(["--out", str(out), "--steps", "5", "--threads", "1"]) == 0
     rows = read_rows(out / "actions.csv")
     assert [int(r["step"]) for r in rows] == [0, 1, 2, 3, 4]
-    assert [int(r["updates"]) for r in rows[3:]] == [12, 15]  # the learner's count continues too
+    # the learner's count continues too: U more per action, none for an action the simulator discarded
+    expected, count = [], 3 * U
+    for r in rows[3:]:
+        count += 0 if r["outcome"] == "discarded" else U
+        expected.append(count)
+    assert rows[3]["outcome"] != "discarded" and [int(r["updates"]) for r in rows[3:]] == expected
     info = json.loads((out / "run.json").read_text())
     assert [s["from_step"] for s in info["segments"]] == [0, 3]
-    assert info["segments"][1]["from_updates"] == 9
-    assert "checkpoint-0000000009" in info["segments"][1]["source"]
+    assert info["segments"][1]["from_updates"] == 3 * U
+    assert f"checkpoint-{3 * U:010d}" in info["segments"][1]["source"]
     assert info["segments"][1]["code"] not in ("", None)
-    assert info["segments"][1]["learning"]["updates_per_action"] == 3
+    assert info["segments"][1]["learning"]["updates_per_action"] == U
     assert info["segments"][0]["exploration"]["epsilon_start"] == 0.5
     assert info["segments"][0]["objects"]["object_set"] == "blocks"
     store = Store(out)
     try:
-        assert store.transition_count() == 5  # the replay of the first segment was kept and extended
+        kept = sum(r["outcome"] != "discarded" for r in rows)
+        assert kept >= 4 and store.transition_count() == kept  # the first segment's replay, kept and extended
         assert store.next_step() == 5
     finally:
         store.close()
-    assert _checkpoints(out)[-1].name == "checkpoint-0000000015.safetensors"
+    assert _checkpoints(out)[-1].name == f"checkpoint-{expected[-1]:010d}.safetensors"
 
     # other settings for an existing run directory are refused, naming the flag
     assert train_main(["--out", str(out), "--variant", "dpen"]) == 2

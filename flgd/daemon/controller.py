@@ -418,6 +418,7 @@ class Controller:
             "learner_updates": lr.updates if lr is not None else 0,
             "learner_running": bool(lr is not None and lr.running),
             "learner_backlog": lr.pending if lr is not None else 0,  # scheduled updates not run yet
+            "learner_dropped": getattr(lr, "dropped_updates", 0) if lr is not None else 0,  # backlog was full
             "learner_error": getattr(lr, "last_error", None) if lr is not None else None,
             "resumed_from_updates": self.resumed_from_updates,
             "trainer_state": self.trainer_state,

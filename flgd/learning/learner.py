@@ -129,6 +129,7 @@ class Learner:
         self.thread_nice = thread_nice
         self.updates = 0
         self.failed_updates = 0
+        self.dropped_updates = 0  # scheduled updates dropped because the backlog was full (max_backlog)
         self.last_error: str | None = None
         self.last_stats: UpdateStats | None = None
         self._update_lock = threading.Lock()
@@ -352,9 +353,20 @@ class Learner:
     # ------------------------------------------------------------------ background thread
 
     def notify_new_transition(self) -> None:
-        """A transition was added: schedule ``updates_per_action`` updates."""
+        """A transition was added: schedule ``updates_per_action`` updates.
+
+        With ``max_backlog`` > 0 at most that many (and never fewer than one action's) stay owed: on a cell
+        whose cycles are faster than the learner (the simulator) the backlog would otherwise grow without
+        end, and the updates would be of ever older data.  The dropped ones are counted.
+        """
+        lc = self.config.learning
         with self._cond:
-            self._pending += self.config.learning.updates_per_action
+            self._pending += lc.updates_per_action
+            if lc.max_backlog > 0:
+                cap = max(lc.max_backlog, lc.updates_per_action)
+                if self._pending > cap:
+                    self.dropped_updates += self._pending - cap
+                    self._pending = cap
             self._cond.notify_all()
 
     @property
