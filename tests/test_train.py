@@ -261,3 +261,39 @@ def test_a_cell_that_keeps_failing_stops_the_run(tmp_path):
     with pytest.raises(RuntimeError, match="cell faults in a row"):
         _run_with_flaky_cell(tmp_path, errors=list(range(1, 50)), faults=[], steps=20)
     assert run_module.MAX_CONSECUTIVE_FAULTS == 5
+
+
+def test_a_run_can_start_from_a_policy_file_and_refuses_a_bad_one(tmp_path, capsys):
+    """--init-policy: the weights come from the file (then train on), the replay starts empty."""
+    import torch
+
+    from flgd.learning.networks import build_network
+
+    shipped = REPO / "policies" / "flg-sim.safetensors"
+    out = tmp_path / "finetune"
+    assert _train(out, "--steps", "1", "--seed", "2", "--init-policy", str(shipped)) == 0
+    info = json.loads((out / "run.json").read_text())
+    assert info["settings"]["init_policy"] == str(shipped.resolve())
+    assert info["segments"][0]["source"] == f"policy {shipped.resolve()}"
+    trained = load_policy(_checkpoints(out)[-1], expected_variant="fast").network.state_dict()
+    start = load_policy(shipped, expected_variant="fast").network.state_dict()
+    fresh = build_network("fast", 16, seed=2).state_dict()
+    weights = [k for k, v in start.items() if v.is_floating_point() and v.ndim > 1]
+    # U Adam steps move a weight by about U * lr at most; a fresh network is nowhere near the policy
+    assert max(float((trained[k] - start[k]).abs().max()) for k in weights) < 0.02
+    assert max(float((fresh[k] - start[k]).abs().max()) for k in weights) > 0.1
+    store = Store(out)
+    try:
+        assert store.transition_count() == 1
+    finally:
+        store.close()
+
+    # resuming with another start is refused; a file that is not a policy never starts a run
+    assert train_main(["--out", str(out), "--steps", "2", "--init-policy", str(tmp_path / "other.safetensors")]) == 2
+    assert "was started with" in capsys.readouterr().err
+    bad = tmp_path / "bad.safetensors"
+    bad.write_bytes(b"not a policy")
+    assert _train(tmp_path / "never", "--steps", "1", "--init-policy", str(bad)) == 2
+    err = capsys.readouterr().err
+    assert "--init-policy" in err and "bad.safetensors" in err
+    assert not (tmp_path / "never" / "run.json").exists()

@@ -84,11 +84,13 @@ class RunSettings:
     seed: int = 0
     curriculum: bool = False
     grasp_only: bool = False
+    init_policy: str = ""  # a new run starts from this policy file's weights (fresh replay and optimizer)
 
     def describe(self) -> str:
         scene = "curriculum 10->20 objects + presets" if self.curriculum else f"{self.objects} objects"
         mode = ", grasp only" if self.grasp_only else ""
-        return f"{self.variant} ({TRAIN_VARIANTS[self.variant][2]}), {scene}{mode}, seed {self.seed}"
+        start = f", from {self.init_policy}" if self.init_policy else ""
+        return f"{self.variant} ({TRAIN_VARIANTS[self.variant][2]}), {scene}{mode}, seed {self.seed}{start}"
 
 
 def _derived_seed(seed: int, segment: int, stream: int) -> int:
@@ -227,7 +229,7 @@ class TrainingRun:
         self.store = Store(self.out, keep_transitions=self.config.learning.replay_capacity)
         self.checkpoints = CheckpointDir(self.out / "checkpoints", keep=1_000_000)
         self.checkpoints.remove_temporary()
-        start = starting_network(self.config, self.checkpoints, None)
+        start = starting_network(self.config, self.checkpoints, self.settings.init_policy or None)
         self.last_checkpoint_updates = start.resumed_from_updates if start.checkpoint else -1
         lc = self.config.learning
         replay_seed = _derived_seed(self.settings.seed, self.segment, 3)
@@ -502,6 +504,9 @@ def _parser() -> argparse.ArgumentParser:
                    help="paper IV-A curriculum: few moves for 500 steps, 10 -> 20 objects from step 400, "
                         "preset piles after 1500 steps")
     p.add_argument("--grasp-only", action="store_true", default=None, help="never move (paper's Grasping-only)")
+    p.add_argument("--init-policy", metavar="FILE",
+                   help="start a new run from this policy file (e.g. to fine-tune the shipped policy on other "
+                        "objects) instead of a fresh network; the replay and optimizer start empty")
     p.add_argument("--threads", type=int, help="torch CPU threads (default: learning.threads of the config)")
     p.add_argument("--log-every", type=int, default=25, help="steps between plain progress lines (no terminal)")
     return p
@@ -510,13 +515,14 @@ def _parser() -> argparse.ArgumentParser:
 def _settings(args: argparse.Namespace, previous: dict | None) -> RunSettings:
     """Settings from the command line, checked against a run being resumed."""
     given = {"variant": args.variant, "objects": args.objects, "steps": args.steps, "seed": args.seed,
-             "curriculum": args.curriculum, "grasp_only": args.grasp_only}
+             "curriculum": args.curriculum, "grasp_only": args.grasp_only,
+             "init_policy": None if args.init_policy is None else str(Path(args.init_policy).resolve())}
     if previous:
         for key, value in given.items():
             if key != "steps" and value is not None and value != previous.get(key):
                 raise ValueError(f"--{key.replace('_', '-')}: got {value!r}, but the run in --out was started "
                                  f"with {previous.get(key)!r}; use another --out for other settings")
-        merged = {**previous, **{k: v for k, v in given.items() if v is not None}}
+        merged = {**dataclasses.asdict(RunSettings()), **previous, **{k: v for k, v in given.items() if v is not None}}
         return RunSettings(**{f.name: merged[f.name] for f in dataclasses.fields(RunSettings)})
     defaults = RunSettings()
     s = RunSettings(**{k: (getattr(defaults, k) if v is None else v) for k, v in given.items()})
@@ -540,6 +546,12 @@ def main(argv: list[str]) -> int:
                 raise ValueError(f"--{name}: got {v!r}, expected " + ("1..60" if name == "objects" else ">= 0"))
         if args.threads is not None and args.threads < 0:
             raise ValueError(f"--threads: got {args.threads!r}, expected >= 0")
+        if settings.init_policy and not previous_info:
+            from flgd.learning.policy_file import PolicyFileError, load_policy
+            try:
+                load_policy(settings.init_policy, expected_variant=TRAIN_VARIANTS[settings.variant][0])
+            except PolicyFileError as exc:
+                raise ValueError(f"--init-policy: {exc}") from None
     except ValueError as exc:
         print(f"flgd train: {exc}", file=sys.stderr)
         return EXIT_USAGE
