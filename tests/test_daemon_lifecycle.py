@@ -106,6 +106,14 @@ def test_start_pause_reset_start_stop_and_stats_match_the_log(daemon_factory, tm
     assert "restored at update" in again.log()
     assert f"optimizer restored at update {st['resumed_from_updates']}" in again.ctl("status").stdout
 
+    # a trainer state that cannot be read is reported and skipped: the daemon starts and runs on its checkpoint
+    assert again.ctl("stop").returncode == 0 and again.wait_exit() == 0
+    (d.state_dir / "trainer-state.safetensors").write_bytes(b"cut off")
+    third = daemon_factory(config=d.config, state_dir=d.state_dir, args=["--autostart"]).start().wait_ready()
+    st = third.ok("status")
+    assert st["trainer_state"].startswith("fresh (") and "not a readable trainer state" in st["trainer_state"]
+    third.wait_for(lambda s: s["cycles"] >= st["cycles"] + 1, "a cycle after a bad trainer state")
+
 
 def test_kill_9_at_random_points_then_resume(daemon_factory, tmp_path):
     """Five runs killed at random instants: nothing corrupt, replay == stored, learning resumes."""

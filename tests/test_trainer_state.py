@@ -4,7 +4,6 @@ learning rate in the config wins over the saved one."""
 
 from __future__ import annotations
 
-import dataclasses
 
 import numpy as np
 import pytest
@@ -16,22 +15,13 @@ from flgd.learning.learner import Learner
 from flgd.learning.networks import build_network
 from flgd.learning.replay import PrioritizedReplay, Transition
 from flgd.training.state import load_trainer_state, restore_learner, save_trainer_state
-from tests.test_learning_learner import scene
-
-
-@pytest.fixture(autouse=True)
-def one_thread():
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+from tests.test_learning_learner import config as learner_config
+from tests.test_learning_learner import one_thread, scene  # noqa: F401 (one_thread: autouse fixture)
 
 
 def config(**learning) -> CellConfig:
-    cfg = CellConfig()
-    base = dict(batch_size=2, device="cpu", target_update_every=1000, seed=3)
-    base.update(learning)
-    return dataclasses.replace(cfg, learning=dataclasses.replace(cfg.learning, **base))
+    """The learner tests' config, with no target sync during a test and a fixed seed."""
+    return learner_config(**{"target_update_every": 1000, "seed": 3, **learning})
 
 
 def filled_replay(cfg: CellConfig) -> PrioritizedReplay:
@@ -126,3 +116,16 @@ def test_reset_trainer_state_gives_what_a_new_learner_starts_with():
     for name, value in lrn.online.state_dict().items():
         assert torch.equal(lrn.target.state_dict()[name], value), name
     assert lrn.update() is not None  # and it still trains
+
+
+def test_an_unreadable_or_incomplete_file_is_a_value_error_naming_it(tmp_path):
+    garbage = tmp_path / "trainer-state.safetensors"
+    garbage.write_bytes(b"half a file, cut off by a power cut")
+    with pytest.raises(ValueError, match="trainer-state.safetensors.*not a readable trainer state"):
+        load_trainer_state(garbage)
+    from safetensors.torch import save_file
+
+    partial = tmp_path / "partial.safetensors"
+    save_file({"target.x": torch.zeros(2)}, str(partial), metadata={"updates": "4", "adam_groups": "[]"})
+    with pytest.raises(ValueError, match="partial.safetensors.*incomplete.*priority.ids"):
+        load_trainer_state(partial)

@@ -61,25 +61,29 @@ def save_trainer_state(path: str | os.PathLike, learner, priority_ids: np.ndarra
 
 
 def load_trainer_state(path: str | os.PathLike) -> TrainerState:
-    from safetensors import safe_open
+    """Read a trainer state; anything unreadable or incomplete is a ValueError naming the file (OSError if absent)."""
+    from safetensors import SafetensorError, safe_open
 
     path = Path(path)
-    with safe_open(str(path), framework="pt") as f:
-        meta = f.metadata() or {}
-    tensors = load_file(str(path))
+    try:
+        with safe_open(str(path), framework="pt") as f:
+            meta = f.metadata() or {}
+        tensors = load_file(str(path))
+    except SafetensorError as exc:  # not an Exception subclass its callers could otherwise expect
+        raise ValueError(f"{path}: not a readable trainer state: {exc}") from None
     try:
         updates = int(meta["updates"])
         groups = json.loads(meta["adam_groups"])
-    except (KeyError, ValueError) as exc:
-        raise ValueError(f"{path}: trainer state metadata is incomplete: {exc}") from None
-    target = {k[len("target."):]: v for k, v in tensors.items() if k.startswith("target.")}
-    adam: dict[int, dict[str, torch.Tensor]] = {}
-    for k, v in tensors.items():
-        if k.startswith("adam."):
-            _, i, key = k.split(".", 2)
-            adam.setdefault(int(i), {})[key] = v
-    return TrainerState(updates, target, adam, groups, tensors["priority.ids"].numpy(),
-                        tensors["priority.values"].numpy())
+        target = {k[len("target."):]: v for k, v in tensors.items() if k.startswith("target.")}
+        adam: dict[int, dict[str, torch.Tensor]] = {}
+        for k, v in tensors.items():
+            if k.startswith("adam."):
+                _, i, key = k.split(".", 2)
+                adam.setdefault(int(i), {})[key] = v
+        priority_ids, priorities = tensors["priority.ids"].numpy(), tensors["priority.values"].numpy()
+    except (KeyError, ValueError, TypeError) as exc:
+        raise ValueError(f"{path}: trainer state is incomplete: {exc!r}") from None
+    return TrainerState(updates, target, adam, groups, priority_ids, priorities)
 
 
 def restore_learner(learner, state: TrainerState) -> None:
