@@ -80,6 +80,7 @@ def main(argv: list[str]) -> int:
     from flgd.config import ConfigError, load_config
     from flgd.evaluation.scene_sets import SceneSetError, named_set
     from flgd.learning.policy_file import PolicyFileError, load_policy
+    from flgd.learning.trunk import TrunkFileError
 
     parts = [p.strip() for p in args.parts.split(",") if p.strip()]
     unknown = sorted(set(parts) - {"vpg", "presets", "novel"})
@@ -90,10 +91,10 @@ def main(argv: list[str]) -> int:
     try:
         config = load_config(args.config)
         if args.fresh:
-            from flgd.learning.networks import build_network
+            from flgd.wiring import fresh_network
 
-            network = build_network(config.learning.network, rotations=config.learning.rotations, seed=args.seed)
-            policy = {"path": f"fresh {config.learning.network} network", "training_steps": 0}
+            network, source = fresh_network(config, args.seed)
+            policy = {"path": source, "training_steps": 0}
         else:
             loaded = load_policy(args.policy)
             network = loaded.network
@@ -110,7 +111,7 @@ def main(argv: list[str]) -> int:
         if "novel" in parts:
             suites.append(("novel objects, isolated", named_set("novel-isolated"), False, args.runs))
             suites.append(("novel objects, clutter of 10", named_set("novel-clutter"), False, args.clutter_runs))
-    except (ConfigError, PolicyFileError, SceneSetError) as exc:
+    except (ConfigError, PolicyFileError, SceneSetError, TrunkFileError) as exc:
         print(f"flgd bench eval: {exc}", file=sys.stderr)
         return 1
 

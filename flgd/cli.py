@@ -18,6 +18,7 @@ _COMMANDS: dict[str, tuple[str, str]] = {
     "run": ("flgd.daemon.run:main", "run the cell-controller daemon (foreground; systemd: Type=notify)"),
     "eval": ("flgd.evaluation.cli:main", "evaluate a policy in simulation (VPG's metrics, scene sets, Q-maps)"),
     "train": ("flgd.training.run:main", "train a policy headless in sim_cell (resumable run directory)"),
+    "pretrain": ("flgd.training.pretrain:main", "pre-train the network's perception trunk on sim ground truth"),
 }
 
 

@@ -221,6 +221,8 @@ class LearningConfig:
     max_backlog: int = param(0, ge=0, unit="updates",
                              help="most scheduled updates the background learner may owe; more are dropped "
                                   "(0 = no limit)")
+    init_trunk: str = param("", help="trunk file from `flgd pretrain` that a fresh network starts from (relative "
+                                     "to the config file); empty = random initial weights")
     replay_capacity: int = param(20000, ge=1)
     priority_alpha: float = param(0.6, ge=0.0, le=1.0)
     priority_beta_start: float = param(0.4, ge=0.0, le=1.0)
@@ -502,6 +504,9 @@ def load_config(path: str | os.PathLike) -> CellConfig:
         cfg = dataclasses.replace(cfg, state_dir=str((p.parent / cfg.state_dir).resolve()))
     if cfg.policy and not os.path.isabs(cfg.policy):
         cfg = dataclasses.replace(cfg, policy=str((p.parent / cfg.policy).resolve()))
+    if cfg.learning.init_trunk and not os.path.isabs(cfg.learning.init_trunk):
+        cfg = dataclasses.replace(cfg, learning=dataclasses.replace(
+            cfg.learning, init_trunk=str((p.parent / cfg.learning.init_trunk).resolve())))
     return cfg
 
 

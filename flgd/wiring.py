@@ -17,7 +17,7 @@ from typing import Any, Callable
 from flgd.config import CellConfig
 from flgd.store import CheckpointDir, Store, StoreError
 
-__all__ = ["StartingNetwork", "starting_network", "rebuild_replay", "build_agent_and_learner"]
+__all__ = ["StartingNetwork", "starting_network", "fresh_network", "rebuild_replay", "build_agent_and_learner"]
 
 log = logging.getLogger("flgd")
 
@@ -31,13 +31,12 @@ class StartingNetwork:
 
 
 def starting_network(config: CellConfig, checkpoints: CheckpointDir, policy_path: str | None) -> StartingNetwork:
-    """The newest readable checkpoint; else ``policy_path``; else a fresh seeded network.
+    """The newest readable checkpoint; else ``policy_path``; else a fresh seeded network (``fresh_network``).
 
     A bad ``policy_path`` raises ``PolicyFileError``; unusable checkpoints are
     skipped with a warning, but the update numbering continues above them so
     checkpoint pruning never removes the new ones.
     """
-    from flgd.learning.networks import build_network
     from flgd.learning.policy_file import PolicyFileError, load_policy
 
     variant = config.learning.network
@@ -55,8 +54,24 @@ def starting_network(config: CellConfig, checkpoints: CheckpointDir, policy_path
     if policy_path:
         loaded = load_policy(policy_path, expected_variant=variant)
         return StartingNetwork(loaded.network, f"policy {policy_path}", resumed, None)
-    network = build_network(variant, rotations=config.learning.rotations, seed=config.learning.seed)
-    return StartingNetwork(network, f"fresh {variant} network (seed {config.learning.seed})", resumed, None)
+    network, source = fresh_network(config, config.learning.seed)
+    return StartingNetwork(network, source, resumed, None)
+
+
+def fresh_network(config: CellConfig, seed: int | None) -> tuple[Any, str]:
+    """(network, description): a new network of the config's variant, its perception layers taken from
+    ``learning.init_trunk`` when one is set (``TrunkFileError`` naming the file when it does not fit)."""
+    from flgd.learning.networks import build_network
+
+    lc = config.learning
+    network = build_network(lc.network, rotations=lc.rotations, seed=seed)
+    source = f"fresh {lc.network} network (seed {seed})"
+    if lc.init_trunk:
+        from flgd.learning.trunk import load_trunk
+
+        load_trunk(network, lc.init_trunk)
+        source += f", trunk {lc.init_trunk}"
+    return network, source
 
 
 def rebuild_replay(config: CellConfig, store: Store | None, seed: int | None = None) -> tuple[Any, str]:

@@ -24,7 +24,7 @@ import pybullet as p
 from flgd.config import CameraConfig
 from flgd.geometry import pose_matrix, rpy_to_matrix
 
-__all__ = ["CameraModel", "DepthNoise", "render", "add_depth_noise", "to_raw_depth"]
+__all__ = ["CameraModel", "DepthNoise", "render", "render_labelled", "add_depth_noise", "to_raw_depth"]
 
 NEAR, FAR = 0.05, 3.0
 NOISE_AT_HALF_METRE = 0.001   # m, std at 0.5 m
@@ -68,17 +68,31 @@ class CameraModel:
 def render(client: int, cam: CameraModel, light_direction=(0.3, -0.2, 1.0), shadow: bool = False,
            ambient: float = 0.6, diffuse: float = 0.4) -> tuple[np.ndarray, np.ndarray]:
     """(colour HxWx3 uint8, metric depth HxW float32 along the optical axis)."""
-    _, _, rgba, zbuf, _ = p.getCameraImage(cam.width, cam.height, viewMatrix=cam.view,
-                                           projectionMatrix=cam.projection, renderer=p.ER_TINY_RENDERER,
-                                           lightDirection=list(light_direction), shadow=int(shadow),
-                                           lightAmbientCoeff=ambient, lightDiffuseCoeff=diffuse,
-                                           lightSpecularCoeff=0.05,
-                                           flags=p.ER_NO_SEGMENTATION_MASK, physicsClientId=client)
+    color, depth, _ = _render(client, cam, light_direction, shadow, ambient, diffuse, segmentation=False)
+    return color, depth
+
+
+def render_labelled(client: int, cam: CameraModel, light_direction=(0.3, -0.2, 1.0), shadow: bool = False,
+                    ambient: float = 0.6, diffuse: float = 0.4) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(colour, depth, body id HxW int32; -1 = nothing): ground truth for perception pre-training."""
+    return _render(client, cam, light_direction, shadow, ambient, diffuse, segmentation=True)
+
+
+def _render(client: int, cam: CameraModel, light_direction, shadow: bool, ambient: float, diffuse: float,
+            segmentation: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    _, _, rgba, zbuf, seg = p.getCameraImage(cam.width, cam.height, viewMatrix=cam.view,
+                                             projectionMatrix=cam.projection, renderer=p.ER_TINY_RENDERER,
+                                             lightDirection=list(light_direction), shadow=int(shadow),
+                                             lightAmbientCoeff=ambient, lightDiffuseCoeff=diffuse,
+                                             lightSpecularCoeff=0.05,
+                                             flags=0 if segmentation else p.ER_NO_SEGMENTATION_MASK,
+                                             physicsClientId=client)
     rgba = np.asarray(rgba, dtype=np.uint8).reshape(cam.height, cam.width, 4)
     zbuf = np.asarray(zbuf, dtype=np.float32).reshape(cam.height, cam.width)
     depth = (FAR * NEAR / (FAR - (FAR - NEAR) * zbuf)).astype(np.float32)
     depth[zbuf >= 1.0] = 0.0  # nothing hit
-    return np.ascontiguousarray(rgba[:, :, :3]), depth
+    labels = np.asarray(seg, dtype=np.int32).reshape(cam.height, cam.width) if segmentation else None
+    return np.ascontiguousarray(rgba[:, :, :3]), depth, labels
 
 
 @dataclass(frozen=True)

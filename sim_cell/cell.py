@@ -213,6 +213,46 @@ class SimCell(Cell):
                          intrinsics=self._camera.intrinsics.copy(), camera_pose=self._camera.pose.copy(),
                          timestamp=self._sim_time)
 
+    def capture_labelled(self) -> tuple[Frame, np.ndarray]:
+        """A frame as ``capture`` makes it plus which object each pixel shows (ground truth, never for a policy).
+
+        Labels are HxW int32: 0 = no object (table, arm, nothing), else the object's body id.  They come from the
+        same render as the frame, so they line up pixel for pixel with its (noisy) depth.
+        """
+        with self._lock:
+            self._check_open()
+            cfg = self.config.camera
+            direction, ambient, diffuse = self._light
+            color, depth, seg = simcam.render_labelled(self._client, self._camera, direction, ambient=ambient,
+                                                       diffuse=diffuse)
+            if self.config.sim.depth_noise:
+                depth = simcam.add_depth_noise(depth, self._noise_rng)
+            raw = simcam.to_raw_depth(depth, cfg.depth_scale, cfg.depth_range)
+            labels = np.where(np.isin(seg, list(self._objects)), seg, 0).astype(np.int32)
+            frame = Frame(color=color, depth=raw, depth_scale=cfg.depth_scale,
+                          intrinsics=self._camera.intrinsics.copy(), camera_pose=self._camera.pose.copy(),
+                          timestamp=self._sim_time)
+            return frame, labels
+
+    def remove_object(self, body: int, settle: float = 0.25) -> bool:
+        """Take one object out of the scene (as if picked) and let the rest settle.
+
+        False when the physics went wrong while settling: the scene was then reset to fresh clutter.
+        """
+        with self._lock:
+            self._check_open()
+            if body not in self._objects:
+                raise ValueError(f"remove_object: no object with body id {body} in the scene")
+            p.removeBody(body, physicsClientId=self._client)
+            self._objects.pop(body)
+            self._held.discard(body)
+            try:
+                self._settle(settle)
+            except _Unstable:
+                self.reset_scene()
+                return False
+            return True
+
     def execute(self, plan: CheckedPlan) -> ExecutionResult:
         """Run a checked plan; ``duration`` is the simulated time the motions took."""
         planned = plan.verify(self.config)

@@ -143,9 +143,11 @@ class Controller:
         from flgd.learning.policy_file import PolicyFileError
         from flgd.wiring import starting_network
 
+        from flgd.learning.trunk import TrunkFileError
+
         try:
             start = starting_network(self.config, self.checkpoints, self.policy_arg)
-        except PolicyFileError as exc:
+        except (PolicyFileError, TrunkFileError) as exc:
             raise StartupError(str(exc)) from exc
         self.resumed_from_updates = start.resumed_from_updates
         self.policy_source = start.source

@@ -184,12 +184,14 @@ def main(argv: list[str]) -> int:
 def _load_network(args: argparse.Namespace, config: Any) -> tuple[Any, dict[str, Any]]:
     """(network, policy description) or (None, {"error": message})."""
     if args.fresh:
-        from flgd.learning.networks import build_network
+        from flgd.learning.trunk import TrunkFileError
+        from flgd.wiring import fresh_network
 
-        lc = config.learning
-        net = build_network(lc.network, rotations=lc.rotations, seed=args.seed)
-        return net, {"path": f"fresh {lc.network} network (seed {args.seed})", "variant": lc.network,
-                     "training_steps": 0}
+        try:
+            net, source = fresh_network(config, args.seed)
+        except TrunkFileError as exc:
+            return None, {"error": f"learning.init_trunk: {exc}"}
+        return net, {"path": source, "variant": config.learning.network, "training_steps": 0}
     from flgd.learning.policy_file import PolicyFileError, load_policy
 
     try:

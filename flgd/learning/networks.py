@@ -98,6 +98,7 @@ __all__ = [
     "build_network",
     "q_maps",
     "rotated_inputs",
+    "rotate_maps",
     "unrotate_maps",
     "normalise",
     "padded_side",
@@ -207,13 +208,17 @@ class FastQNet(QMapNetwork):
     def architecture(self) -> dict:
         return {**super().architecture(), "width": self.width}
 
-    def advantage_and_value(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def features(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(dense stride-4 features [B,2w,h/4,w/4], bottleneck [B,4w,h/8,w/8]): what the Q-maps are read from,
+        and what perception pre-training (``flgd.learning.trunk``) trains."""
         s4 = self.enc2(self.enc1(x))
         s8 = self.context(self.enc3(s4))
         up = F.interpolate(self.squeeze(s8), size=s4.shape[2:], mode="bilinear", align_corners=False)
-        advantage = self.advantage(self.fuse(torch.cat([up, s4], dim=1)))
-        value = self.value(s8.mean(dim=(2, 3)))
-        return advantage, value
+        return self.fuse(torch.cat([up, s4], dim=1)), s8
+
+    def advantage_and_value(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        dense, s8 = self.features(x)
+        return self.advantage(dense), self.value(s8.mean(dim=(2, 3)))
 
 
 class RhoFcnFastQNet(QMapNetwork):
@@ -438,13 +443,21 @@ def rotated_inputs(heightmaps, rotation_indices: Sequence[int], rotations: int, 
                    device: torch.device | str = "cpu") -> tuple[torch.Tensor, torch.Tensor]:
     """The normalised network inputs (colour [n,3,S,S], height [n,1,S,S]) for the given rotations."""
     device = torch.device(device)
-    raw = _as_tensors(heightmaps, device)
-    h, w = raw.shape[2:]
-    side = padded_side(h, w, stride)
-    grid = _grids(h, w, side, rotations, device)[0][list(rotation_indices)]
-    rotated = F.grid_sample(raw.expand(len(rotation_indices), -1, -1, -1), grid, mode="bilinear",
-                            padding_mode="zeros", align_corners=False)
+    rotated = rotate_maps(_as_tensors(heightmaps, device), rotation_indices, rotations, stride)
     return normalise(rotated[:, :3], rotated[:, 3:])
+
+
+def rotate_maps(maps: torch.Tensor, rotation_indices: Sequence[int], rotations: int, stride: int,
+                mode: str = "bilinear") -> torch.Tensor:
+    """Heightmap-frame maps [1,C,H,W] -> the rotated squares [n,C,S,S] the network sees (zero outside).
+
+    ``mode="nearest"`` keeps label maps (e.g. pre-training targets) free of blended values.
+    """
+    h, w = maps.shape[2:]
+    side = padded_side(h, w, stride)
+    grid = _grids(h, w, side, rotations, maps.device)[0][list(rotation_indices)]
+    return F.grid_sample(maps.expand(len(rotation_indices), -1, -1, -1), grid, mode=mode,
+                         padding_mode="zeros", align_corners=False)
 
 
 def unrotate_maps(maps: torch.Tensor, rotation_indices: Sequence[int], rotations: int,

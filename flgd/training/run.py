@@ -568,6 +568,14 @@ def main(argv: list[str]) -> int:
         print(f"flgd train: {config_path}: backend: got {base.backend!r}, expected 'sim' (training runs in "
               "sim_cell; fine-tune on a real cell with `flgd run`)", file=sys.stderr)
         return EXIT_USAGE
+    if base.learning.init_trunk and not previous_info and not settings.init_policy:
+        from flgd.learning.trunk import TrunkFileError
+        from flgd.wiring import fresh_network
+        try:  # a new run would start from it: refuse a trunk that does not fit before anything starts
+            fresh_network(effective_config(base, settings, out), None)
+        except TrunkFileError as exc:
+            print(f"flgd train: {config_path}: learning.init_trunk: {exc}", file=sys.stderr)
+            return EXIT_USAGE
 
     live = sys.stderr.isatty()
     progress = _Progress(sys.stderr, live, every_steps=max(1, args.log_every))
