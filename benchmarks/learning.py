@@ -173,6 +173,20 @@ def _fmt(v: int | None, res: RunResult) -> str:
     return f"> {res.step}" if res.complete else f"not yet (at {res.step})*"
 
 
+def _learner_settings(directory: Path) -> str:
+    """What a run's learning started from and how it learned, from its config.yaml (so that tables
+    made with different settings are never mistaken for one another)."""
+    import yaml
+
+    try:
+        lc = (yaml.safe_load((directory / "config.yaml").read_text()) or {}).get("learning", {})
+    except (OSError, yaml.YAMLError) as exc:
+        return f"config.yaml unreadable ({exc})"
+    start = f"trunk {lc['init_trunk']}" if lc.get("init_trunk") else "random initial weights"
+    return (f"start {start}; lr {lc.get('learning_rate')}, {lc.get('updates_per_action')} updates/action, "
+            f"batch {lc.get('batch_size')}")
+
+
 def report(results: dict[str, RunResult], variants: list[str], seeds: list[int], root: Path,
            steps: int, objects: int, eval_runs: int) -> dict:
     lines = [f"# flgd bench learning ({objects} objects, target {steps} steps per run)", "",
@@ -181,7 +195,13 @@ def report(results: dict[str, RunResult], variants: list[str], seeds: list[int],
              "Steps (actions) until the rolling grasp success over the last W grasp attempts first reaches the "
              "threshold; median [min..max] over seeds (a run that never reached it ranks last).  "
              "`*` = run not finished yet.", ""]
-    out: dict = {"objects": objects, "steps": steps, "variants": {}}
+    settings: dict[str, list[str]] = {}
+    for name, res in sorted(results.items()):
+        settings.setdefault(_learner_settings(res.directory), []).append(name)
+    for text, names in settings.items():
+        lines.append(f"learner settings ({', '.join(names)}): {text}")
+    lines.append("")
+    out: dict = {"objects": objects, "steps": steps, "variants": {}, "settings": settings}
     header = "| variant | W | 80 % | 90 % | per seed (80 % / 90 %) | final rolling success |"
     lines += [header, "|---|---|---|---|---|---|"]
     for v in variants:
