@@ -221,3 +221,14 @@ def test_pretrain_cli_refuses_bad_arguments_and_changed_settings(tmp_path):
     r = run("--out", str(tmp_path / "b"), "--frames", "7", "--held-out", "2", "--steps", "4", "--batch", "2",
             "--crop", "64", "--min-objects", "2", "--max-objects", "3")
     assert r.returncode == 2 and "frames" in r.stderr and "new --out" in r.stderr
+
+
+def test_the_shipped_trunk_is_sim_yamls_start_and_fits_both_fast_networks(tmp_path):
+    assert BASE_CFG.learning.init_trunk == str((REPO / "policies" / "trunk-sim.safetensors").resolve())
+    trunk = read_trunk(BASE_CFG.learning.init_trunk)
+    assert trunk.metadata["width"] == 12 and trunk.metadata["finished"] is True
+    assert trunk.metadata["held_out"]["total"] < 0.25          # it learned (a fresh net: about 1.7)
+    start = starting_network(BASE_CFG, CheckpointDir(tmp_path / "ck"), None)
+    assert "trunk" in start.source
+    assert torch.equal(start.network.state_dict()["fuse.0.weight"], trunk.tensors["fuse.0.weight"])
+    assert load_trunk(build_network("rho-fcn-fast", seed=0), BASE_CFG.learning.init_trunk)
