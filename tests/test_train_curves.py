@@ -119,6 +119,23 @@ def test_bench_report_medians_over_seeds_and_marks_unfinished_runs(tmp_path):
     assert json.loads((tmp_path / "report.json").read_text())["variants"]["dpen"]["runs"]["dpen-s0"]["step"] == 150
 
 
+def test_bench_report_names_each_runs_starting_weights_and_learner_settings(tmp_path):
+    _write_run(tmp_path, "flg-s0", ["G"] * 10, "finished")
+    _write_run(tmp_path, "flg-s1", ["G"] * 10, "finished")
+    (tmp_path / "flg-s0" / "config.yaml").write_text(
+        "learning: {init_trunk: /x/trunk.safetensors, learning_rate: 0.0005, updates_per_action: 6, batch_size: 4}\n")
+    (tmp_path / "flg-s1" / "config.yaml").write_text(
+        "learning: {init_trunk: '', learning_rate: 0.0001, updates_per_action: 1, batch_size: 4}\n")
+    specs = bench.run_specs(["flg"], [0, 1], table2=False)
+    results = {s.name: bench.read_run(tmp_path / s.name, s, 10) for s in specs}
+    out = bench.report(results, ["flg"], [0, 1], tmp_path, steps=10, objects=10, eval_runs=1)
+    text = (tmp_path / "report.md").read_text()
+    assert ("learner settings (flg-s0): start trunk /x/trunk.safetensors; lr 0.0005, 6 updates/action, batch 4"
+            in text)
+    assert "learner settings (flg-s1): start random initial weights; lr 0.0001, 1 updates/action" in text
+    assert len(out["settings"]) == 2
+
+
 def test_bench_commands_use_one_thread_and_the_run_directory(tmp_path):
     spec = bench.run_specs(["rho-fcn"], [3], table2=True)
     assert [s.name for s in spec] == ["rho-fcn-s3"]  # Table II runs need the flg variant
