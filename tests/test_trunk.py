@@ -87,6 +87,7 @@ def test_labels_line_up_with_the_objects_and_follow_a_removal():
         assert data["color"].shape == (3, 224, 224, 3) and data["labels"].shape == (3, 224, 224)
         assert [int(m.max()) for m in data["labels"]] == [2, 1, 2]
         assert np.all(data["height"][data["labels"] > 0] > 0.005)
+        assert collect_frames(cell, ws, depth_range, 3, (2, 2), 2, np.random.default_rng(0), stop=lambda: True) is None
     finally:
         cell.close()
 

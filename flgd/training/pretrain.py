@@ -43,14 +43,17 @@ EXIT_OK, EXIT_ERROR, EXIT_USAGE, EXIT_INTERRUPTED = 0, 1, 2, 130
 
 def collect_frames(cell: Any, workspace: Any, depth_range: tuple[float, float], frames: int,
                    objects: tuple[int, int], per_scene: int, rng: np.random.Generator,
-                   progress=None) -> dict[str, np.ndarray]:
-    """``frames`` labelled heightmaps (colour, height, labels 0..k) from a cell that has ground truth."""
+                   progress=None, stop=lambda: False) -> dict[str, np.ndarray] | None:
+    """``frames`` labelled heightmaps (colour, height, labels 0..k) from a cell that has ground truth;
+    None when ``stop()`` turned true first."""
     from flgd.perception import make_heightmaps
 
     if not hasattr(cell, "capture_labelled"):
         raise ValueError(f"the {type(cell).__name__} cell has no ground-truth labels: pre-training needs sim_cell")
     colors, heights, labels = [], [], []
     while len(colors) < frames:
+        if stop():
+            return None
         cell.set_object_count(int(rng.integers(objects[0], objects[1] + 1)))
         cell.reset_scene()
         for _ in range(per_scene):
@@ -293,10 +296,17 @@ def main(argv: list[str]) -> int:
             try:
                 data = collect_frames(cell, config.workspace, config.camera.depth_range, args.frames,
                                       settings.objects, settings.per_scene, np.random.default_rng(args.seed),
-                                      progress=lambda k, n: print(f"\rframes {k}/{n}", end="", file=sys.stderr))
+                                      progress=lambda k, n: print(f"\rframes {k}/{n}", end="", file=sys.stderr),
+                                      stop=lambda: bool(stopping))
             finally:
                 cell.close()
             print("", file=sys.stderr)
+            if data is None:
+                write_atomically(info_path, json.dumps({"settings": mine, "status": "interrupted", "step": 0},
+                                                       indent=2).encode(), mode=0o644)
+                print("flgd pretrain: interrupted while collecting frames; none kept, a rerun collects them again",
+                      file=sys.stderr)
+                return EXIT_INTERRUPTED
             buf = io.BytesIO()
             np.savez_compressed(buf, **data)
             write_atomically(frames_path, buf.getvalue(), mode=0o644)
