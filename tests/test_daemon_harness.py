@@ -20,6 +20,7 @@ from typing import Any, Iterator
 import pytest
 import yaml
 
+from flgd.config import load_config
 from flgd.ctl import Client, DaemonUnreachable
 
 REPO = Path(__file__).resolve().parents[1]
@@ -44,6 +45,8 @@ def write_config(directory: Path, state_dir: Path, **sections: Any) -> Path:
     data = yaml.safe_load((REPO / "cell_config" / "sim.yaml").read_text())
     data["state_dir"] = str(state_dir)
     data["policy"] = ""
+    # sim.yaml's relative paths are relative to cell_config/, not to the copy's directory
+    data["learning"]["init_trunk"] = str(load_config(REPO / "cell_config" / "sim.yaml").learning.init_trunk)
     data.setdefault("sim", {}).update({"objects": 3, "seed": 1})
     data.setdefault("learning", {}).update({"batch_size": 1, "checkpoint_every": 2, "threads": 1,
                                             "device": "cpu", "replay_capacity": 1000})

@@ -14,6 +14,7 @@ import pytest
 import yaml
 
 from flgd.cell import Cell, CellFault
+from flgd.config import load_config
 from flgd.learning.policy_file import load_policy
 from flgd.store import Store
 from flgd.training.actionlog import read_rows
@@ -108,6 +109,7 @@ def test_cached_next_argmax_and_several_updates_per_action_in_a_real_run(tmp_pat
     cfg["learning"].update({"next_argmax_max_age": 100, "updates_per_action": 2, "batch_size": 2})
     cfg["policy"] = ""  # train from scratch
     cfg["state_dir"] = str(tmp_path / "state")
+    cfg["learning"]["init_trunk"] = load_config(CONFIG).learning.init_trunk  # sim.yaml's path is relative to it
     config = tmp_path / "sim-cached.yaml"
     config.write_text(yaml.safe_dump(cfg))
     out = tmp_path / "run"
