@@ -510,6 +510,15 @@ def load_config(path: str | os.PathLike) -> CellConfig:
     return cfg
 
 
+def load_sim_config(path: str | os.PathLike, why: str) -> CellConfig:
+    """``load_config`` for commands that only run in sim_cell: any other backend is a ``ConfigError`` saying
+    ``why``."""
+    cfg = load_config(path)
+    if cfg.backend != "sim":
+        raise ConfigError(str(path), [f"backend: got {cfg.backend!r}, expected 'sim' ({why})"])
+    return cfg
+
+
 def config_to_dict(cfg: Any) -> Any:
     """The effective config as plain YAML-able data (tuples become lists)."""
     if dataclasses.is_dataclass(cfg):

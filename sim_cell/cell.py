@@ -201,17 +201,7 @@ class SimCell(Cell):
     # ================================================================== public API
     def capture(self) -> Frame:
         """Render a D415 frame (raw colour + uint16 depth) of the current scene."""
-        with self._lock:
-            self._check_open()
-            cfg = self.config.camera
-            direction, ambient, diffuse = self._light
-            color, depth = simcam.render(self._client, self._camera, direction, ambient=ambient, diffuse=diffuse)
-            if self.config.sim.depth_noise:
-                depth = simcam.add_depth_noise(depth, self._noise_rng)
-            raw = simcam.to_raw_depth(depth, cfg.depth_scale, cfg.depth_range)
-            return Frame(color=color, depth=raw, depth_scale=cfg.depth_scale,
-                         intrinsics=self._camera.intrinsics.copy(), camera_pose=self._camera.pose.copy(),
-                         timestamp=self._sim_time)
+        return self._capture(labelled=False)[0]
 
     def capture_labelled(self) -> tuple[Frame, np.ndarray]:
         """A frame as ``capture`` makes it plus which object each pixel shows (ground truth, never for a policy).
@@ -219,20 +209,27 @@ class SimCell(Cell):
         Labels are HxW int32: 0 = no object (table, arm, nothing), else the object's body id.  They come from the
         same render as the frame, so they line up pixel for pixel with its (noisy) depth.
         """
+        return self._capture(labelled=True)
+
+    def _capture(self, labelled: bool) -> tuple[Frame, np.ndarray | None]:
         with self._lock:
             self._check_open()
             cfg = self.config.camera
             direction, ambient, diffuse = self._light
-            color, depth, seg = simcam.render_labelled(self._client, self._camera, direction, ambient=ambient,
-                                                       diffuse=diffuse)
+            if labelled:
+                color, depth, seg = simcam.render_labelled(self._client, self._camera, direction, ambient=ambient,
+                                                           diffuse=diffuse)
+                labels = np.where(np.isin(seg, list(self._objects)), seg, 0).astype(np.int32)
+            else:
+                color, depth = simcam.render(self._client, self._camera, direction, ambient=ambient,
+                                             diffuse=diffuse)
+                labels = None
             if self.config.sim.depth_noise:
                 depth = simcam.add_depth_noise(depth, self._noise_rng)
             raw = simcam.to_raw_depth(depth, cfg.depth_scale, cfg.depth_range)
-            labels = np.where(np.isin(seg, list(self._objects)), seg, 0).astype(np.int32)
-            frame = Frame(color=color, depth=raw, depth_scale=cfg.depth_scale,
-                          intrinsics=self._camera.intrinsics.copy(), camera_pose=self._camera.pose.copy(),
-                          timestamp=self._sim_time)
-            return frame, labels
+            return Frame(color=color, depth=raw, depth_scale=cfg.depth_scale,
+                         intrinsics=self._camera.intrinsics.copy(), camera_pose=self._camera.pose.copy(),
+                         timestamp=self._sim_time), labels
 
     def remove_object(self, body: int, settle: float = 0.25) -> bool:
         """Take one object out of the scene (as if picked) and let the rest settle.

@@ -107,7 +107,7 @@ def frames():
 def test_a_few_steps_lower_the_held_out_loss_and_a_rerun_continues(frames, tmp_path):
     settings = PretrainSettings(frames=12, held_out=3, steps=12, batch=2, crop=96, save_every=6, seed=0)
     info = pretrain(tmp_path, frames, dataclasses.replace(settings, steps=6))
-    assert info["finished"] is False or info["step"] == 6
+    assert info["finished"] and info["step"] == 6
     first = info["history"]
     info = pretrain(tmp_path, frames, settings)          # continues from step 6
     assert info["finished"] and [h["step"] for h in info["history"]] == [0, 6, 12]
@@ -176,6 +176,18 @@ def test_a_trunk_that_does_not_fit_is_refused_and_leaves_the_network_alone(tmp_p
     with pytest.raises(TrunkFileError, match="not found"):
         load_trunk(fast, tmp_path / "missing.safetensors")
     from safetensors.torch import save_file
+    whole = _trunk_file(tmp_path)[1].trunk_state()
+    partial = tmp_path / "partial.safetensors"
+    save_file({k: v for k, v in whole.items() if not k.startswith("fuse.")}, str(partial),
+              metadata={"format": "flgd-trunk-1", "width": "12", "info": "{}"})
+    with pytest.raises(TrunkFileError, match="lacks .* e.g. fuse."):
+        load_trunk(fast, partial)
+    for width, info, problem in (("9999", "{}", "width 9999"), ("12", "[1, 2]", "info is a list")):
+        odd = tmp_path / f"odd-{width}.safetensors"
+        save_file(whole, str(odd), metadata={"format": "flgd-trunk-1", "width": width, "info": info})
+        with pytest.raises(TrunkFileError, match=problem):
+            load_trunk(fast, odd)
+    assert all(torch.equal(fast.state_dict()[k], v) for k, v in before.items())
     other = tmp_path / "policy-like.safetensors"
     save_file({"enc1.0.weight": torch.zeros(12, 4, 3, 3)}, str(other), metadata={"format": "something-else"})
     with pytest.raises(TrunkFileError, match="format 'something-else'"):

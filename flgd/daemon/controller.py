@@ -141,9 +141,8 @@ class Controller:
     def _initial_network(self) -> Any:
         """Resume from the newest readable checkpoint; else the given policy; else a fresh network."""
         from flgd.learning.policy_file import PolicyFileError
-        from flgd.wiring import starting_network
-
         from flgd.learning.trunk import TrunkFileError
+        from flgd.wiring import starting_network
 
         try:
             start = starting_network(self.config, self.checkpoints, self.policy_arg)

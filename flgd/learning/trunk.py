@@ -152,7 +152,6 @@ def save_trunk(path: str | Path, net: PerceptionNet, metadata: dict[str, Any]) -
 def read_trunk(path: str | Path) -> TrunkFile:
     """A trunk file's tensors and metadata; ``TrunkFileError`` naming the file when it is not one."""
     from safetensors import SafetensorError, safe_open
-    from safetensors.torch import load_file
 
     p = Path(path)
     if not p.is_file():
@@ -160,7 +159,7 @@ def read_trunk(path: str | Path) -> TrunkFile:
     try:
         with safe_open(str(p), framework="pt") as f:
             meta = f.metadata() or {}
-        tensors = load_file(str(p))
+            tensors = {name: f.get_tensor(name) for name in f.keys()}
     except (SafetensorError, OSError, ValueError) as exc:
         raise TrunkFileError(f"trunk file {p}: not a readable safetensors file ({exc})") from None
     if meta.get("format") != TRUNK_FORMAT:
@@ -169,6 +168,10 @@ def read_trunk(path: str | Path) -> TrunkFile:
     try:
         info = json.loads(meta.get("info", "{}"))
         width = int(meta["width"])
+        if not 2 <= width <= 256:
+            raise ValueError(f"width {width}, expected 2..256")
+        if not isinstance(info, dict):
+            raise ValueError(f"info is a {type(info).__name__}, expected an object")
     except (KeyError, ValueError) as exc:
         raise TrunkFileError(f"trunk file {p}: unreadable metadata ({exc})") from None
     return TrunkFile(tensors=tensors, metadata={**info, "width": width})
@@ -194,7 +197,11 @@ def load_trunk(network: QMapNetwork, path: str | Path) -> list[str]:
                                  f"{network.variant} network's has {tuple(own[name].shape)} (trunk width "
                                  f"{trunk.metadata['width']}, network width {getattr(network, 'width', '?')})")
         taken[name] = tensor
-    if not any(n.endswith("weight") for n in taken):
-        raise TrunkFileError(f"trunk file {path}: shares no layer with the {network.variant} network")
+    # every layer of a whole trunk of this width that the network has must be in the file: a partial file
+    # would leave some perception layers random without anyone knowing
+    whole = set(PerceptionNet(width=trunk.metadata["width"]).trunk_state())
+    missing = sorted((whole & set(own)) - set(taken))
+    if missing:
+        raise TrunkFileError(f"trunk file {path}: lacks {len(missing)} tensor(s) of the trunk, e.g. {missing[0]}")
     network.load_state_dict(taken, strict=False)
     return sorted(taken)

@@ -235,7 +235,7 @@ def _parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str]) -> int:
     args = _parser().parse_args(argv)
-    from flgd.config import ConfigError, load_config
+    from flgd.config import ConfigError, load_sim_config
 
     problems = [f"--{k.replace('_', '-')}: got {v!r}, expected >= {lo}" for k, v, lo in
                 (("frames", args.frames, 2), ("held_out", args.held_out, 1), ("min_objects", args.min_objects, 1),
@@ -251,13 +251,9 @@ def main(argv: list[str]) -> int:
         print("flgd pretrain: " + "; ".join(problems), file=sys.stderr)
         return EXIT_USAGE
     try:
-        config = load_config(args.config)
+        config = load_sim_config(args.config, "ground truth exists only in sim_cell")
     except ConfigError as exc:
         print(f"flgd pretrain: {exc}", file=sys.stderr)
-        return EXIT_USAGE
-    if config.backend != "sim":
-        print(f"flgd pretrain: {args.config}: backend: got {config.backend!r}, expected 'sim' (ground truth "
-              "exists only in sim_cell)", file=sys.stderr)
         return EXIT_USAGE
     settings = PretrainSettings(frames=args.frames, held_out=args.held_out,
                                 objects=(args.min_objects, args.max_objects), steps=args.steps, batch=args.batch,

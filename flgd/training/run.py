@@ -55,7 +55,7 @@ from typing import Any
 
 import numpy as np
 
-from flgd.config import CellConfig, ConfigError, dump_config, load_config
+from flgd.config import CellConfig, ConfigError, dump_config, load_sim_config
 
 __all__ = ["TRAIN_VARIANTS", "RunSettings", "TrainingRun", "effective_config", "main", "EXIT_INTERRUPTED"]
 
@@ -560,13 +560,9 @@ def main(argv: list[str]) -> int:
         print("flgd train: --config is required for a new run", file=sys.stderr)
         return EXIT_USAGE
     try:
-        base = load_config(config_path)
+        base = load_sim_config(config_path, "training runs in sim_cell; fine-tune on a real cell with `flgd run`")
     except ConfigError as exc:
         print(f"flgd train: {exc}", file=sys.stderr)
-        return EXIT_USAGE
-    if base.backend != "sim":
-        print(f"flgd train: {config_path}: backend: got {base.backend!r}, expected 'sim' (training runs in "
-              "sim_cell; fine-tune on a real cell with `flgd run`)", file=sys.stderr)
         return EXIT_USAGE
     if base.learning.init_trunk and not previous_info and not settings.init_policy:
         from flgd.learning.trunk import TrunkFileError
