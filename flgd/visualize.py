@@ -26,6 +26,8 @@ heightmap columns (base x).
 from __future__ import annotations
 
 import math
+import os
+import stat
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -33,9 +35,10 @@ import cv2
 import numpy as np
 
 from flgd.actions import Action
+from flgd.atomic_file import write_atomically
 
 __all__ = ["ActionGlyph", "QmapFigure", "qmap_figure", "qmap_picture", "encode_png", "write_png",
-           "greedy_action", "ACTION_COLORS", "heat_color"]
+           "output_mode", "greedy_action", "ACTION_COLORS", "heat_color"]
 
 ACTION_COLORS = {"grasp": (40, 255, 40), "push": (0, 160, 255), "shift": (255, 60, 255)}  # BGR
 _TEXT = (255, 255, 255)
@@ -273,12 +276,24 @@ def qmap_picture(color: np.ndarray, height: np.ndarray, q_maps: np.ndarray, gras
 
 
 def encode_png(image: np.ndarray) -> bytes:
+    """PNG bytes of a BGR (or grey) uint8 image; ValueError if OpenCV cannot encode it."""
     ok, buf = cv2.imencode(".png", image)
     if not ok:
         raise ValueError("PNG encoding failed")
     return buf.tobytes()
 
 
-def write_png(path: Any, image: np.ndarray) -> None:
-    with open(path, "wb") as f:
-        f.write(encode_png(image))
+def output_mode(path: str | os.PathLike) -> int:
+    """Permission bits for an output file about to be replaced atomically: the existing file's, else
+    rw-r--r-- (what open() gives under the usual umask), not the temp file's 0600, so that a report
+    stays readable by whoever could read it before."""
+    try:
+        return stat.S_IMODE(os.stat(path).st_mode)
+    except FileNotFoundError:
+        return 0o644
+
+
+def write_png(path: str | os.PathLike, image: np.ndarray) -> None:
+    """Write ``image`` as PNG atomically: an interrupted write leaves the old file (or none), never half
+    a picture."""
+    write_atomically(path, encode_png(image), mode=output_mode(path))

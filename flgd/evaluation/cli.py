@@ -1,23 +1,50 @@
 """``flgd eval``: evaluate a policy in the simulated cell on scene files, random clutter or named scene sets.
 
-Bad input (config, policy file, scene file, object set, output path) is
+Bad input (config, policy file, scene file -- its syntax, missing mesh or URDF
+files, objects outside the config's workspace --, object set, output path) is
 reported as ``flgd eval: <what is wrong>`` with exit code 1 before anything is
-simulated; usage errors exit 2; Ctrl-C exits 130.
+simulated.
+
+Finished runs are never lost: with ``--json`` the report is rewritten
+atomically after every finished run (``status: in-progress``).  If the
+evaluation stops early -- Ctrl-C, SIGTERM, or an error in a run (named by scene
+and run) -- the table of the finished runs is printed and the report saved,
+marked partial (``status`` interrupted/failed, ``runs_finished`` of
+``runs_planned``), before the exit.
+
+Exit codes (``EXIT_*``): 0 every run finished and the report was written;
+1 bad input, an error stopped the evaluation (partial report saved), or the
+report could not be written; 2 usage error; 130 interrupted by Ctrl-C (SIGINT);
+143 terminated by SIGTERM (partial report saved in both cases).
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
+import signal
 import sys
+import threading
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable, Iterator
 
-__all__ = ["main", "EXIT_OK", "EXIT_ERROR", "EXIT_INTERRUPTED"]
+__all__ = ["main", "EXIT_OK", "EXIT_ERROR", "EXIT_USAGE", "EXIT_INTERRUPTED", "EXIT_TERMINATED", "Terminated"]
 
-EXIT_OK, EXIT_ERROR, EXIT_INTERRUPTED = 0, 1, 130
+EXIT_OK, EXIT_ERROR, EXIT_USAGE, EXIT_INTERRUPTED, EXIT_TERMINATED = 0, 1, 2, 130, 143
+_EXIT_CODES = (f"exit codes: {EXIT_OK} every run finished; {EXIT_ERROR} bad input, an error stopped the evaluation "
+               f"(partial report saved) or the report could not be written; {EXIT_USAGE} usage error; "
+               f"{EXIT_INTERRUPTED} Ctrl-C, {EXIT_TERMINATED} SIGTERM (partial report saved). With --json the "
+               "report is rewritten after every finished run.")
+
+
+class Terminated(BaseException):
+    """SIGTERM, raised in the main thread so that the evaluation unwinds as it does on Ctrl-C.
+
+    A BaseException like KeyboardInterrupt, so ``except Exception`` inside a run cannot swallow it.
+    """
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -31,7 +58,7 @@ def _parser() -> argparse.ArgumentParser:
         description="Evaluate a policy in the simulated cell with VPG's metrics: completion (cleared without more "
                     f"than {FAILURE_LIMIT} consecutive failed actions), grasp success (successful grasps / "
                     "attempts), action efficiency (objects / actions over completed runs), moves by kind.",
-        epilog=f"scene sets: {sets}.")
+        epilog=f"scene sets: {sets}. {_EXIT_CODES}")
     p.add_argument("--config", required=True, help="cell config YAML (backend: sim)")
     who = p.add_mutually_exclusive_group(required=True)
     who.add_argument("--policy", help="policy file (.safetensors) to evaluate")
@@ -76,7 +103,8 @@ def _fail(message: str) -> int:
     return EXIT_ERROR
 
 
-def _collect_scenes(args: argparse.Namespace) -> list[Any]:
+def _collect_scenes(args: argparse.Namespace, config: Any) -> list[Any]:
+    """Every scene asked for, each checked against ``config``'s workspace before anything is simulated."""
     from flgd.evaluation.scene_sets import check_scene, clutter_scene, named_set, scene_from_argument
 
     scenes = [scene_from_argument(s, args.vpg_meshes) for s in args.scenes]
@@ -85,7 +113,7 @@ def _collect_scenes(args: argparse.Namespace) -> list[Any]:
     for name in args.sets:
         scenes.extend(named_set(name, args.vpg, args.count))
     for spec in scenes:
-        check_scene(spec)
+        check_scene(spec, config.workspace, str(config.source))
     return scenes
 
 
@@ -104,14 +132,15 @@ def _prepare_output(path: str | None, what: str) -> Path | None:
     return out
 
 
-def _progress(quiet: bool):
+def _progress(quiet: bool, runs: int) -> Callable[[Any, Any], None]:
+    """The per-run progress line (runs counted from 1, as in the JSON and the --save-qmaps folders)."""
     def show(spec: Any, log: Any) -> None:
         if quiet:
             return
         from flgd.evaluation.metrics import run_result
 
         res = run_result(log)
-        print(f"  {spec.name} run {log.run + 1}: {log.end}{' (completed)' if res.completed else ''}, "
+        print(f"  {spec.name} run {log.run} of {runs}: {log.end}{' (completed)' if res.completed else ''}, "
               f"{res.actions} actions, {res.grasp_successes}/{res.grasp_attempts} grasps, "
               f"{res.moves['push']} push, {res.moves['shift']} shift, {log.objects_left}/{log.objects} objects "
               f"left ({log.seconds:.1f} s)", file=sys.stderr, flush=True)
@@ -122,7 +151,7 @@ def main(argv: list[str]) -> int:
     args = _parser().parse_args(argv)
     from flgd.config import ConfigError, load_config
     from flgd.evaluation.evaluator import EvalOptions, EvaluationError, Evaluator
-    from flgd.evaluation.report import build_report, format_table, summary_picture
+    from flgd.evaluation.report import build_report
     from flgd.evaluation.scene_sets import SceneSetError
 
     if not (args.scenes or args.objects is not None or args.sets):
@@ -136,7 +165,7 @@ def main(argv: list[str]) -> int:
     except ConfigError as exc:
         return _fail(str(exc))
     try:
-        scenes = _collect_scenes(args)
+        scenes = _collect_scenes(args, config)
     except SceneSetError as exc:
         return _fail(str(exc))
     try:
@@ -154,24 +183,86 @@ def main(argv: list[str]) -> int:
     options = EvalOptions(runs=args.runs, seed=args.seed, learn=args.learn, grasp_only=args.grasp_only,
                           max_actions=args.max_actions, save_qmaps=qmap_dir)
     t0 = time.perf_counter()
+    planned = len(scenes) * options.runs
+    option_fields = {"runs": options.runs, "seed": options.seed, "learn": options.learn,
+                     "grasp_only": options.grasp_only, "max_actions": options.max_actions,
+                     "failure_limit": options.failure_limit}
+
+    def report_of(results: list, status: str, stopped: str = "") -> dict[str, Any]:
+        return build_report(results, policy=policy, config=str(args.config), options=option_fields,
+                            seconds=time.perf_counter() - t0, status=status, runs_planned=planned, stopped=stopped)
+
+    show = _progress(args.quiet, options.runs)
+    evaluator = None
+    code, status, stopped = EXIT_OK, "complete", ""
+    with _sigterm_raises():
+        try:
+            try:
+                evaluator = Evaluator(config, network, options, training_steps=int(policy.get("training_steps", 0)))
+            except (EvaluationError, ValueError) as exc:
+                return _fail(str(exc))
+
+            def after_run(spec: Any, log: Any) -> None:
+                show(spec, log)
+                if json_out is not None:
+                    _checkpoint(json_out, report_of(evaluator.results, "in-progress"))
+
+            evaluator.progress = after_run
+            evaluator.evaluate(scenes)
+        except KeyboardInterrupt:
+            code, status, stopped = EXIT_INTERRUPTED, "interrupted", "interrupted by Ctrl-C (SIGINT)"
+        except Terminated:
+            code, status, stopped = EXIT_TERMINATED, "interrupted", "terminated by SIGTERM"
+        except (EvaluationError, ValueError) as exc:
+            code, status, stopped = EXIT_ERROR, "failed", str(exc)
+        try:
+            with _signals_ignored():   # a second Ctrl-C must not cut the final report short
+                results = evaluator.results if evaluator is not None else []
+                if stopped:
+                    print(f"flgd eval: {stopped}", file=sys.stderr, flush=True)
+                write_code = _finish(report_of(results, status, stopped), json_out, png_out)
+        finally:
+            if evaluator is not None:
+                try:
+                    evaluator.close()
+                except KeyboardInterrupt:   # the report is saved; only the clean-up was cut short
+                    code = code or EXIT_INTERRUPTED
+                except Terminated:
+                    code = code or EXIT_TERMINATED
+    return code or write_code
+
+
+def _checkpoint(json_out: Path, report: dict[str, Any]) -> None:
+    """Rewrite the JSON report after a finished run; a failure is a warning (retried after the next run)."""
     try:
-        with Evaluator(config, network, options, training_steps=int(policy.get("training_steps", 0)),
-                       progress=_progress(args.quiet)) as evaluator:
-            results = evaluator.evaluate(scenes)
-    except (EvaluationError, ValueError) as exc:
-        return _fail(str(exc))
-    except KeyboardInterrupt:
-        print("flgd eval: interrupted", file=sys.stderr)
-        return EXIT_INTERRUPTED
-    report = build_report(results, policy=policy, config=str(args.config),
-                          options={"runs": options.runs, "seed": options.seed, "learn": options.learn,
-                                   "grasp_only": options.grasp_only, "max_actions": options.max_actions,
-                                   "failure_limit": options.failure_limit},
-                          seconds=time.perf_counter() - t0)
-    print(format_table(report))
+        _write_json(json_out, report)
+    except OSError as exc:
+        print(f"flgd eval: warning: cannot save the report so far to {json_out} ({exc}); "
+              "trying again after the next run", file=sys.stderr, flush=True)
+
+
+def _write_json(path: Path, report: dict[str, Any]) -> None:
+    from flgd.atomic_file import write_atomically
+    from flgd.visualize import output_mode
+
+    write_atomically(path, (json.dumps(report, indent=2) + "\n").encode("utf-8"), mode=output_mode(path))
+
+
+def _finish(report: dict[str, Any], json_out: Path | None, png_out: Path | None) -> int:
+    """Print the table and write the report of the runs that finished; EXIT_ERROR if it cannot be written.
+
+    Nothing is printed or written when no run finished: an earlier report at the same path stays.
+    """
+    from flgd.evaluation.report import format_table, summary_picture
+
+    if report["runs_finished"] == 0:
+        if json_out is not None or png_out is not None:
+            print("flgd eval: no run finished; no report written", file=sys.stderr)
+        return EXIT_OK
+    print(format_table(report), flush=True)
     try:
         if json_out is not None:
-            json_out.write_text(json.dumps(report, indent=2) + "\n", encoding="utf-8")
+            _write_json(json_out, report)
         if png_out is not None:
             from flgd.visualize import write_png
 
@@ -179,6 +270,38 @@ def main(argv: list[str]) -> int:
     except OSError as exc:
         return _fail(f"cannot write the report: {exc}")
     return EXIT_OK
+
+
+@contextlib.contextmanager
+def _sigterm_raises() -> Iterator[None]:
+    """While inside, SIGTERM raises Terminated in the main thread (it has no Python handler by default,
+    so it would kill the process and every finished run with it)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def handler(signum: int, frame: Any) -> None:
+        raise Terminated()
+
+    previous = signal.signal(signal.SIGTERM, handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+@contextlib.contextmanager
+def _signals_ignored() -> Iterator[None]:
+    """Ignore SIGINT and SIGTERM while the final report is written (it takes well under a second)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = {sig: signal.signal(sig, signal.SIG_IGN) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
 
 
 def _load_network(args: argparse.Namespace, config: Any) -> tuple[Any, dict[str, Any]]:

@@ -20,8 +20,22 @@ written to the config's state directory.
 
 The cycle resets the scene when the workspace is empty; here that only marks
 the end of the run (``EpisodeCell``), so that the next run's scene is exactly
-the one asked for.  Runs are reproducible for the same command line: one
-simulated cell per object set, seeded with ``seed``, and scenes in order.
+the one asked for.
+
+Reproducibility: a frozen evaluation (``learn`` off, ``--no-learn``) gives the
+same runs for the same command line, config and policy file: one simulated cell
+per object set, seeded with ``seed``, scenes in order, and weights that never
+change.  With ``learn`` it does not: a background Learner thread trains while
+the cell runs and new weights reach the agent whenever an update happens to
+finish, so which action sees which weights depends on thread timing (and on the
+machine's load); only the scenes of the first run are the same.
+
+Runs are numbered from 1 within each scene (``RunLog.run``, the progress line,
+the JSON's ``run_logs[].run``, the ``--save-qmaps`` folder ``run01`` and the
+picture captions).  Finished runs are kept in ``Evaluator.results`` as they end,
+so a caller can save them when a later run fails or the evaluation is
+interrupted; an exception in a run ends the evaluation as an EvaluationError
+naming the scene and the run, since the simulator may be left broken.
 """
 
 from __future__ import annotations
@@ -118,6 +132,13 @@ def _slug(text: str) -> str:
     return re.sub(r"[^A-Za-z0-9._-]+", "_", text).strip("_") or "scene"
 
 
+def _describe(exc: BaseException) -> str:
+    """``pybullet.error: ...`` / ``OSError: ...``: the type tells which layer failed."""
+    kind = type(exc)
+    name = kind.__qualname__ if kind.__module__ == "builtins" else f"{kind.__module__}.{kind.__qualname__}"
+    return f"{name}: {exc}"
+
+
 def _result_text(record: CycleRecord) -> str:
     if record.outcome == "refused":
         return f"refused ({record.refused})"
@@ -158,6 +179,7 @@ class Evaluator:
             self.learner = Learner(self.config, network, self.replay, mailbox=self.agent.mailbox)
             self.learner.start()
         self._cells: dict[str, Any] = {}
+        self.results: list[tuple[SceneSpec, list[RunLog]]] = []
         self.episode = EpisodeCell(self.config, None)
         self.runner = CycleRunner(self.config, self.episode, self.agent, replay=self.replay, learner=self.learner,
                                   step=training_steps if options.learn else 0, backend="sim")
@@ -194,17 +216,28 @@ class Evaluator:
 
     # ------------------------------------------------------------------ running
     def evaluate(self, scenes: list[SceneSpec]) -> list[tuple[SceneSpec, list[RunLog]]]:
-        """All runs of all scenes, in order."""
-        out = []
+        """All runs of all scenes, in order (also in ``self.results``, which grows run by run).
+
+        Why the growing list: when a run fails or Ctrl-C arrives, the runs already finished are still
+        there for the caller to report.  Any exception in a run becomes an EvaluationError naming the
+        scene and run; the evaluation stops there rather than go on with a simulator that may be broken.
+        """
+        self.results = []
+        runs = self.options.runs
         for spec in scenes:
-            logs = []
-            for r in range(self.options.runs):
-                log = self.run(spec, r)
+            logs: list[RunLog] = []
+            self.results.append((spec, logs))
+            for number in range(1, runs + 1):
+                try:
+                    log = self.run(spec, number)
+                except Exception as exc:
+                    what = str(exc) if isinstance(exc, EvaluationError) else _describe(exc)
+                    raise EvaluationError(f"scene {spec.name} ({spec.describe()}), run {number} of {runs}: {what}; "
+                                          "the evaluation stopped there (the simulated cell may be broken)") from exc
                 logs.append(log)
                 if self.progress is not None:
                     self.progress(spec, log)
-            out.append((spec, logs))
-        return out
+        return self.results
 
     def _set_scene(self, cell: Any, spec: SceneSpec) -> int:
         from sim_cell.scenes import SceneError
@@ -216,8 +249,10 @@ class Evaluator:
         except SceneError as exc:
             raise EvaluationError(str(exc)) from None
 
-    def run(self, spec: SceneSpec, run_index: int) -> RunLog:
-        """One run of ``spec`` (see the module doc for when it ends)."""
+    def run(self, spec: SceneSpec, number: int) -> RunLog:
+        """Run number ``number`` (from 1) of ``spec``; see the module doc for when it ends."""
+        if isinstance(number, bool) or not isinstance(number, int) or number < 1:
+            raise ValueError(f"run number: got {number!r}, expected an integer >= 1 (runs count from 1)")
         t0 = time.perf_counter()
         cell = self._cell_for(spec)
         self.episode.use(cell)
@@ -246,7 +281,7 @@ class Evaluator:
                 actions.append(entry)
                 streak = 0 if entry.success else streak + 1
                 if self.options.save_qmaps is not None:
-                    self._save_qmap(spec, run_index, len(actions), record)
+                    self._save_qmap(spec, number, len(actions), record)
             if record.outcome == "discarded":
                 end, note = "unstable", record.failure
             elif record.outcome == "stopped":
@@ -257,21 +292,21 @@ class Evaluator:
                 end = "failures"
             elif len(actions) >= limit:
                 end = "action-limit"
-        return RunLog(scene=spec.name, run=run_index, objects=objects, actions=tuple(actions),
+        return RunLog(scene=spec.name, run=number, objects=objects, actions=tuple(actions),
                       objects_left=cell.object_count if end not in ("unstable", "fault") else objects,
                       objects_grasped=cell.stats["grasped_out"] - grasped_before, end=end,
                       seconds=time.perf_counter() - t0, note=note)
 
-    def _save_qmap(self, spec: SceneSpec, run_index: int, number: int, record: CycleRecord) -> None:
+    def _save_qmap(self, spec: SceneSpec, run: int, number: int, record: CycleRecord) -> None:
         from flgd.visualize import ActionGlyph, qmap_picture, write_png
 
         last = self.runner.last_decided
         if last is None or last[2] != record.step:
             return
         hm, decision, step = last
-        folder = Path(self.options.save_qmaps) / _slug(spec.group or "scenes") / _slug(spec.name) / f"run{run_index:02d}"
+        folder = Path(self.options.save_qmaps) / _slug(spec.group or "scenes") / _slug(spec.name) / f"run{run:02d}"
         folder.mkdir(parents=True, exist_ok=True)
-        caption = (f"{spec.name} run {run_index} action {number}: {record.kind} -> {_result_text(record)}"
+        caption = (f"{spec.name} run {run} action {number}: {record.kind} -> {_result_text(record)}"
                    f"   | rule {decision.rule}, eps {decision.epsilon:.2f}")
         image = qmap_picture(hm.color, hm.height, decision.q_maps, decision.grasp_mask, decision.move_mask,
                              decision.action, caption=caption, glyph=ActionGlyph.from_config(self.config))

@@ -9,7 +9,16 @@ JSON (``format: flgd-eval``, ``version: 1``):
   objects, actions, grasp attempts/successes, pushes, shifts, refused,
   objects grasped/left/lost, end, completed, seconds);
 * ``sets``: a Summary per named set; ``overall``: a Summary of every run;
-* ``seconds``: wall time of the evaluation.
+* ``seconds``: wall time of the evaluation;
+* ``status``: ``complete`` (every planned run finished), ``in-progress``
+  (written after each finished run while the evaluation goes on: a file still
+  saying so was left by a process killed without warning), ``interrupted``
+  (Ctrl-C or SIGTERM) or ``failed`` (an error stopped it); ``complete`` (bool),
+  ``runs_finished`` and ``runs_planned`` (scenes x runs), and ``stopped``: why it
+  stopped early ("" otherwise).  A partial report holds the finished runs only;
+  scenes without a finished run are left out.
+
+Runs are numbered from 1 within each scene (``run_logs[].run``).
 """
 
 from __future__ import annotations
@@ -22,10 +31,11 @@ import numpy as np
 from flgd.evaluation.metrics import FAILURE_LIMIT, RunLog, run_result, summarize
 from flgd.evaluation.scene_sets import SceneSpec
 
-__all__ = ["FORMAT", "VERSION", "build_report", "format_table", "summary_picture"]
+__all__ = ["FORMAT", "VERSION", "STATUSES", "build_report", "format_table", "summary_picture", "partial_note"]
 
 FORMAT = "flgd-eval"
 VERSION = 1
+STATUSES = ("complete", "in-progress", "interrupted", "failed")
 
 
 def _run_row(log: RunLog, failure_limit: int) -> dict[str, Any]:
@@ -38,13 +48,26 @@ def _run_row(log: RunLog, failure_limit: int) -> dict[str, Any]:
 
 
 def build_report(results: list[tuple[SceneSpec, list[RunLog]]], *, policy: dict[str, Any], config: str,
-                 options: dict[str, Any], seconds: float) -> dict[str, Any]:
-    """The JSON-ready report of the module doc."""
+                 options: dict[str, Any], seconds: float, status: str = "complete",
+                 runs_planned: int | None = None, stopped: str = "") -> dict[str, Any]:
+    """The JSON-ready report of the module doc; ``runs_planned`` defaults to the runs in ``results``.
+
+    ``status`` says whether the runs are all there, so that a partial report is never read as a
+    finished evaluation.
+    """
+    if status not in STATUSES:
+        raise ValueError(f"status: got {status!r}, expected one of {', '.join(STATUSES)}")
     limit = int(options.get("failure_limit", FAILURE_LIMIT))
+    finished = sum(len(logs) for _, logs in results)
+    planned = finished if runs_planned is None else int(runs_planned)
+    if status == "complete" and finished != planned:
+        raise ValueError(f"status complete: {finished} runs finished, expected runs_planned ({planned})")
     scenes = []
     groups: dict[str, list[RunLog]] = {}
     everything: list[RunLog] = []
     for spec, logs in results:
+        if not logs:
+            continue
         scenes.append({"scene": spec.name, "set": spec.group, "source": spec.describe(),
                        **summarize(logs, limit).as_dict(),
                        "run_logs": [_run_row(log, limit) for log in logs]})
@@ -53,7 +76,19 @@ def build_report(results: list[tuple[SceneSpec, list[RunLog]]], *, policy: dict[
         everything.extend(logs)
     return {"format": FORMAT, "version": VERSION, "policy": policy, "config": config, "options": options,
             "scenes": scenes, "sets": {g: summarize(logs, limit).as_dict() for g, logs in groups.items()},
-            "overall": summarize(everything, limit).as_dict(), "seconds": round(seconds, 1)}
+            "overall": summarize(everything, limit).as_dict(), "seconds": round(seconds, 1),
+            "status": status, "complete": status == "complete", "runs_finished": finished, "runs_planned": planned,
+            "stopped": stopped}
+
+
+def partial_note(report: dict[str, Any]) -> str:
+    """"" for a complete report, else one line saying it is partial, how far it got and why it stopped."""
+    status = report.get("status", "complete")
+    if status == "complete":
+        return ""
+    why = f": {report['stopped']}" if report.get("stopped") else ""
+    return (f"PARTIAL REPORT ({status}): {report.get('runs_finished', '?')} of {report.get('runs_planned', '?')} "
+            f"runs finished{why}")
 
 
 def _pct(v: float | None) -> str:
@@ -91,11 +126,14 @@ def format_table(report: dict[str, Any]) -> str:
     opts = report["options"]
     mode = ("learning online" if opts.get("learn") else "frozen, greedy") + \
            (", grasp-only" if opts.get("grasp_only") else ", grasp-and-move")
-    out = [f"policy {report['policy'].get('path', '?')} ({mode}; {opts.get('runs')} run(s) per scene, "
+    note = partial_note(report)
+    out = [*([note] if note else []),
+           f"policy {report['policy'].get('path', '?')} ({mode}; {opts.get('runs')} run(s) per scene, "
            f"seed {opts.get('seed')})", line(header), rule, *map(line, rows), rule, *map(line, tail),
            "complete: cleared without more than "
            f"{opts.get('failure_limit', FAILURE_LIMIT)} consecutive failed actions; grasp ok: successful/attempted "
-           "grasps; act.eff: objects/actions over completed runs; lost: objects that left the workspace other than in the gripper (pushed off, or dropped on the way out)"]
+           "grasps; act.eff: objects/actions over completed runs; lost: objects that left the workspace other than in the gripper (pushed off, or dropped on the way out)",
+           *([note] if note else [])]
     return "\n".join(out)
 
 
@@ -113,6 +151,9 @@ def summary_picture(report: dict[str, Any], title: str = "") -> np.ndarray:
     img = np.full((top + plot_h + bottom, width, 3), 255, dtype=np.uint8)
     font = cv2.FONT_HERSHEY_SIMPLEX
     heading = title or f"flgd eval: {report['policy'].get('path', '')}"
+    note = partial_note(report)
+    if note:   # a partial evaluation must not pass for a finished one, even as a picture
+        heading = f"{note.split(':')[0]}, {report.get('runs_finished')} of {report.get('runs_planned')} runs -- {heading}"
     cv2.putText(img, heading[:110], (10, 24), font, 0.55, (0, 0, 0), 1, cv2.LINE_AA)
     x = left
     for name, colour in zip(_BAR_NAMES, _BAR_COLORS):   # legend

@@ -29,6 +29,8 @@ import re
 from dataclasses import dataclass
 from pathlib import Path
 
+from flgd.config import WorkspaceConfig
+
 __all__ = ["SceneSpec", "SceneSetError", "SCENE_SETS", "HELD_OUT_OBJECTS", "TUNING_OBJECTS", "CLUTTER_COUNT",
            "scene_from_argument", "clutter_scene", "named_set", "vpg_test_cases", "find_vpg_meshes",
            "check_scene"]
@@ -159,8 +161,29 @@ def named_set(name: str, vpg_dir: str | os.PathLike | None = None, count: int = 
     raise SceneSetError(f"--set: got {name!r}, expected one of {', '.join(SCENE_SETS)}")
 
 
-def check_scene(spec: SceneSpec) -> int:
-    """Parse a scene file without simulating it; returns its object count.  Raises SceneSetError."""
+def _urdf_file(name: str) -> Path:
+    """Where the simulator looks for a scene's ``urdf:`` entry: an absolute path, else under
+    pybullet_data, short names (``duck``) first translated -- the lookup of sim_cell.objects.spawn."""
+    from sim_cell.objects import NAMED_NOVEL_OBJECTS, PYBULLET_DATA
+
+    path = Path(name)
+    return path if path.is_absolute() else PYBULLET_DATA / NAMED_NOVEL_OBJECTS.get(name, name)
+
+
+# The simulator removes an object whose centre is below this height (workspace frame, m) as having
+# fallen off the table (sim_cell.cell's _remove_outside: z > table - 0.05).
+_LOWEST_Z = -0.05
+
+
+def check_scene(spec: SceneSpec, workspace: WorkspaceConfig, config_source: str = "") -> int:
+    """Parse a scene file without simulating it and return its object count; raises SceneSetError.
+
+    Why: ``flgd eval`` promises that bad scene files are reported before anything is simulated.
+    Besides the file's syntax this checks what would otherwise surface only mid-evaluation: every
+    ``urdf:`` file exists, and every object's centre lies inside ``workspace`` (an object outside it
+    would be removed as left_workspace at the first action, so the run could never complete and the
+    policy would take the blame).
+    """
     if spec.path is None:
         return spec.count
     from sim_cell.scenes import SceneError, load_scene
@@ -170,5 +193,24 @@ def check_scene(spec: SceneSpec) -> int:
     except SceneError as exc:
         raise SceneSetError(str(exc)) from None
     if not scene.objects:
-        raise SceneSetError(f"scene {spec.path}: no object inside the workspace")
+        why = (f"every entry is parked below the table or outside VPG's workspace ({scene.skipped} skipped)"
+               if scene.skipped else "the objects list is empty")
+        raise SceneSetError(f"scene {spec.path}: no objects ({why}); expected at least one")
+    half_x = (workspace.x[1] - workspace.x[0]) / 2.0
+    half_y = (workspace.y[1] - workspace.y[0]) / 2.0
+    where = f" of {config_source}" if config_source else ""
+    for i, obj in enumerate(scene.objects):
+        label = f"scene {spec.path}: objects[{i}] ({obj.label})"
+        if obj.urdf:
+            urdf = _urdf_file(obj.urdf)
+            if not urdf.is_file():
+                raise SceneSetError(f"{label}: urdf {obj.urdf!r}: file {urdf} not found (expected an absolute "
+                                    "path, a path under pybullet_data or a short name such as duck)")
+        x, y, z = obj.position
+        if not (-half_x <= x <= half_x and -half_y <= y <= half_y and z > _LOWEST_Z):
+            raise SceneSetError(
+                f"{label}: position [{x:g}, {y:g}, {z:g}] (m, workspace frame) is outside the workspace{where}: "
+                f"expected x in [{-half_x:g}, {half_x:g}], y in [{-half_y:g}, {half_y:g}], z > {_LOWEST_Z:g} "
+                f"(workspace x {list(workspace.x)}, y {list(workspace.y)} in the base frame); the simulator "
+                "would remove it at the first action and the run could never complete")
     return len(scene.objects)
