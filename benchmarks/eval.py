@@ -11,7 +11,12 @@ Three parts, all frozen and greedy (``flgd eval`` defaults), each with
    -- target: grasp success >= 90 % in clutter.
 
 The same ``Evaluator`` as ``flgd eval`` runs every part (one cycle, one
-definition of the metrics).  ``--json`` writes the three reports.
+definition of the metrics).  ``--json`` writes the reports, atomically,
+after each part, so a bench cut short keeps the parts it finished.
+
+Bad input (arguments, config, policy, scene sets, an unwritable --json, a
+config the evaluator refuses) exits 2 before anything is simulated; an
+evaluation that fails part-way exits 1, Ctrl-C 130.
 """
 
 from __future__ import annotations
@@ -28,6 +33,36 @@ from typing import Any
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_CONFIG = REPO / "cell_config" / "sim.yaml"
 DEFAULT_VPG = REPO.parent / "shared" / "external" / "vpg"
+EXIT_OK, EXIT_FAILED, EXIT_USAGE, EXIT_INTERRUPTED = 0, 1, 2, 130
+
+
+def _fail(message: str, code: int = EXIT_USAGE) -> int:
+    print(f"flgd bench eval: {message}", file=sys.stderr)
+    return code
+
+
+def _check_output(path: str) -> Path:
+    """The --json path, checked before hours of evaluation rather than after (as flgd eval does): its
+    directory is created if missing and must be writable; the path must not be a directory."""
+    out = Path(path)
+    blocking = next((d for d in [out.parent, *out.parent.parents] if d.exists()), None)
+    if blocking is not None and not blocking.is_dir():
+        raise OSError(f"--json {out}: {blocking} is a file, not a directory")
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise OSError(f"--json {out}: cannot create its directory ({exc.strerror or exc})") from None
+    if out.is_dir():
+        raise OSError(f"--json {out}: is a directory, expected a file path")
+    if not os.access(out.parent, os.W_OK):
+        raise OSError(f"--json {out}: directory {out.parent} is not writable")
+    return out
+
+
+def _write_reports(out: Path, reports: dict) -> None:
+    from flgd.atomic_file import write_atomically
+
+    write_atomically(out, (json.dumps(reports, indent=2) + "\n").encode("utf-8"), mode=0o644)
 
 
 def _pct(v: float | None) -> str:
@@ -43,7 +78,7 @@ def _evaluate(config: Any, network: Any, policy: dict, scenes: list, runs: int, 
     t0 = time.perf_counter()
 
     def progress(spec: Any, log: Any) -> None:
-        print(f"    {spec.name} run {log.run + 1}: {log.end}, {len(log.actions)} actions "
+        print(f"    {spec.name} run {log.run}: {log.end}, {len(log.actions)} actions "
               f"({log.seconds:.0f} s)", file=sys.stderr, flush=True)
 
     with Evaluator(config, network, options, progress=progress) as ev:
@@ -78,6 +113,7 @@ def main(argv: list[str]) -> int:
     args = ap.parse_args(argv)
 
     from flgd.config import ConfigError, load_config
+    from flgd.evaluation.evaluator import EvalOptions, EvaluationError, Evaluator
     from flgd.evaluation.scene_sets import SceneSetError, named_set
     from flgd.learning.policy_file import PolicyFileError, load_policy
     from flgd.learning.trunk import TrunkFileError
@@ -85,9 +121,14 @@ def main(argv: list[str]) -> int:
     parts = [p.strip() for p in args.parts.split(",") if p.strip()]
     unknown = sorted(set(parts) - {"vpg", "presets", "novel"})
     if unknown or args.runs < 1 or args.clutter_runs < 1:
-        print(f"flgd bench eval: --parts: unknown {unknown}" if unknown else
-              "flgd bench eval: --runs and --clutter-runs must be >= 1", file=sys.stderr)
-        return 1
+        return _fail(f"--parts: unknown {unknown}" if unknown else
+                     f"--runs and --clutter-runs: got {args.runs} and {args.clutter_runs}, expected >= 1")
+    if args.max_actions is not None and args.max_actions < 1:
+        return _fail(f"--max-actions: got {args.max_actions}, expected >= 1")
+    try:
+        json_out = _check_output(args.json) if args.json else None
+    except OSError as exc:
+        return _fail(str(exc))
     try:
         config = load_config(args.config)
         if args.fresh:
@@ -111,9 +152,12 @@ def main(argv: list[str]) -> int:
         if "novel" in parts:
             suites.append(("novel objects, isolated", named_set("novel-isolated"), False, args.runs))
             suites.append(("novel objects, clutter of 10", named_set("novel-clutter"), False, args.clutter_runs))
-    except (ConfigError, PolicyFileError, SceneSetError, TrunkFileError) as exc:
-        print(f"flgd bench eval: {exc}", file=sys.stderr)
-        return 1
+        # what the Evaluator refuses (a real-cell config, --max-actions 0), refused now rather than as a
+        # traceback: it is built per part, and building it is cheap (no simulator until a scene runs)
+        with Evaluator(config, network, EvalOptions(runs=args.runs, seed=args.seed, max_actions=args.max_actions)):
+            pass
+    except (ConfigError, PolicyFileError, SceneSetError, TrunkFileError, EvaluationError, ValueError) as exc:
+        return _fail(str(exc))
 
     print(f"# flgd bench eval {' '.join(argv)}")
     print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cpus, python "
@@ -121,10 +165,25 @@ def main(argv: list[str]) -> int:
           f"({policy.get('training_steps', 0)} training steps); {args.runs} run(s) per scene "
           f"({args.clutter_runs} of the novel clutter), seed {args.seed}")
     reports: dict[str, dict] = {}
+    write_error = ""
     t0 = time.perf_counter()
     for name, scenes, grasp_only, runs in suites:
         print(f"  {name} ...", file=sys.stderr, flush=True)
-        reports[name] = _evaluate(config, network, policy, scenes, runs, args.seed, grasp_only, args.max_actions)
+        kept = f"; the parts done are in {json_out}" if json_out is not None and reports else ""
+        try:
+            reports[name] = _evaluate(config, network, policy, scenes, runs, args.seed, grasp_only,
+                                      args.max_actions)
+        except KeyboardInterrupt:
+            return _fail(f"interrupted during {name!r}{kept}", EXIT_INTERRUPTED)
+        except (EvaluationError, ValueError) as exc:
+            return _fail(f"{name}: {exc}{kept}", EXIT_FAILED)
+        if json_out is not None:
+            try:
+                _write_reports(json_out, reports)
+                write_error = ""
+            except OSError as exc:  # the evaluation goes on (the next part retries); the table is printed below
+                write_error = f"--json {json_out}: cannot write ({exc})"
+                print(f"flgd bench eval: {write_error}", file=sys.stderr)
     print("\n| evaluation | runs | completion | grasp success | action efficiency | actions/run | push / shift "
           "| aborted |")
     print("|---|---|---|---|---|---|---|---|")
@@ -150,6 +209,4 @@ def main(argv: list[str]) -> int:
         s = reports["novel objects, clutter of 10"]["overall"]
         print(f"target novel clutter: grasp success {_pct(s['grasp_success'])} (target >= 90 %; paper 94.7 %)")
     print(f"total time {time.perf_counter() - t0:.0f} s")
-    if args.json:
-        Path(args.json).write_text(json.dumps(reports, indent=2) + "\n", encoding="utf-8")
-    return 0
+    return _fail(write_error, EXIT_FAILED) if write_error else EXIT_OK

@@ -19,7 +19,10 @@ Every run is a ``flgd train`` run directory under ``--root``, so a run that is
 cut short (Ctrl-C, a session that ends) is continued by running the bench
 again; finished runs are skipped.  Runs go in parallel processes
 (``--jobs``, one torch thread each).  ``--report-only`` only reads whatever
-runs exist and marks the unfinished ones.
+runs exist and marks the unfinished ones.  A Table II evaluation file that
+cannot be read (cut off while being written by an older version) counts as
+missing: the report says so and the next bench run redoes it.  A run whose
+run.json is damaged stops the bench (exit 2) with the file named.
 
     flgd bench learning [--root runs/learning] [--steps 1000] [--seeds 0 1 2] [--jobs 2]
     flgd bench learning --report-only
@@ -38,9 +41,11 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+from flgd.atomic_file import write_atomically
 from flgd.training.actionlog import read_rows
 from flgd.training.curve import (grasp_series, plot_curves, rolling_success, spread, steps_to_threshold,
                                 success_by_rule)
+from flgd.training.run import RunFileError, read_run_info
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_CONFIG = REPO / "cell_config" / "sim.yaml"
@@ -86,10 +91,10 @@ def run_specs(variants: list[str], seeds: list[int], table2: bool) -> list[RunSp
 
 
 def read_run(directory: Path, spec: RunSpec, steps: int) -> RunResult | None:
-    info_path = directory / "run.json"
-    if not info_path.exists():
+    """The run in ``directory`` (None: not started); a damaged run.json raises ``RunFileError``."""
+    info = read_run_info(directory)
+    if info is None:
         return None
-    info = json.loads(info_path.read_text())
     rows = read_rows(directory / "actions.csv")
     step = max((int(r["step"]) for r in rows if r.get("step")), default=-1) + 1
     return RunResult(spec, directory, rows, step, steps, str(info.get("status", "unknown")))
@@ -142,6 +147,21 @@ def train_all(specs: list[RunSpec], root: Path, config: Path, objects: int, step
     return not stopping
 
 
+def read_table2(path: Path) -> tuple[dict | None, str]:
+    """(overall metrics, '') of a Table II evaluation file, or (None, what is wrong with it).
+
+    An unreadable file must count as missing, not stop every later report: a bench cut off while
+    ``flgd eval`` wrote it would otherwise never redo the evaluation."""
+    try:
+        rep = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError) as exc:  # JSONDecodeError and UnicodeDecodeError are ValueErrors
+        return None, f"{type(exc).__name__}: {exc}"
+    overall = rep.get("overall") if isinstance(rep, dict) else None
+    if not isinstance(overall, dict):
+        return None, "no 'overall' object (not a flgd eval report)"
+    return overall, ""
+
+
 def evaluate_table2(results: dict[str, RunResult], root: Path, eval_runs: int, seeds: list[int]) -> None:
     """``flgd eval`` of the newest checkpoint of each Table II run on the presets (cached per checkpoint)."""
     from sim_cell.cell import preset_scenes
@@ -157,12 +177,27 @@ def evaluate_table2(results: dict[str, RunResult], root: Path, eval_runs: int, s
                 continue
             out = res.directory / f"table2-{ckpts[-1].stem}-r{eval_runs}.json"
             if out.exists():
-                continue
+                overall, problem = read_table2(out)
+                if overall is not None:
+                    continue
+                print(f"  {out.name}: unreadable ({problem}), evaluating again")
+            # flgd eval writes its report in place; it goes to a hidden file (not matched by the
+            # table2-* glob) and is moved to ``out`` atomically only once whole and readable
+            partial = out.with_name(f".{out.name}.partial")
             cmd = [sys.executable, "-m", "flgd.cli", "eval", "--config", str(res.directory / "config.yaml"),
                    "--policy", str(ckpts[-1]), "--scenes", *scenes, "--runs", str(eval_runs), "--seed", str(seed),
-                   "--json", str(out), "--quiet"] + (["--grasp-only"] if grasp_only else [])
+                   "--json", str(partial), "--png", str(out.with_suffix(".png")), "--quiet"] + \
+                (["--grasp-only"] if grasp_only else [])
             print(f"  evaluating {name} ({ckpts[-1].name}) on {len(scenes)} presets x {eval_runs} runs")
-            subprocess.run(cmd, cwd=REPO, check=False, env=dict(os.environ, OMP_NUM_THREADS="1"))
+            try:
+                proc = subprocess.run(cmd, cwd=REPO, check=False, env=dict(os.environ, OMP_NUM_THREADS="1"))
+                if proc.returncode == 0 and read_table2(partial)[0] is not None:
+                    write_atomically(out, partial.read_bytes(), mode=0o644)
+                else:
+                    print(f"  {name}: evaluation failed (exit code {proc.returncode}); it is redone by the "
+                          "next run of the bench")
+            finally:
+                partial.unlink(missing_ok=True)
 
 
 # ---------------------------------------------------------------------- report
@@ -264,18 +299,19 @@ def report(results: dict[str, RunResult], variants: list[str], seeds: list[int],
             res = results.get(name)
             evals = sorted(res.directory.glob(f"table2-*-r{eval_runs}.json")) if res else []
             if not evals:
-                table2.append((mode, s, None, res))
+                table2.append((mode, s, None, res, ""))
                 continue
-            rep = json.loads(evals[-1].read_text())
-            table2.append((mode, s, rep.get("overall", {}), res))
+            overall, problem = read_table2(evals[-1])
+            table2.append((mode, s, overall, res,
+                           f"{evals[-1].name} unreadable ({problem}), will be redone" if problem else ""))
     if any(t[2] is not None or t[3] is not None for t in table2):
         lines += ["", "## Table II: preset cluttered piles, frozen greedy policy", "",
                   "| mode | seed | completion | grasp success | grasps | runs |", "|---|---|---|---|---|---|"]
         out["table2"] = []
-        for mode, s, ov, res in table2:
+        for mode, s, ov, res, problem in table2:
             if ov is None:
-                state = "no run" if res is None else ("not evaluated" if res.complete else
-                                                      f"training not finished (at {res.step})*")
+                state = problem or ("no run" if res is None else ("not evaluated" if res.complete else
+                                                                  f"training not finished (at {res.step})*"))
                 lines.append(f"| {mode} | {s} | {state} | | | |")
                 continue
             comp, gs = ov.get("completion"), ov.get("grasp_success")
@@ -285,8 +321,8 @@ def report(results: dict[str, RunResult], variants: list[str], seeds: list[int],
             out["table2"].append({"mode": mode, "seed": s, **{k: ov.get(k) for k in (
                 "completion", "grasp_success", "grasp_successes", "grasp_attempts", "runs")}})
     text = "\n".join(lines) + "\n"
-    (root / "report.md").write_text(text)
-    (root / "report.json").write_text(json.dumps(out, indent=2) + "\n")
+    write_atomically(root / "report.md", text.encode(), mode=0o644)
+    write_atomically(root / "report.json", (json.dumps(out, indent=2) + "\n").encode(), mode=0o644)
     print(text)
     return out
 
@@ -311,16 +347,21 @@ def main(argv: list[str]) -> int:
     root.mkdir(parents=True, exist_ok=True)
     specs = run_specs(args.variants, args.seeds, not args.no_table2)
     interrupted = False
-    if not args.report_only:
-        interrupted = not train_all(specs, root, Path(args.config).resolve(), args.objects, args.steps, args.jobs)
-        if interrupted:
-            print("flgd bench learning: interrupted; run the same command again to resume (no Table II "
-                  "evaluation started)", file=sys.stderr)
-    results = {}
-    for spec in specs:
-        res = read_run(root / spec.name, spec, args.steps)
-        if res is not None:
-            results[spec.name] = res
+    try:
+        if not args.report_only:
+            interrupted = not train_all(specs, root, Path(args.config).resolve(), args.objects, args.steps,
+                                        args.jobs)
+            if interrupted:
+                print("flgd bench learning: interrupted; run the same command again to resume (no Table II "
+                      "evaluation started)", file=sys.stderr)
+        results = {}
+        for spec in specs:
+            res = read_run(root / spec.name, spec, args.steps)
+            if res is not None:
+                results[spec.name] = res
+    except RunFileError as exc:  # found before any training starts: train_all reads every run first
+        print(f"flgd bench learning: {exc}", file=sys.stderr)
+        return 2
     if not args.report_only and not args.no_table2 and not interrupted:
         evaluate_table2(results, root, args.eval_runs, args.seeds)
     report(results, args.variants, args.seeds, root, args.steps, args.objects, args.eval_runs)

@@ -143,7 +143,7 @@ def test_a_run_stops_at_the_eleventh_consecutive_failure(config, tmp_path):
     spec = scene_from_argument(str(scene))
     with Evaluator(config, build_network("fast", rotations=16, seed=0), EvalOptions(runs=1)) as ev:
         ev.runner.agent = _GraspTheEmptyCorner()
-        log = ev.run(spec, 0)
+        log = ev.run(spec, 1)
     assert log.end == "failures"
     assert len(log.actions) == 11 and not any(a.success for a in log.actions)
     assert log.objects == 1 and log.objects_left == 1
@@ -156,7 +156,7 @@ def test_action_limit_and_clearing_a_scene(config, tmp_path):
     spec = scene_from_argument(str(scene))
     with Evaluator(config, build_network("fast", rotations=16, seed=0), EvalOptions(runs=1, max_actions=3)) as ev:
         ev.runner.agent = _GraspTheEmptyCorner()
-        limited = ev.run(spec, 0)
+        limited = ev.run(spec, 1)
         assert limited.end == "action-limit" and len(limited.actions) == 3
         # an oracle grasp across the cube clears the one-object scene: a completed run of one action
         cube = ev._cells[""].object_states()[0]
@@ -169,7 +169,7 @@ def test_action_limit_and_clearing_a_scene(config, tmp_path):
                                                   np.ones(hm.height.shape, np.uint8),
                                                   np.ones(hm.height.shape, np.uint8), 0.0, "greedy", 0.0)
         ev.runner.agent = oracle
-        cleared = ev.run(spec, 1)
+        cleared = ev.run(spec, 2)
     assert cleared.end == "cleared", cleared
     assert [a.success for a in cleared.actions] == [True]
     res = run_result(cleared)
@@ -204,13 +204,13 @@ def test_learn_feeds_the_replay_and_no_learn_keeps_the_weights(config, tmp_path)
     before = {k: v.clone() for k, v in net.state_dict().items()}
     with Evaluator(config, net, EvalOptions(runs=1, max_actions=2)) as ev:
         assert ev.replay is None and ev.learner is None
-        frozen = ev.run(spec, 0)
+        frozen = ev.run(spec, 1)
     assert all(torch.equal(before[k], v) for k, v in net.state_dict().items())
     assert all(a.kind == "grasp" or a.kind in ("push", "shift") for a in frozen.actions)
 
     with Evaluator(config, build_network("fast", rotations=16, seed=0), EvalOptions(runs=1, max_actions=2, learn=True),
                    training_steps=40) as ev:
-        log = ev.run(spec, 0)
+        log = ev.run(spec, 1)
         assert len(ev.replay) == len(log.actions) >= 1
         assert ev.runner.step == 40 + len(log.actions)   # epsilon continues from the policy's steps
         assert ev.learner.wait_idle(timeout=60)
@@ -276,8 +276,8 @@ def test_the_installed_command_reports_a_corrupt_policy_without_a_traceback(tmp_
 def test_bench_eval_runs_the_novel_clutter_its_own_number_of_times(tmp_path, capsys):
     from benchmarks import eval as bench_eval
 
-    assert bench_eval.main(["--fresh", "--clutter-runs", "0"]) == 1
-    assert "--clutter-runs must be >= 1" in capsys.readouterr().err
+    assert bench_eval.main(["--fresh", "--clutter-runs", "0"]) == 2
+    assert "--clutter-runs: got 3 and 0, expected >= 1" in capsys.readouterr().err
     out = tmp_path / "bench.json"
     assert bench_eval.main(["--fresh", "--parts", "novel", "--runs", "1", "--clutter-runs", "2",
                             "--max-actions", "1", "--json", str(out)]) == 0

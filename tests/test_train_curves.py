@@ -86,7 +86,7 @@ def test_spread_ranks_never_reached_last():
 def _write_run(root: Path, name: str, pattern: list[str], status: str) -> None:
     d = root / name
     d.mkdir(parents=True)
-    (d / "run.json").write_text(json.dumps({"status": status}))
+    (d / "run.json").write_text(json.dumps({"settings": {}, "status": status}))  # a run.json always has settings
     with (d / "actions.csv").open("w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=COLUMNS)
         w.writeheader()

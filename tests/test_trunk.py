@@ -51,6 +51,18 @@ def test_targets_of_two_touching_boxes():
         instance_targets(np.zeros((2, 3, 4)))
 
 
+def test_interior_depth_is_one_over_the_peak_at_the_edge_not_zero():
+    """What the module doc promises (and the shipped trunk was trained on): edge pixels count distance 1."""
+    labels = np.zeros((11, 11), np.int32)
+    labels[2:9, 2:9] = 5
+    interior = instance_targets(labels)[2]
+    assert interior[5, 2:9].tolist() == pytest.approx([0.25, 0.5, 0.75, 1.0, 0.75, 0.5, 0.25])
+    assert interior[2, 2] == pytest.approx(0.25) and interior[0, 0] == 0
+    line = np.zeros((5, 9), np.int32)
+    line[2, 1:8] = 1
+    assert instance_targets(line)[2][2, 1:8].tolist() == pytest.approx([1.0] * 7)
+
+
 # ------------------------------------------------------------------------------------------ sim ground truth
 
 def test_labels_line_up_with_the_objects_and_follow_a_removal():

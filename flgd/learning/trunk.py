@@ -7,10 +7,13 @@ network has no ImageNet counterpart, so this module gives it the same kind
 of head start from simulator ground truth: from a labelled heightmap (which
 object each pixel shows) the network learns, per pixel, whether it is on an
 object, whether it is on a boundary between objects (or object and table),
-and how deep inside its object it is (0 at the boundary, 1 at the object's
-most interior pixel).  None of that says where or how to grasp; it is generic
-instance perception, learned from objects that need not be the ones the
-robot later picks (``flgd pretrain`` takes any object set).
+and how deep inside its object it is: the distance to the nearest pixel
+outside the object (an edge pixel counts 1) over the object's largest such
+distance -- 1 at its most interior pixel, 1/peak (not 0) on its edge, 0 off
+objects; across a 7x7 square 0.25 0.5 0.75 1 0.75 0.5 0.25.  (Kept so: the
+shipped trunk was trained on these targets.)  None of that says where or how
+to grasp; it is generic instance perception, learned from objects that need
+not be the ones the robot later picks (``flgd pretrain`` takes any object set).
 
 A trunk file holds the weights of every layer except the Q-map output and the
 value stream; ``load_trunk`` copies into a fresh Q-network whatever of it the

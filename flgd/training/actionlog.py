@@ -7,6 +7,11 @@ read with any tool.  On resume the CSV is made to agree with the store: rows
 beyond the store's last step (the step in flight when the process was killed)
 are dropped, and a step the store has but the CSV lost is filled in from the
 store with the trainer-only columns left empty.
+
+``objects_left`` counts the objects after the action in the scene it acted on
+(also when that ended the scene with objects nothing could grasp; empty for a
+discarded action, whose scene blew up); ``scene`` numbers that scene, uniquely
+across the segments of a run.
 """
 
 from __future__ import annotations

@@ -21,6 +21,7 @@ from pathlib import Path
 from flgd.learning.policy_file import PolicyFileError, load_policy, read_metadata
 from flgd.training.actionlog import read_rows
 from flgd.training.curve import plot_curves
+from flgd.training.run import RUN_FILE, read_run_info
 
 __all__ = ["choose_checkpoint", "export_policy", "main"]
 
@@ -49,7 +50,9 @@ def export_policy(run_dir: Path, dest: Path, which: str = "latest") -> dict:
     src = choose_checkpoint(run_dir, which)
     loaded = load_policy(src)  # refuse to ship a file that does not load
     meta = loaded.metadata
-    run = json.loads((run_dir / "run.json").read_text())
+    run = read_run_info(run_dir)
+    if run is None:
+        raise FileNotFoundError(f"{run_dir / RUN_FILE}: does not exist; expected a flgd train run directory")
     dest.parent.mkdir(parents=True, exist_ok=True)
     tmp = dest.with_name(f".{dest.name}.tmp")
     shutil.copyfile(src, tmp)

@@ -31,7 +31,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["collect_frames", "PretrainSettings", "pretrain", "main"]
+__all__ = ["collect_frames", "PretrainSettings", "PretrainFileError", "pretrain", "main"]
 
 FRAMES_FILE = "frames.npz"
 STATE_FILE = "pretrain-state.pt"
@@ -39,6 +39,10 @@ TRUNK_FILE = "trunk.safetensors"
 INFO_FILE = "pretrain.json"
 PICTURE_FILE = "predictions.png"
 EXIT_OK, EXIT_ERROR, EXIT_USAGE, EXIT_INTERRUPTED = 0, 1, 2, 130
+
+
+class PretrainFileError(ValueError):
+    """A damaged file in the output directory; the message names it and says what to do."""
 
 
 def collect_frames(cell: Any, workspace: Any, depth_range: tuple[float, float], frames: int,
@@ -137,6 +141,9 @@ def pretrain(out: Path, data: dict[str, np.ndarray], settings: PretrainSettings,
     n = len(data["labels"])
     if n <= settings.held_out:
         raise ValueError(f"{n} frames, but {settings.held_out} are held out: collect more (--frames)")
+    if n - settings.held_out < settings.batch:  # sampled without replacement
+        raise ValueError(f"batch {settings.batch}: only {n - settings.held_out} training frames ({n} minus "
+                         f"{settings.held_out} held out); use a smaller --batch or more --frames")
     train_idx = np.arange(n - settings.held_out)
     held_idx = np.arange(n - settings.held_out, n)
     net = PerceptionNet(seed=settings.seed)
@@ -144,10 +151,17 @@ def pretrain(out: Path, data: dict[str, np.ndarray], settings: PretrainSettings,
     step, history = 0, []
     state_path = out / STATE_FILE
     if state_path.exists():
-        state = torch.load(state_path, weights_only=True)
-        net.load_state_dict(state["net"])
-        optimizer.load_state_dict(state["optimizer"])
-        step, history = int(state["step"]), json.loads(state["history"])
+        try:
+            state = torch.load(state_path, weights_only=True)
+            net.load_state_dict(state["net"])
+            optimizer.load_state_dict(state["optimizer"])
+            step, history = int(state["step"]), json.loads(state["history"])
+            if not isinstance(history, list):
+                raise ValueError(f"history: expected a list, got {type(history).__name__}")
+        except Exception as exc:  # truncated, not a torch file, another network: all the same to the user
+            raise PretrainFileError(
+                f"{state_path}: cannot be resumed from ({type(exc).__name__}: {exc}); delete it to train "
+                f"from step 0 again (the frames in {FRAMES_FILE} are kept)") from None
     if not history:
         history.append({"step": 0, **_held_out_loss(net, data, held_idx, rotations, stride)})
     rng = np.random.default_rng([settings.seed, step])
@@ -212,6 +226,44 @@ def _write_picture(path: Path, net, data: dict[str, np.ndarray], indices: np.nda
     write_png(path, np.concatenate([header, img], axis=0))
 
 
+def _recorded_settings(path: Path) -> dict | None:
+    """The settings an output directory was started with (None: a new one); a damaged pretrain.json is refused,
+    never taken for a new directory (which would rewrite it and mix settings)."""
+    if not path.exists():
+        return None
+    fix = f"{path.parent} was not changed; restore {path.name} or use a new --out"
+    try:
+        info = json.loads(path.read_text(encoding="utf-8"))
+    except json.JSONDecodeError as exc:
+        raise PretrainFileError(f"{path}: not valid JSON ({exc.msg}: line {exc.lineno} column {exc.colno}; "
+                                f"truncated?); {fix}") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise PretrainFileError(f"{path}: cannot be read ({exc}); {fix}") from None
+    settings = info.get("settings") if isinstance(info, dict) else None
+    if not isinstance(settings, dict):
+        what = (f"key 'settings' is {'missing' if settings is None else type(settings).__name__}"
+                if isinstance(info, dict) else f"got {type(info).__name__}")
+        raise PretrainFileError(f"{path}: expected a JSON object with the settings object; {what}; {fix}")
+    return settings
+
+
+def _load_frames(path: Path) -> dict[str, np.ndarray]:
+    """The collected frames; a truncated or foreign frames.npz is a ``PretrainFileError`` naming it."""
+    fix = "delete it and run the same command again to collect the frames anew"
+    try:
+        with np.load(path) as f:
+            data = {k: f[k] for k in ("color", "height", "labels")}
+    except KeyError as exc:
+        raise PretrainFileError(f"{path}: array {exc} missing (expected color, height, labels); {fix}") from None
+    except Exception as exc:  # a truncated zip surfaces as BadZipFile, EOFError, ValueError, OSError ...
+        raise PretrainFileError(f"{path}: cannot be read ({type(exc).__name__}: {exc}); {fix}") from None
+    if any(v.ndim == 0 for v in data.values()) or len({len(v) for v in data.values()}) != 1 \
+            or data["labels"].ndim != 3:
+        raise PretrainFileError(f"{path}: inconsistent arrays ({', '.join(f'{k} {v.shape}' for k, v in data.items())}"
+                                f"; expected N frames of each, labels N x H x W); {fix}")
+    return data
+
+
 def _parser() -> argparse.ArgumentParser:
     d = PretrainSettings()
     ap = argparse.ArgumentParser(prog="flgd pretrain", description=__doc__.split("\n\n")[0])
@@ -245,6 +297,9 @@ def main(argv: list[str]) -> int:
         problems.append(f"--max-objects: got {args.max_objects}, expected {args.min_objects}..60")
     if args.frames <= args.held_out:
         problems.append(f"--frames: got {args.frames}, expected more than --held-out ({args.held_out})")
+    elif args.batch > args.frames - args.held_out:  # a batch is drawn without replacement
+        problems.append(f"--batch: got {args.batch}, expected at most the {args.frames - args.held_out} "
+                        f"training frames (--frames {args.frames} minus --held-out {args.held_out})")
     if not args.learning_rate > 0:
         problems.append(f"--learning-rate: got {args.learning_rate}, expected > 0")
     if problems:
@@ -262,7 +317,11 @@ def main(argv: list[str]) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     info_path = out / INFO_FILE
-    recorded = json.loads(info_path.read_text())["settings"] if info_path.exists() else None
+    try:
+        recorded = _recorded_settings(info_path)
+    except PretrainFileError as exc:
+        print(f"flgd pretrain: {exc}", file=sys.stderr)
+        return EXIT_USAGE
     mine = {**dataclasses.asdict(settings), "object_set": args.object_set, "config": str(Path(args.config).resolve())}
     mine["objects"] = list(mine["objects"])
     changed = sorted(k for k in mine if recorded is not None and recorded.get(k) != mine[k] and k != "steps")
@@ -282,8 +341,7 @@ def main(argv: list[str]) -> int:
     try:
         frames_path = out / FRAMES_FILE
         if frames_path.exists():
-            with np.load(frames_path) as f:
-                data = {k: f[k] for k in ("color", "height", "labels")}
+            data = _load_frames(frames_path)
         else:
             from flgd.cell import make_cell
 
@@ -313,6 +371,9 @@ def main(argv: list[str]) -> int:
 
         info = pretrain(out, data, settings, stop=lambda: bool(stopping), progress=progress)
         print("", file=sys.stderr)
+    except PretrainFileError as exc:
+        print(f"\nflgd pretrain: {exc}", file=sys.stderr)
+        return EXIT_USAGE
     except (ValueError, OSError) as exc:
         print(f"\nflgd pretrain: {exc}", file=sys.stderr)
         return EXIT_ERROR

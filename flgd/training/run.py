@@ -55,9 +55,11 @@ from typing import Any
 
 import numpy as np
 
+from flgd.atomic_file import write_atomically
 from flgd.config import CellConfig, ConfigError, dump_config, load_sim_config
 
-__all__ = ["TRAIN_VARIANTS", "RunSettings", "TrainingRun", "effective_config", "main", "EXIT_INTERRUPTED"]
+__all__ = ["TRAIN_VARIANTS", "RunSettings", "RunFileError", "TrainingRun", "effective_config", "read_run_info",
+           "main", "EXIT_INTERRUPTED"]
 
 log = logging.getLogger("flgd.train")
 
@@ -91,6 +93,51 @@ class RunSettings:
         mode = ", grasp only" if self.grasp_only else ""
         start = f", from {self.init_policy}" if self.init_policy else ""
         return f"{self.variant} ({TRAIN_VARIANTS[self.variant][2]}), {scene}{mode}, seed {self.seed}{start}"
+
+
+class RunFileError(ValueError):
+    """A run directory's run.json that cannot be used; the message names the file, the problem and what to do."""
+
+
+def read_run_info(out: Path) -> dict | None:
+    """The run.json of run directory ``out``, None if it has none; a damaged one is a ``RunFileError``.
+
+    Never guess: a run.json that does not parse or is not a run's record must not be taken for "no run"
+    (a new run would be started over the old one's store and checkpoints)."""
+    path = Path(out) / RUN_FILE
+    if not path.exists():
+        return None
+    fix = (f"the run in {path.parent} was not changed; restore {RUN_FILE} (its settings are also in "
+           f"the policy metadata of checkpoints/) or start the run in another directory")
+    try:
+        info = json.loads(path.read_text(encoding="utf-8"))
+    except json.JSONDecodeError as exc:
+        raise RunFileError(f"{path}: not valid JSON ({exc.msg}: line {exc.lineno} column {exc.colno}; "
+                           f"truncated?); {fix}") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise RunFileError(f"{path}: cannot be read ({exc}); {fix}") from None
+    if not isinstance(info, dict):
+        raise RunFileError(f"{path}: expected a JSON object (settings, segments, status), got "
+                           f"{type(info).__name__}; {fix}")
+    settings = info.get("settings")
+    if not isinstance(settings, dict):
+        raise RunFileError(f"{path}: key 'settings': expected an object of the run's settings, got "
+                           f"{'nothing' if settings is None else type(settings).__name__}; {fix}")
+    defaults = dataclasses.asdict(RunSettings())
+    for key, value in settings.items():
+        if key not in defaults:
+            continue
+        want = type(defaults[key])
+        ok = isinstance(value, want) and (want is bool or not isinstance(value, bool))
+        if key == "variant" and ok and value not in TRAIN_VARIANTS:
+            raise RunFileError(f"{path}: settings.variant: got {value!r}, expected one of "
+                               f"{sorted(TRAIN_VARIANTS)}; {fix}")
+        if not ok:
+            raise RunFileError(f"{path}: settings.{key}: got {value!r}, expected {want.__name__}; {fix}")
+    if not isinstance(info.get("segments", []), list):
+        raise RunFileError(f"{path}: key 'segments': expected a list, got {type(info['segments']).__name__}; "
+                           f"{fix}")
+    return info
 
 
 def _derived_seed(seed: int, segment: int, stream: int) -> int:
@@ -175,18 +222,16 @@ class TrainingRun:
                 self.config.learning, threads=threads))
         self.stop_signals: list[int] = []
         self.grasps: deque = deque(maxlen=200)
-        self.slot_ids: list[int] = []
-        self.adds = 0
+        self.scene_count = 0
+        # (objects, scene kind) of the scene the current cycle acts on, noted before the runner resets it
+        self._cycle_scene: tuple[int | None, str] = (None, "")
         self.last_checkpoint_updates = -1
         self.consecutive_faults = 0
         self._lock_fd: int | None = None
 
     # ------------------------------------------------------------------ setup
     def _load_run_info(self) -> dict:
-        path = self.out / RUN_FILE
-        if not path.exists():
-            return {}
-        return json.loads(path.read_text())
+        return read_run_info(self.out) or {}
 
     def _write_run_info(self, status: str) -> None:
         info = dict(self.run_info)
@@ -199,9 +244,7 @@ class TrainingRun:
         if hasattr(self, "learner"):  # how the double-DQN a' of the targets was found (this segment)
             info["next_argmax"] = {"reused": self.learner.argmax_reused, "computed": self.learner.argmax_computed}
         self.run_info = info
-        tmp = self.out / f".{RUN_FILE}.tmp"
-        tmp.write_text(json.dumps(info, indent=2) + "\n")
-        tmp.replace(self.out / RUN_FILE)
+        write_atomically(self.out / RUN_FILE, (json.dumps(info, indent=2) + "\n").encode(), mode=0o644)
 
     def _take_lock(self) -> None:
         fd = os.open(self.out / "train.lock", os.O_RDWR | os.O_CREAT, 0o644)
@@ -225,21 +268,16 @@ class TrainingRun:
         self._take_lock()
         if self.config.learning.threads > 0:
             torch.set_num_threads(self.config.learning.threads)
-        (self.out / CONFIG_FILE).write_text(dump_config(self.config))
+        self._write_config()
         self.store = Store(self.out, keep_transitions=self.config.learning.replay_capacity)
         self.checkpoints = CheckpointDir(self.out / "checkpoints", keep=1_000_000)
         self.checkpoints.remove_temporary()
         start = starting_network(self.config, self.checkpoints, self.settings.init_policy or None)
         self.last_checkpoint_updates = start.resumed_from_updates if start.checkpoint else -1
-        lc = self.config.learning
         replay_seed = _derived_seed(self.settings.seed, self.segment, 3)
         self.replay, problem = rebuild_replay(self.config, self.store, seed=replay_seed)
         if problem:
             raise RuntimeError(problem)
-        self.slot_ids = [int(r[0]) for r in self.store.query(
-            "SELECT id FROM (SELECT id FROM transitions ORDER BY id DESC LIMIT ?) ORDER BY id",
-            (lc.replay_capacity,))]
-        self.adds = len(self.slot_ids)
         self.agent, self.learner = build_agent_and_learner(
             self.config, start.network, self.replay, checkpoint_callback=self._checkpoint,
             updates=start.resumed_from_updates, agent_seed=_derived_seed(self.settings.seed, self.segment, 4))
@@ -254,7 +292,7 @@ class TrainingRun:
 
         step = self.store.next_step()
         cell = make_cell(self.config)
-        self.scene_count = 0
+        self.scene_count = _next_scene_id(self.actions.rows)
         if self.settings.curriculum:
             from flgd.curriculum import Curriculum, CurriculumCell
             from sim_cell.cell import preset_scenes
@@ -267,7 +305,8 @@ class TrainingRun:
             cell.scene_kind = f"random {curriculum.object_count(step)}"
         self.cell = cell
         self.runner = CycleRunner(self.config, cell, self.agent, store=self.store, replay=self.replay,
-                                  learner=self.learner, step=step, backend=self.config.backend)
+                                  learner=self.learner, step=step, backend=self.config.backend,
+                                  on_phase=self._on_phase)
         segments = list(self.run_info.get("segments", []))
         # the learning, exploration and object settings in force, so that a run whose config.yaml was
         # edited between segments (more updates per action, another object set) says so
@@ -304,9 +343,28 @@ class TrainingRun:
         restore_learner(self.learner, state)
         saved = dict(zip(state.priority_ids.tolist(), state.priorities.tolist()))
         eps = self.config.learning.priority_epsilon
-        for slot, tid in enumerate(self.slot_ids):
+        for slot, tid in enumerate(self._slot_tags()):
             if tid in saved:
                 self.replay.update_priorities([slot], [max(0.0, saved[tid] - eps)])
+
+    def _slot_tags(self) -> list[int | None]:
+        """The store's transition id in each replay slot, read from the replay itself.
+
+        Not counted alongside: a cycle that raises after its transition was added (a scene reset
+        failing, say) would shift such a count and attach saved priorities to other transitions."""
+        return [self.replay.tag(i) for i in range(len(self.replay))]
+
+    def _write_config(self) -> None:
+        """config.yaml, atomically (a kill mid-write must not leave a file the resume cannot load), and
+        only when it changed."""
+        path = self.out / CONFIG_FILE
+        data = dump_config(self.config).encode()
+        try:
+            if path.read_bytes() == data:
+                return
+        except OSError:
+            pass
+        write_atomically(path, data, mode=0o644)
 
     # ------------------------------------------------------------------ checkpoints
     def _checkpoint(self, network: Any, updates: int) -> None:
@@ -323,9 +381,10 @@ class TrainingRun:
                 "curriculum": self.settings.curriculum, "objects": self.settings.objects,
                 "grasp_only": self.settings.grasp_only, "source": f"flgd train {self.out.name}"}
         self.checkpoints.write(lambda p: save_policy(p, network, meta), updates)
-        n = len(self.replay)
-        save_trainer_state(self.out / TRAINER_STATE, self.learner, np.asarray(self.slot_ids[:n], dtype=np.int64),
-                           np.array([self.replay.priority(i) for i in range(n)], dtype=np.float64))
+        tagged = [(slot, tid) for slot, tid in enumerate(self._slot_tags()) if tid is not None]
+        save_trainer_state(self.out / TRAINER_STATE, self.learner,
+                           np.array([tid for _, tid in tagged], dtype=np.int64),
+                           np.array([self.replay.priority(slot) for slot, _ in tagged], dtype=np.float64))
         self.store.set_counter("learner_updates", updates)
         self.last_checkpoint_updates = updates
         self.write_curve()
@@ -346,15 +405,14 @@ class TrainingRun:
             log.warning("learning curve not written: %s", exc)
 
     # ------------------------------------------------------------------ the loop
-    def _note_transition(self, record) -> None:
-        if record.transition_id is None:
-            return
-        slot = self.adds % self.config.learning.replay_capacity
-        if slot < len(self.slot_ids):
-            self.slot_ids[slot] = int(record.transition_id)
-        else:
-            self.slot_ids.append(int(record.transition_id))
-        self.adds += 1
+    def _on_phase(self, name: str) -> None:
+        """Note the scene an action acts on while it is still there: a cycle that ends its scene resets it
+        before returning, so reading the cell afterwards would describe the next scene."""
+        if name in ("plan", "judge"):
+            cell = self.cell
+            kind = getattr(cell, "scene_kind", f"random {self.settings.objects}") if name == "plan" \
+                else self._cycle_scene[1]
+            self._cycle_scene = (cell.object_count, kind)
 
     def _handle_fault(self, exc: Exception) -> None:
         """A cell fault or a simulator error inside a cycle: recover, new scene; give up after several in a row."""
@@ -392,33 +450,36 @@ class TrainingRun:
                 record = self.runner.run_once()
             except CellFault as exc:
                 self._handle_fault(exc)
+                self.scene_count += 1
                 continue
             except StoreError:
                 raise  # disk full, read-only ...: stop with a checkpoint rather than lose steps
             except Exception as exc:  # the simulator failing inside a cycle: log it, new scene, go on
                 traceback.print_exc(file=sys.stderr)
                 self._handle_fault(exc)
+                self.scene_count += 1
                 continue
             self.consecutive_faults = 0
             if record.outcome == "empty" or record.step is None:
                 self.scene_count += 1
                 continue
-            self._note_transition(record)
             t_update = time.perf_counter()
             updates = self.learner.update_pending()
             t_update = time.perf_counter() - t_update
             if record.outcome == "executed" and record.primitive == "grasp" and record.success is not None:
                 self.grasps.append(int(record.success))
-            if record.done:
-                self.scene_count += 1
+            objects, kind = self._cycle_scene
             row = {k: v for k, v in record.row().items() if k in _LOG_KEYS}
-            row.update({"objects_left": 0 if record.done else self.cell.object_count,
+            # a discarded action's scene blew up and was replaced: its object count means nothing
+            row.update({"objects_left": None if record.outcome == "discarded" else objects,
                         "scene": self.scene_count,
-                        "scene_kind": getattr(self.cell, "scene_kind", f"random {self.settings.objects}"),
+                        "scene_kind": kind,
                         "updates": self.learner.updates,
                         "loss": updates[-1].loss if updates else None, "t_update": t_update,
                         "t_store": record.timings.get("store")})
             self.actions.append(row)
+            if record.done or record.outcome == "discarded":  # the runner has started a new scene
+                self.scene_count += 1
             done = self.runner.step - start_step
             rate = done / max(1e-9, time.monotonic() - t0)
             eta = (target - self.runner.step) / rate if rate > 0 else math.inf
@@ -460,6 +521,18 @@ _LOG_KEYS = frozenset({"step", "time", "outcome", "primitive", "kind", "row", "c
                        "success", "rule", "epsilon",
                        "q_value", "mu", "eta", "refused", "failure", "contact_stop_mm", "t_capture", "t_perceive", "t_decide",
                        "t_plan", "t_execute", "t_judge", "duration"})
+
+
+def _next_scene_id(rows: list[dict[str, str]]) -> int:
+    """The scene id a (re)started segment begins with: one past the last logged, since a new cell starts a
+    new scene (ids stay unique across segments)."""
+    ids = []
+    for r in rows:
+        try:
+            ids.append(int(float(r.get("scene") or "")))
+        except (ValueError, OverflowError):
+            continue
+    return max(ids) + 1 if ids else 0
 
 
 def _code_version() -> str:
@@ -537,7 +610,11 @@ def main(argv: list[str]) -> int:
     args = _parser().parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     out = Path(args.out).resolve()
-    previous_info = json.loads((out / RUN_FILE).read_text()) if (out / RUN_FILE).exists() else None
+    try:
+        previous_info = read_run_info(out)
+    except RunFileError as exc:
+        print(f"flgd train: {exc}", file=sys.stderr)
+        return EXIT_USAGE
     try:
         settings = _settings(args, previous_info.get("settings") if previous_info else None)
         for name in ("objects", "steps", "seed"):
