@@ -27,6 +27,7 @@ __all__ = [
     "ContactStop",
     "Cell",
     "CellFault",
+    "StopPending",
     "STOPPED_ON_REQUEST",
     "register_cell",
     "make_cell",
@@ -102,6 +103,14 @@ class CellFault(RuntimeError):
     """
 
 
+class StopPending(CellFault):
+    """A stop was requested and not cleared: the cell refuses to recover or move.
+
+    Raised by ``Cell.recover`` so that a stop arriving during a recovery is never
+    erased by it; the caller should treat it as "stopping", not as a new fault.
+    """
+
+
 class Cell(abc.ABC):
     """A robot cell: camera + arm + gripper behind one small interface."""
 
@@ -133,6 +142,16 @@ class Cell(abc.ABC):
         more.  The base implementation does nothing: it suits cells whose
         plans take a fraction of a second of wall time (the simulation), which
         simply finish the plan in flight.  A real arm overrides it (stopL).
+
+        The request is latched: ``execute`` and ``recover`` refuse to move until
+        ``clear_stop`` is called deliberately by the owner of the cell.
+        """
+
+    def clear_stop(self) -> None:
+        """Forget a latched stop request; call only when no stop is pending (an operator's start or reset).
+
+        Why a separate call: neither a new plan nor a recovery may clear a stop, or a
+        stop that lands just before them would be lost and the arm would move after it.
         """
 
     @abc.abstractmethod
@@ -142,6 +161,14 @@ class Cell(abc.ABC):
     # -- life cycle
     def reset_scene(self) -> None:
         """Prepare a new episode (new clutter in simulation; nothing on a real cell)."""
+
+    def can_reset_scene(self) -> bool:
+        """True when ``reset_scene`` lays out a new scene by itself (a cell that overrides it, the simulation).
+
+        Why it matters: a real cell cannot refill its own table, so on an empty
+        workspace the daemon must wait for a person instead of cycling forever.
+        """
+        return type(self).reset_scene is not Cell.reset_scene
 
     def recover(self) -> None:
         """Clear a fault and bring the arm home; raise CellFault if that is not possible."""

@@ -21,7 +21,10 @@ Outcomes of a cycle (``CycleRecord.outcome``):
     and nothing is learned.
   * ``fault``     -- the cell raised CellFault: the action is logged, its
     transition dropped, and the CellFault re-raised for the caller.
-  * ``empty``     -- there was nothing to act on: the scene was reset; no step.
+  * ``empty``     -- there was nothing to act on; no step.  A cell that can lay out
+    a new scene (the simulation) did so; on any other cell nothing was done and
+    ``CycleRecord.refill_needed`` is set: a person must refill the table, and the
+    caller must not cycle on (each cycle would home the arm and capture again).
   * ``stopped``   -- ``request_stop`` interrupted the action: the arm was halted
     where it was, nothing more is sent, the action is logged and not learned from.
 """
@@ -74,6 +77,7 @@ class CycleRecord:
     duration: float = 0.0
     timings: dict[str, float] = field(default_factory=dict)
     transition_id: int | None = None
+    refill_needed: bool = False      # "empty" on a cell that cannot reset its own scene
 
     @property
     def primitive(self) -> str | None:
@@ -257,7 +261,11 @@ class CycleRunner:
                 self.agent.maybe_swap_weights()
             decision = self.agent.decide(state, self.step)
         if decision is None:
-            self._reset_scene(timer)
+            if self.cell.can_reset_scene():
+                self._reset_scene(timer)
+            else:
+                record.refill_needed = True
+                self.forget_state()  # after the refill the next cycle starts with a fresh picture
             return finish()
         self.last_decided = (state, decision, self.step)
         if self.learner is not None and hasattr(self.learner, "note_decision"):

@@ -235,6 +235,7 @@ def test_empty_workspace_resets_the_scene_without_a_step(tmp_path):
         cell.close()
     assert rec.outcome == "empty" and rec.step is None and runner.step == 0
     assert cell.resets == 1 and store.action_log() == []
+    assert not rec.refill_needed  # the simulation lays out a new scene itself: the daemon cycles on
 
 
 @pytest.mark.parametrize("mode", ["stop-mid-motion", "stop-after-motion"])

@@ -243,6 +243,19 @@ def test_no_frames_is_a_camera_fault_naming_the_timeout():
             cam.capture()
 
 
+def test_a_failed_warm_up_releases_the_device_so_the_next_open_works():
+    """A camera that sends nothing right after it is opened (warm-up) must not stay open: the next open
+    (flgctl reset) would find the device busy however healthy the camera is by then."""
+    cfg = sim_config(frame_timeout=1.0)  # a restarted software_device may take a few frames to sync
+    frame = synthetic_frame(cfg, width=64, height=48)
+    dev = registered_camera(frame)
+    with pytest.raises(CameraFault, match=r"no depth\+colour frame within 1\.0 s"):
+        D415Camera.from_device(cfg, dev.device, warmup_frames=2)
+    with dev.streaming(frame.depth, frame.color):
+        with D415Camera.from_device(cfg, dev.device, warmup_frames=2) as cam:
+            assert cam.capture().depth.shape == (48, 64)
+
+
 def test_serial_mismatch_and_missing_camera_are_refused():
     frame = synthetic_frame(sim_config(), width=64, height=48)
     dev = registered_camera(frame)

@@ -627,7 +627,13 @@ def test_stop_motion_from_another_thread_halts_the_move_promptly(ctl, rg2):
     names = ctl.names()
     assert "stopL" in names and names.count("moveL") == 1, "stopL sent; no move after it"
     assert names.index("stopL") > names.index("moveL")
-    assert cell.execute(push(cell.config)).completed, "a stop is not a fault: the next plan runs"
+    # The stop is latched: the next plan sends nothing until the owner clears it on purpose.
+    n = len(ctl.log)
+    again = cell.execute(push(cell.config))
+    assert not again.completed and "stopped on request" in again.failure
+    assert "moveL" not in ctl.names(n) and cell.fault is None, "a stop is not a fault, and nothing moved"
+    cell.clear_stop()
+    assert cell.execute(push(cell.config)).completed, "after a deliberate clear the next plan runs"
 
 
 def test_starting_while_protective_stopped_reports_and_recovers(ctl, rg2):
@@ -754,3 +760,48 @@ def test_an_unusable_force_reading_stops_the_arm_and_latches(ctl, rg2, reply):
     with pytest.raises(CellFault):
         cell.execute(checked)
     assert "moveL" not in ctl.names(since), "no motion until recovery"
+
+
+def test_reset_reopens_a_camera_whose_stream_died(ctl, rg2):
+    """flgctl reset clears a camera fault: the cell's recovery closes the camera and opens it anew.
+
+    The camera is librealsense's own software_device (tests.test_hardware_d415), driven through the real
+    D415Camera; its depth sensor stopping is a stream that died under the camera.
+    """
+    pytest.importorskip("pyrealsense2", reason="pyrealsense2 cannot load here (libusb-1.0 missing?)")
+    from flgd.hardware.d415 import CameraFault, D415Camera
+    from tests.test_hardware_d415 import SERIAL, registered_camera, synthetic_frame, sim_config
+
+    frame = synthetic_frame(sim_config(), width=64, height=48)
+    dev = registered_camera(frame)
+    cfg = real_config(xmlrpc_port=rg2.port)
+    cfg = dataclasses.replace(cfg, camera=dataclasses.replace(cfg.camera, serial=SERIAL, frame_timeout=1.0))
+    opened = []
+
+    def open_camera(c):
+        opened.append(D415Camera.from_device(c, dev.device, warmup_frames=2))
+        return opened[-1]
+
+    gripper = RG2XmlRpcDriver("127.0.0.1", rg2.port, timeout=2.0, poll_interval=0.002)
+    with dev.streaming(frame.depth, frame.color):
+        cell = UR5eCell(cfg, rtde_factory=FakeRTDEFactory(ctl), gripper=gripper, camera_factory=open_camera,
+                        clock=ctl.clock, sleep=ctl.sleep)
+        assert cell.capture().depth.shape == (48, 64)
+        dev.depth_sensor.stop()  # the stream dies; only a new start brings it back
+        with pytest.raises(CameraFault, match=r"^RealSense .*: no depth\+colour frame within 1\.0 s"):
+            cell.capture()
+    # still gone when the operator resets: a clear error, and the arm is not touched
+    n = len(ctl.log)
+    with pytest.raises(CellFault, match=r"recovery: the camera did not come back: .*no depth\+colour frame.*"
+                                        r"USB cable.*then flgctl reset again"):
+        cell.recover()
+    assert "moveL" not in ctl.names(n)
+    with pytest.raises(CellFault, match="camera is not open"):
+        cell.capture()
+    # back: the next reset reopens it (the failed attempt left the device free) and homes the arm
+    with dev.streaming(frame.depth, frame.color):
+        cell.recover()
+        assert cell.capture().depth.shape == (48, 64)
+    assert len(opened) == 2, "the first camera, and the one reopened by the successful reset"
+    assert len(ctl.calls("moveL", n)) == 1
+    cell.close()

@@ -23,15 +23,14 @@ import time
 from pathlib import Path
 from typing import Any, Callable
 
-from flgd.cell import Cell, CellFault, make_cell
+from flgd.cell import Cell, CellFault, StopPending, make_cell
 from flgd.config import CellConfig
 from flgd.cycle import CycleRecord, CycleRunner
 from flgd.daemon.metrics import compute_stats, status_summary
 from flgd.daemon.notify import Notifier
 from flgd.daemon.protocol import ProtocolError, Request
 from flgd.daemon.state import IllegalTransition, State, StateChange, StateMachine
-from flgd.plans import plan_home
-from flgd.safety import PlanRefused, check_plan
+from flgd.safety import PlanRefused
 from flgd.store import CheckpointDir, Store, StoreError
 
 __all__ = ["Controller", "StartupError"]
@@ -39,6 +38,9 @@ __all__ = ["Controller", "StartupError"]
 log = logging.getLogger("flgd")
 
 COMMAND_TIMEOUT = 120.0  # seconds a control request waits for the run loop
+LEARNER_QUIET_TIMEOUT = 60.0  # seconds a policy load waits for the learner's update in progress
+# The cause of RUNNING -> PAUSED when a cell that cannot refill its own table finds nothing to grasp.
+EMPTY_WORKSPACE_CAUSE = "workspace empty/nothing graspable: refill the table, then flgctl start"
 ACCEPTING_COMMANDS = frozenset({State.IDLE, State.RUNNING, State.PAUSED, State.FAULT})
 
 
@@ -78,6 +80,7 @@ class Controller:
         self.last_record: CycleRecord | None = None
         self.cycle_in_flight = False
         self._learning_problem = ""
+        self._learning_lock = threading.Lock()  # a policy load and a learner rebuild never interleave
         self._inbox: "queue.Queue[tuple[Callable[[], dict], concurrent.futures.Future]]" = queue.Queue()
         self._wake = threading.Event()
         self._lock_fd: int | None = None
@@ -275,11 +278,21 @@ class Controller:
         finally:
             self.cycle_in_flight = False
         self.last_record = record
-        if record.outcome == "empty":
+        if record.outcome == "empty" and record.refill_needed:
+            self._wait_for_refill()
+        elif record.outcome == "empty":
             self._event("scene", "workspace empty: new scene")
         elif record.outcome == "discarded":
             self._event("discarded", f"step {record.step}: {record.failure}")
         self.notifier.status(self.status_text())
+
+    def _wait_for_refill(self) -> None:
+        """PAUSED until the operator refilled the table: a real cell cannot do it, so cycling on would
+        home the arm, capture and log an event forever.  The state change is the one event recorded."""
+        try:
+            self.state.transition(State.PAUSED, EMPTY_WORKSPACE_CAUSE, allowed_from=frozenset({State.RUNNING}))
+        except IllegalTransition:
+            pass  # paused or stopping meanwhile: either way no further cycle runs
 
     def _fault(self, cause: str) -> None:
         try:
@@ -323,13 +336,19 @@ class Controller:
             return fut.result()
 
     def request_stop(self, cause: str) -> None:
-        """STOPPING: halt the motion in flight (the cell decelerates and holds), send nothing more."""
+        """STOPPING: halt the motion in flight (the cell decelerates and holds), send nothing more.
+
+        The cell is latched before the state changes, so no one who sees STOPPING can
+        still get a move out of the cell (see ``_clear_stop_latch`` for the other side).
+        """
+        if self.state.state is State.STOPPING:
+            return
+        if self.runner is not None:
+            self.runner.request_stop()
         try:
             self.state.transition(State.STOPPING, cause)
         except IllegalTransition:
             return
-        if self.runner is not None:
-            self.runner.request_stop()
         self._wake.set()
 
     def _on_state_change(self, change: StateChange) -> None:
@@ -384,7 +403,7 @@ class Controller:
         pph = "-" if s["picks_per_hour"] is None else f"{s['picks_per_hour']:.0f}"
         text = (f"{self.state.state.value} | cycles {s['cycles']} | grasp success {_fmt_pct(s['grasp_success_last_50'])}"
                 f" (last 50) | picks/h {pph}")
-        if self.state.state is State.FAULT:
+        if self.state.state in (State.FAULT, State.PAUSED):
             text += f" | {self.state.cause}"
         return text
 
@@ -447,6 +466,8 @@ class Controller:
         if st not in ACCEPTING_COMMANDS:
             raise ProtocolError("wrong_state", f"{req.cmd}: the daemon is {st.value}")
         if req.cmd == "start":
+            if not self._clear_stop_latch():
+                raise ProtocolError("wrong_state", f"start: the daemon is stopping ({self.state.cause})")
             return self._change(State.RUNNING, "start by operator", {State.IDLE, State.PAUSED}, req.cmd)
         if req.cmd == "pause":
             return self._change(State.PAUSED, "pause by operator", {State.RUNNING}, req.cmd)
@@ -478,44 +499,102 @@ class Controller:
         self._wake.set()
         return {"state": new.value}
 
+    def _stop_pending(self) -> bool:
+        """A stop was requested (the daemon is STOPPING, or the runner was told to stop)."""
+        return self.state.state is State.STOPPING or bool(self.runner is not None and self.runner.stop_requested)
+
+    def _clear_stop_latch(self) -> bool:
+        """Clear the cell's stop latch if, and only if, no stop is pending; False when one is.
+
+        Why clear first and look after: ``request_stop`` marks the runner stopped
+        before it latches the cell, so a stop not visible after the clear latches
+        the cell later, and one that is visible is latched again here -- no stop is
+        ever erased.
+        """
+        if self._stop_pending():
+            return False
+        if self.cell is None:
+            return True
+        self.cell.clear_stop()
+        if self._stop_pending():
+            self.cell.stop_motion()
+            return False
+        return True
+
+    def _stopped_during_reset(self, when: str) -> ProtocolError:
+        log.warning("reset interrupted by a stop %s; the arm was left where it is", when)
+        return ProtocolError("failed", f"reset interrupted by a stop ({self.state.cause}) {when}: the arm was not "
+                                       f"homed and the daemon is stopping; start flgd again, then flgctl reset")
+
     def _reset(self) -> dict:
-        """Run loop: clear a fault, home the arm, new scene."""
+        """Run loop: clear a fault, home the arm (the cell's recovery does), new scene (simulation).
+
+        A stop requested before, during or after the recovery wins: nothing more
+        moves, the daemon goes on stopping and the client gets an error reply.
+        """
         st = self.state.state
         if st not in (State.IDLE, State.PAUSED, State.FAULT):
             raise ProtocolError("wrong_state", f"reset: not allowed while {st.value}")
+        if self._stop_pending():
+            raise self._stopped_during_reset("before it started")
         assert self.runner is not None and self.cell is not None
+        stale_problem = self._learning_problem  # from before the reset (a checkpoint that failed in FAULT)
         if self.store is None:
             if not self._open_store():
                 self._fault(self.store_problem)
                 raise ProtocolError("failed", f"reset: {self.store_problem}")
-            self.learner.stop(timeout=30.0)
-            updates = self.learner.updates
-            self._build_learning(self.agent.network)
-            self.learner.updates = updates  # checkpoints keep counting on
-            self.runner.store, self.runner.replay, self.runner.learner = self.store, self.replay, self.learner
-            self.runner.agent = self.agent
-            self.runner.step = self._next_step()
-            self.learner.start()
+            with self._learning_lock:
+                self.learner.stop(timeout=30.0)
+                updates = self.learner.updates
+                self._build_learning(self.agent.network)
+                self.learner.updates = updates  # checkpoints keep counting on
+                self.runner.store, self.runner.replay, self.runner.learner = self.store, self.replay, self.learner
+                self.runner.agent = self.agent
+                self.runner.step = self._next_step()
+                self.learner.start()
         try:
             self.store.record_event("reset", f"reset requested in {st.value}")
         except StoreError as exc:
             self._fault(str(exc))
             raise ProtocolError("failed", f"reset: the store is still unusable: {exc}") from None
+        if not self._clear_stop_latch():
+            raise self._stopped_during_reset("before the recovery")
         try:
-            self.cell.recover()
-            result = self.cell.execute(check_plan(plan_home(self.config), self.config))
-            if not result.completed:
-                raise CellFault(f"homing did not complete: {result.failure}")
+            self.cell.recover()  # homes the arm through a checked plan
+            if self._stop_pending():
+                raise StopPending("a stop arrived during the recovery")
             self.cell.reset_scene()
         except (CellFault, PlanRefused) as exc:
+            if isinstance(exc, StopPending) or self._stop_pending():
+                raise self._stopped_during_reset("during the recovery") from None
             self._fault(f"reset failed: {exc}")
             raise ProtocolError("failed", f"reset failed, still FAULT: {exc}") from None
         self.runner.forget_state()
         self.agent.reset_episode()
-        self.state.transition(State.IDLE, f"reset by operator (was {st.value})")
+        cause = f"reset by operator (was {st.value})"
+        cleared = bool(stale_problem) and self._learning_problem == stale_problem
+        if cleared:
+            self._learning_problem = ""
+            cause += f"; cleared the earlier problem: {stale_problem}"
+        try:
+            self.state.transition(State.IDLE, cause)
+        except IllegalTransition:
+            if cleared:
+                self._learning_problem = stale_problem
+            if self._stop_pending():
+                raise self._stopped_during_reset("after the recovery") from None
+            raise
         return {"state": State.IDLE.value}
 
     def _policy_load(self, path: str) -> dict:
+        """Swap the acting and learning weights, and checkpoint them at once so a restart resumes from them.
+
+        Why a checkpoint: a restart resumes from the newest checkpoint, which would
+        otherwise still hold the weights from before the load.  The learner is
+        stopped meanwhile (its owed updates are dropped and counted), so the
+        checkpoint and the trainer state beside it are of one consistent moment;
+        its Adam moments belong to the old weights and are reset.
+        """
         from flgd.learning.policy_file import PolicyFileError, load_policy
 
         if not os.path.isabs(path):
@@ -524,15 +603,43 @@ class Controller:
             loaded = load_policy(path, expected_variant=self.config.learning.network)
         except PolicyFileError as exc:
             raise ProtocolError("failed", f"policy not loaded, the running policy stays: {exc}") from None
-        try:
-            self.learner.load_weights(loaded.network)
-        except (RuntimeError, ValueError) as exc:
-            raise ProtocolError("failed", f"policy not loaded, the running policy stays: {path}: "
-                                          f"weights do not fit the running network: {exc}") from None
-        self.policy_source = f"policy {path} (loaded at step {self.runner.step if self.runner else 0})"
+        with self._learning_lock:
+            lr = self.learner
+            was_running = lr.running
+            owed = lr.pending
+            lr.stop(timeout=LEARNER_QUIET_TIMEOUT)
+            if not lr.wait_idle(LEARNER_QUIET_TIMEOUT):
+                raise ProtocolError("busy", f"policy not loaded, the running policy stays: the learner did not "
+                                            f"finish its update within {LEARNER_QUIET_TIMEOUT:.0f} s and is stopped; "
+                                            f"restart flgd (systemctl restart flgd)")
+            checkpoint_error = ""
+            try:
+                try:
+                    lr.load_weights(loaded.network)
+                except (RuntimeError, ValueError) as exc:
+                    raise ProtocolError("failed", f"policy not loaded, the running policy stays: {path}: "
+                                                  f"weights do not fit the running network: {exc}") from None
+                lr.reset_trainer_state()  # load_weights keeps the Adam moments of the old weights
+                if owed:
+                    lr.dropped_updates += owed
+                    log.info("policy load: %d owed learner updates dropped", owed)
+                self.policy_source = f"policy {path} (loaded at step {self.runner.step if self.runner else 0})"
+                try:
+                    self._write_checkpoint(lr.snapshot(), lr.updates)
+                except (StoreError, OSError, PolicyFileError) as exc:  # storage errors also mean FAULT
+                    checkpoint_error = str(exc)
+            finally:
+                if was_running:
+                    lr.start()
         self._event("policy", f"loaded {path}")
-        return {"loaded": path, "metadata": {k: v for k, v in loaded.metadata.items()
-                                             if isinstance(v, (str, int, float, bool, type(None)))}}
+        if checkpoint_error:
+            raise ProtocolError("failed", f"policy {path} is loaded and acting, but its checkpoint could not be "
+                                          f"written ({checkpoint_error}), so a restart would resume the previous "
+                                          f"one; fix the state directory {self.state_dir}, flgctl reset, then load "
+                                          f"the policy again")
+        return {"loaded": path, "checkpoint": self.last_checkpoint, "dropped_updates": owed,
+                "metadata": {k: v for k, v in loaded.metadata.items()
+                             if isinstance(v, (str, int, float, bool, type(None)))}}
 
     def _policy_save(self, path: str | None) -> dict:
         from flgd.learning.policy_file import PolicyFileError, save_policy

@@ -258,10 +258,18 @@ class D415Camera:
         if not self.device_depth_scale > 0:
             source.close()
             raise CameraFault(f"{source.description}: device reports depth scale {self.device_depth_scale!r}")
-        self._filters = self._make_filters(rs)
-        self._align = rs.align(rs.stream.color)
-        for _ in range(warmup_frames):
-            self._next_frames()
+        try:
+            self._filters = self._make_filters(rs)
+            self._align = rs.align(rs.stream.color)
+            for _ in range(warmup_frames):
+                self._next_frames()
+        except BaseException as exc:
+            # Why: a started stream left behind keeps the device busy, so the next open
+            # (flgctl reset) would fail too, however healthy the camera is by then.
+            source.close()
+            if isinstance(exc, RuntimeError) and not isinstance(exc, CameraFault):
+                raise CameraFault(f"{source.description}: librealsense error while starting: {exc}") from exc
+            raise
 
     # -- constructors
     @classmethod
@@ -335,6 +343,8 @@ class D415Camera:
                 for _ in range(count):
                     frames = self._filter(self._next_frames())
                 return self._to_frame(rs, frames)
+            except CameraFault:
+                raise  # already says what is wrong (CameraFault is a RuntimeError too)
             except RuntimeError as exc:
                 raise CameraFault(f"{self._source.description}: librealsense error: {exc}") from exc
 

@@ -6,10 +6,12 @@ become ``moveL`` at the step's speed and acceleration (capped by the safety
 envelope); the measured gripper width is recorded at MeasureWidth steps.
 
 Faults (protective/emergency stop, lost connection, dead control script,
-gripper errors) raise :class:`flgd.cell.CellFault` and are latched: every
-later ``execute`` refuses until ``recover()`` has run the arm's recovery
-sequence (see ``flgd.hardware.ur_arm``) and brought the arm home through a
-checked ``plan_home``.
+gripper errors, the arm standing outside the safety envelope) raise
+:class:`flgd.cell.CellFault` and are latched: every later ``execute`` refuses
+until ``recover()`` has reopened the camera, run the arm's recovery sequence
+(see ``flgd.hardware.ur_arm``) and brought the arm home through a checked
+``plan_home``.  A stop request is latched as well (``stop_motion`` ..
+``clear_stop``): while it is set nothing moves and ``recover`` refuses.
 """
 
 from __future__ import annotations
@@ -17,10 +19,11 @@ from __future__ import annotations
 import time
 from typing import Any, Callable
 
-from flgd.cell import STOPPED_ON_REQUEST, Cell, CellFault, ContactStop, ExecutionResult, Frame
+from flgd.cell import STOPPED_ON_REQUEST, Cell, CellFault, ContactStop, ExecutionResult, Frame, StopPending
 from flgd.config import CellConfig
-from flgd.plans import GripperCommand, MeasureWidth, MoveL, plan_home
-from flgd.safety import CheckedPlan, check_plan
+from flgd.geometry import ToolPose, rotvec_to_matrix
+from flgd.plans import GripperCommand, MeasureWidth, MoveL, Plan, plan_home
+from flgd.safety import CheckedPlan, PlanRefused, check_plan
 from flgd.hardware.rg2 import GripperDriver, GripperFault, make_gripper_driver
 from flgd.hardware.ur_arm import MotionStopped, PoseUnreachable, RTDEFactory, URArm, pose_error
 
@@ -53,6 +56,7 @@ class UR5eCell(Cell):
         self.arm = arm
         self.gripper = gripper
         self.camera: Any = None
+        self._camera_factory = camera_factory
         try:
             if self.arm is None:
                 self.arm = URArm(config.robot.host, config.robot.tcp_offset, factory=rtde_factory,
@@ -70,6 +74,8 @@ class UR5eCell(Cell):
 
     # ------------------------------------------------------------------ sensing
     def capture(self) -> Frame:
+        if self.camera is None:
+            raise CellFault("the camera is not open (its last reopen failed): reconnect the D415, then flgctl reset")
         return self.camera.capture()
 
     def gripper_width(self) -> float:
@@ -82,7 +88,11 @@ class UR5eCell(Cell):
         with self._lock:
             steps = plan.verify(self.config).steps  # PlanRefused: nothing has moved
             self.arm.check()
-            self.arm.begin()
+            try:
+                self.arm.begin()  # a latched stop request: nothing is sent
+            except MotionStopped:
+                return ExecutionResult(False, [], f"before step 0: {STOPPED_ON_REQUEST}", self._clock() - start)
+            self._check_start_pose()
             sf, gr = self.config.safety, self.config.gripper
             widths: list[float] = []
             stops: list[ContactStop] = []
@@ -115,6 +125,34 @@ class UR5eCell(Cell):
                     raise CellFault(f"{where}: {exc}") from exc
             return ExecutionResult(True, widths, "", self._clock() - start, stops)
 
+    def _check_start_pose(self) -> None:
+        """Refuse the plan (a latched fault) unless the arm stands inside the safety envelope now.
+
+        Why: the first moveL of a plan is a straight line from wherever the arm
+        actually is -- after a start, a reset, a recovery or a jog on the pendant
+        that is no pose any plan was checked for.  The actual pose gets the same
+        check as a plan's poses (``check_plan``: box, table floor, tilt).  The box
+        and the half-space above the table floor are convex, so a straight segment
+        between two points inside them stays inside: with the start checked here and
+        every target checked by ``check_plan``, no segment of the plan leaves the box.
+        """
+        actual = self.arm.tcp_pose()
+        sf = self.config.safety
+        rotation = rotvec_to_matrix(actual[3:6])
+        here = ToolPose((actual[0], actual[1], actual[2]), tuple(tuple(float(v) for v in row) for row in rotation))
+        probe = MoveL(here, sf.max_speed, sf.max_acceleration, "actual TCP pose")
+        try:
+            check_plan(Plan("start pose", (probe,)), self.config)
+        except PlanRefused as exc:
+            floor = self.config.workspace.table_z + sf.min_table_clearance
+            where = ", ".join(f"{v:.4f}" for v in actual[:3])
+            reason = (f"the arm stands at [{where}] m, outside the safety envelope ({exc.reason}; envelope "
+                      f"x {list(sf.envelope_x)}, y {list(sf.envelope_y)}, z {list(sf.envelope_z)} m, table floor "
+                      f"{floor:.4f} m, tilt <= {sf.max_tilt} rad in {self.config.source}); nothing was sent: "
+                      f"jog the arm inside the envelope on the pendant, then flgctl reset")
+            self.arm.latch(reason)
+            raise CellFault(f"UR {self.arm.host}: {reason}") from None
+
     def _settled_width(self) -> float:
         """The finger width once it has stopped changing (at most ``WIDTH_SETTLE_TIMEOUT`` s).
 
@@ -143,14 +181,50 @@ class UR5eCell(Cell):
     def fault(self) -> str | None:
         return self.arm.fault if self.arm is not None else "not connected"
 
+    def clear_stop(self) -> None:
+        """Forget a latched stop request (the controller, when no stop is pending)."""
+        if self.arm is not None:
+            self.arm.clear_stop()
+
+    def can_reset_scene(self) -> bool:
+        """A real table is refilled by a person, never by the cell."""
+        return False
+
     def recover(self) -> None:
-        """The arm's recovery sequence, then home through a checked plan (raises CellFault on failure)."""
+        """Reopen the camera, run the arm's recovery sequence, then home through a checked plan.
+
+        Raises CellFault when that is not possible, and StopPending (before anything
+        moves, the fault left latched) when a stop is requested before or during it.
+        """
         with self._lock:
+            self._refuse_if_stopped("the arm was not moved")
+            self._reopen_camera()
             self.arm.recover()
+            self._refuse_if_stopped("the arm was not moved")
             result = self.execute(check_plan(plan_home(self.config), self.config))
             if not result.completed:
+                if STOPPED_ON_REQUEST in result.failure:
+                    self._refuse_if_stopped("the arm was halted on its way home")
                 self.arm.latch(f"could not reach home after recovery: {result.failure}")
                 raise CellFault(f"recovery: could not reach home: {result.failure}")
+
+    def _refuse_if_stopped(self, what_happened: str) -> None:
+        if self.arm is not None and self.arm.stop_requested:
+            raise StopPending(f"recovery stopped: a stop was requested; {what_happened}")
+
+    def _reopen_camera(self) -> None:
+        """Close the camera and open it anew: a camera fault (unplugged, stalled stream) is cleared only so."""
+        old, self.camera = self.camera, None
+        if old is not None:
+            try:
+                old.close()
+            except Exception:  # the old stream may be half gone; what matters is the new one
+                pass
+        try:
+            self.camera = self._camera_factory(self.config)
+        except Exception as exc:
+            raise CellFault(f"recovery: the camera did not come back: {exc}. Check the D415's USB cable (a USB 3 "
+                            f"port) and that `rs-enumerate-devices -s` lists it, then flgctl reset again") from exc
 
     def close(self) -> None:
         if getattr(self, "_closed", False):

@@ -12,6 +12,12 @@ by polling, so the motion runs on the controller while the calling thread
 stays free to notice faults, and :meth:`URArm.stop_motion` (from a SIGTERM
 handler or another thread) can send ``stopL`` at once.
 
+A stop request is a *latch* too: once :meth:`URArm.stop_motion` has run, no
+plan starts (:meth:`URArm.begin`), no move is sent and no recovery runs until
+the owner clears it on purpose (:meth:`URArm.clear_stop`).  Neither a new plan
+nor a recovery may clear it: a stop that arrives a moment before either would
+otherwise be forgotten and the arm would move after it.
+
 Recovery sequence (:meth:`URArm.recover`), in this order:
   1. reconnect the RTDE receive interface if it dropped;
   2. refuse while an emergency stop is engaged (or a safeguard stop, a safety
@@ -25,7 +31,9 @@ Recovery sequence (:meth:`URArm.recover`), in this order:
   6. reconnect the RTDE control (and IO) interfaces if needed;
   7. re-upload the control script if it is not running, and confirm it runs;
   8. set the TCP again (a new script starts with the installation's TCP).
-Moving home is the cell's job (a checked ``plan_home``).
+Moving home is the cell's job (a checked ``plan_home``).  A pending stop
+request refuses recovery (before, during the protective-stop wait, and
+before the fault is cleared) with :class:`flgd.cell.StopPending`.
 """
 
 from __future__ import annotations
@@ -37,7 +45,7 @@ from typing import Any, Callable, Protocol, Sequence
 
 import numpy as np
 
-from flgd.cell import CellFault
+from flgd.cell import CellFault, StopPending
 from flgd.geometry import rotvec_to_matrix
 from flgd.hardware import hardware_library
 
@@ -82,6 +90,7 @@ START_GRACE = 0.5                   # s for an accepted move to show up as runni
 MOVE_TIMEOUT_MARGIN = 5.0           # s beyond twice the trapezoidal move time
 CONFIRM_TIMEOUT = 3.0               # s to see NORMAL safety mode / a running script after recovery
 DASHBOARD_TIMEOUT_MS = 2000
+UNLOCK_WAIT_STEP = 0.05             # s; the protective-stop wait looks for a stop request this often
 
 
 class PoseUnreachable(Exception):
@@ -296,17 +305,31 @@ class URArm:
 
     # ------------------------------------------------------------------ motion
     def begin(self) -> None:
-        """Forget an earlier stop request (a new plan starts)."""
-        self._stop_requested.clear()
+        """A plan starts: refuse (MotionStopped) while a stop request is latched.
+
+        Why it does not clear the request: a stop that lands between the caller's
+        last check and this call would be erased and the plan would move the arm.
+        """
+        if self._stop_requested.is_set():
+            raise MotionStopped("a stop was requested; nothing more is sent until the stop is cleared")
 
     @property
     def stop_requested(self) -> bool:
         return self._stop_requested.is_set()
 
     def stop_motion(self) -> None:
-        """Halt the arm now (any thread, a signal handler too): stopL and make the running move return."""
+        """Halt the arm now (any thread, a signal handler too): stopL and make the running move return.
+
+        The request stays latched until :meth:`clear_stop`.  The flag is set before
+        the lock is taken for stopL, and moveL is only sent under the lock after
+        looking at the flag, so a move is either refused or sent before the stopL.
+        """
         self._stop_requested.set()
         self._halt()
+
+    def clear_stop(self) -> None:
+        """Forget a stop request: only for an owner that knows no stop is pending (e.g. an operator's start)."""
+        self._stop_requested.clear()
 
     def _halt(self) -> None:
         if self.control is None:
@@ -343,8 +366,11 @@ class URArm:
         guard = None
         if stop_force > 0.0:
             guard = (self._tcp_force(), float(stop_force))
-        self._require(self._call(self.control, "moveL", target, float(speed), float(acceleration), True),
-                      f"moveL ({what})")
+        with self._lock:  # see stop_motion: a stop now either refuses this move or halts it after it was sent
+            if self._stop_requested.is_set():
+                raise MotionStopped(f"{what}: stop requested")
+            ok = self._call(self.control, "moveL", target, float(speed), float(acceleration), True)
+        self._require(ok, f"moveL ({what})")
         return self._wait_for_move(target, what, timeout, guard)
 
     def _tcp_force(self) -> np.ndarray:
@@ -415,9 +441,19 @@ class URArm:
                       f"setToolDigitalOut({index}, {level})")
 
     # ------------------------------------------------------------------ recovery
+    def _refuse_if_stopped(self, when: str) -> None:
+        if self._stop_requested.is_set():
+            raise StopPending(f"UR {self.host}: recovery refused {when}: a stop was requested; the arm was not "
+                              f"moved and stays in FAULT until a reset after the stop")
+
     def recover(self) -> None:
-        """Run the recovery sequence (module docstring); raise CellFault if it cannot complete."""
+        """Run the recovery sequence (module docstring); raise CellFault if it cannot complete.
+
+        Raises StopPending, and leaves the fault latched, when a stop request is
+        pending or arrives during the sequence: a recovery must never clear a stop.
+        """
         with self._lock:
+            self._refuse_if_stopped("before it started")
             self._reconnect("receive", self.receive)
             if self._call(self.receive, "isEmergencyStopped"):
                 raise CellFault(f"UR {self.host}: emergency stop engaged: release it at the cell and "
@@ -433,9 +469,7 @@ class URArm:
             if mode == _PROTECTIVE or self._call(self.receive, "isProtectiveStopped"):
                 if self._protective_since is None:
                     self._protective_since = self._clock()
-                wait = self._protective_since + PROTECTIVE_STOP_UNLOCK_DELAY + _UNLOCK_MARGIN - self._clock()
-                if wait > 0:
-                    self._sleep(wait)
+                self._wait_for_unlock()
                 try:
                     self._call(self.dashboard, "unlockProtectiveStop")
                 except CellFault as exc:
@@ -461,9 +495,19 @@ class URArm:
             self._confirm(lambda: bool(self._call(self.control, "isProgramRunning")),
                           lambda: "the ur_rtde control script does not run after re-upload")
             self._require(self._call(self.control, "setTcp", list(self.tcp)), "setTcp")
+            self._refuse_if_stopped("at its end")
             self._fault = None
             self._protective_since = None
-            self._stop_requested.clear()
+
+    def _wait_for_unlock(self) -> None:
+        """Wait out the controller's 5 s before an unlock, in short steps, so a stop request cuts it short."""
+        deadline = self._protective_since + PROTECTIVE_STOP_UNLOCK_DELAY + _UNLOCK_MARGIN
+        while True:
+            self._refuse_if_stopped("during the protective-stop wait")
+            left = deadline - self._clock()
+            if left <= 0:
+                return
+            self._sleep(min(left, UNLOCK_WAIT_STEP))
 
     def _reconnect(self, name: str, iface: Any) -> None:
         if iface is None:
