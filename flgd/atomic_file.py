@@ -14,18 +14,21 @@ from pathlib import Path
 def write_atomically(path: str | os.PathLike, data: bytes, mode: int | None = None) -> None:
     """Write ``data`` to a temp file beside ``path``, fsync it, rename it over ``path``, fsync the directory.
 
-    ``mode`` sets the new file's permission bits (default: those of mkstemp, 0600).  On any error the
-    temp file is removed and ``path`` is untouched.
+    ``mode`` sets the new file's permission bits exactly (the umask does not apply); default: those of
+    mkstemp, 0600, which only the owner can read -- pass a mode for files other users must read.  The
+    bits are set on the open file before the data is written, so the fsync covers them and the file
+    never appears under ``path`` with other bits.  On any error the temp file is removed and ``path``
+    is untouched.
     """
     path = Path(path)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
         with os.fdopen(fd, "wb") as f:
+            if mode is not None:
+                os.fchmod(f.fileno(), mode)
             f.write(data)
             f.flush()
             os.fsync(f.fileno())
-        if mode is not None:
-            os.chmod(tmp, mode)
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)

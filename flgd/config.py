@@ -371,6 +371,8 @@ def _build(cls: type, data: dict, prefix: str, problems: list[str], source: str)
 
 def _check_relations(cfg: CellConfig, problems: list[str]) -> None:
     """Constraints between keys, which single-field limits cannot express."""
+    _check_backend(cfg, problems)
+    _check_device(cfg, problems)
     ws, sf = cfg.workspace, cfg.safety
     for name in ("x", "y", "z"):
         lo, hi = getattr(ws, name)
@@ -379,8 +381,8 @@ def _check_relations(cfg: CellConfig, problems: list[str]) -> None:
         elo, ehi = getattr(sf, f"envelope_{name}")
         if not elo < ehi:
             problems.append(f"safety.envelope_{name}: got {[elo, ehi]!r}, expected min < max")
-    if problems:
-        return
+    if any(p.startswith(("workspace.", "safety.")) for p in problems):
+        return  # the checks below compare these ranges
     for name in ("x", "y"):
         span = getattr(ws, name)[1] - getattr(ws, name)[0]
         cells = span / ws.resolution
@@ -399,6 +401,14 @@ def _check_relations(cfg: CellConfig, problems: list[str]) -> None:
     if ws.z[0] < sf.envelope_z[0] - 1e-9:
         problems.append(f"safety.envelope_z: lower bound {sf.envelope_z[0]!r} is below the table "
                         f"(workspace.z[0] = {ws.z[0]!r}); expected >= the table height")
+    if ws.z[1] > sf.envelope_z[1] + 1e-9:
+        problems.append(f"workspace.z: {list(ws.z)!r} is not inside safety.envelope_z {list(sf.envelope_z)!r}; "
+                        f"expected the top of the region <= {sf.envelope_z[1]!r}, the whole workspace must be "
+                        "reachable safely")
+    # Home and place are checked as the safety envelope checks every pose of a plan (flgd/safety.py), so
+    # a config that passes here cannot have its first homing refused.  Their tilt is 0 by construction:
+    # a tool pose has only a yaw (a roll or pitch key is refused as unknown), so max_tilt always holds.
+    floor = ws.table_z + sf.min_table_clearance
     for pose_key in ("home", "place"):
         pose = getattr(cfg.robot, pose_key)
         for axis, v in zip("xyz", pose.position):
@@ -406,6 +416,10 @@ def _check_relations(cfg: CellConfig, problems: list[str]) -> None:
             if not elo <= v <= ehi:
                 problems.append(f"robot.{pose_key}.position: {axis} = {v!r} is outside "
                                 f"safety.envelope_{axis} {[elo, ehi]!r}")
+        if pose.position[2] < floor - 1e-9:
+            problems.append(f"robot.{pose_key}.position: z = {pose.position[2]!r} is below the table clearance "
+                            f"floor {floor:.4f} m (workspace.z[0] {ws.table_z!r} + safety.min_table_clearance "
+                            f"{sf.min_table_clearance!r}); expected z >= {floor:.4f}")
     rb = cfg.robot
     for key in ("speed", "approach_speed"):
         if getattr(rb, key) > sf.max_speed:
@@ -439,6 +453,49 @@ def _check_relations(cfg: CellConfig, problems: list[str]) -> None:
         problems.append(f"camera.depth_range: got {list(cfg.camera.depth_range)!r}, expected 0 < min < max")
     if not cfg.state_dir:
         problems.append("state_dir: got '', expected a directory path")
+
+
+# Gripper drivers each cell can drive.  A backend not listed here takes any driver: the simulated cell
+# ignores gripper.driver (it simulates the RG2 itself), which also lets a real-cell config be swapped to
+# the simulator with `flgctl backend sim`.
+BACKEND_GRIPPER_DRIVERS: dict[str, tuple[str, ...]] = {
+    "ur5e": ("rg2_xmlrpc", "tool_digital_output"),
+}
+
+
+def _check_backend(cfg: CellConfig, problems: list[str]) -> None:
+    """The backend must be registered and the gripper driver one it can drive (no hardware library imported:
+    the registry maps names to "module:attribute" strings)."""
+    from flgd.cell import available_cells  # here, not at the top: flgd.cell imports this module
+
+    names = available_cells()
+    if cfg.backend not in names:
+        close = difflib.get_close_matches(cfg.backend, names, n=1)
+        hint = f"; did you mean '{close[0]}'?" if close else ""
+        problems.append(f"backend: got {cfg.backend!r}, expected one of {', '.join(repr(n) for n in names)}{hint}")
+        return
+    drivers = BACKEND_GRIPPER_DRIVERS.get(cfg.backend)
+    if drivers is not None and cfg.gripper.driver not in drivers:
+        problems.append(f"gripper.driver: got {cfg.gripper.driver!r}, expected one of "
+                        f"{', '.join(repr(d) for d in drivers)} for backend {cfg.backend!r}")
+
+
+def _check_device(cfg: CellConfig, problems: list[str]) -> None:
+    """``learning.device: cuda`` needs a CUDA device on this machine; found here, it is a config error
+    before anything starts, not a traceback from the learner.  torch is imported only in that case."""
+    if cfg.learning.device != "cuda":
+        return
+    try:
+        import torch
+        available = bool(torch.cuda.is_available())
+    except Exception as exc:  # a broken torch install: say so here rather than later
+        problems.append(f"learning.device: got 'cuda', but torch cannot be asked for CUDA devices ({exc}); "
+                        "expected 'cpu' or 'auto'")
+        return
+    if not available:
+        problems.append("learning.device: got 'cuda', but torch finds no CUDA device on this machine (CPU-only "
+                        "torch build, or no usable NVIDIA driver); expected 'cpu' or 'auto' (see README: "
+                        "Cell PC with an NVIDIA GPU)")
 
 
 class _StrictLoader(yaml.SafeLoader):

@@ -186,7 +186,9 @@ def _human(command: str, reply: dict, extra: dict) -> str:
     if command == "backend":
         return f"backend {r['previous']} -> {r['backend']}"
     if command == "stop":
-        return "flgd is stopping: motion halted, store flushed"
+        # The reply only says the request was accepted; the protocol has no later confirmation.
+        return ("stop requested: flgd halts the motion in flight, then saves a checkpoint, flushes the store "
+                "and exits (its log, or `systemctl status flgd`, shows when it has stopped)")
     if command == "ping":
         return f"flgd answers (pid {r['pid']}, {reply['state']})"
     return f"{command}: ok, state {reply['state']}"
@@ -234,8 +236,12 @@ def main(argv: list[str] | None = None) -> int:
             shutil.copyfile(reply["result"]["saved"], args.file)
             reply["result"]["copied_to"] = os.path.abspath(args.file)
         except OSError as exc:
+            hint = ""
+            if isinstance(exc, PermissionError) and exc.filename == reply["result"]["saved"]:
+                hint = (" (reading it needs group access to the daemon's state directory: be a member of "
+                        "group flgd, or copy it as root)")
             print(f"flgctl: the daemon saved {reply['result']['saved']}, but copying it to {args.file} "
-                  f"failed: {exc}", file=sys.stderr)
+                  f"failed: {exc}{hint}", file=sys.stderr)
             return EXIT_FAILED
 
     if reply.get("ok") and command == "snapshot":

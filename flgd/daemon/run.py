@@ -3,10 +3,20 @@
 Start-up order: config -> state directory and store -> policy -> cell ->
 control socket -> READY=1.  A bad config, policy or cell is reported with a
 clear message and exit code 1, before anything moves.  SIGTERM or Ctrl-C
-lets the cycle in flight finish (the arm is never stopped mid-motion by the
-daemon itself), then saves a checkpoint, flushes the store and exits 0; a
-second Ctrl-C exits at once (the store stays consistent, at most the action
-in flight is lost).
+halts the motion in flight at once (on the UR5e ``stopL``: the arm
+decelerates and holds; nothing more is sent), the interrupted action is
+logged and not learned from, then the daemon saves a checkpoint, flushes the
+store and exits 0; a second Ctrl-C exits at once (the store stays consistent,
+at most the action in flight is lost).
+
+The signal handler itself only records the signal and calls the cell's
+"stop motion now" entry point (``CycleRunner.request_stop``, which must stay
+safe in a signal handler).  The state change to STOPPING, its listeners, the
+systemd notification and the store write happen in the run loop, which polls
+``_SignalStop.poll``: a handler runs in the main thread between two bytecodes,
+and the state machine's and the notifier's locks are not reentrant, so doing
+that work inside it would deadlock when the signal lands while the main thread
+holds one of them.
 """
 
 from __future__ import annotations
@@ -18,9 +28,11 @@ import signal
 import sys
 import threading
 from pathlib import Path
+from typing import Any
 
 from flgd.config import ConfigError, load_config
 from flgd.daemon.notify import Notifier
+from flgd.daemon.state import State
 from flgd.daemon.server import ControlServer, PeerPolicy, SocketInUse
 
 __all__ = ["main", "default_socket_path", "socket_candidates"]
@@ -100,6 +112,43 @@ def _terminal_width() -> int:
     return columns if columns > 0 else 100
 
 
+class _SignalStop:
+    """SIGTERM/SIGINT: a flag and an immediate motion halt in the handler; the state change later, in the loop."""
+
+    def __init__(self, controller: Any) -> None:
+        self.controller = controller
+        self.seen: list[int] = []  # list.append is safe in a handler; read by the loop
+        self.halt_errors: list[str] = []
+
+    def on_signal(self, signum: int, _frame: Any = None) -> None:
+        """The handler: nothing here may take a lock the interrupted main thread could hold (no logging, no
+        state transition, no notifier, no store)."""
+        self.seen.append(signum)
+        if len(self.seen) > 1 and signum == signal.SIGINT:
+            try:  # os.write, not sys.stderr/logging: both take locks the interrupted code may hold
+                os.write(2, b"\nflgd: second interrupt, exiting now (the store is consistent)\n")
+            except OSError:
+                pass
+            os._exit(130)
+        runner = getattr(self.controller, "runner", None)
+        if runner is not None:  # None during setup: nothing can be moving yet
+            try:
+                runner.request_stop()  # the cell's stop_motion: stopL on the UR5e; no more motion is sent
+            except Exception as exc:  # never raise into whatever the main thread was doing
+                self.halt_errors.append(f"{type(exc).__name__}: {exc}")
+
+    def poll(self) -> bool:
+        """Called by the run loop (normal context): move to STOPPING with the signal's name as the cause."""
+        if not self.seen:
+            return False
+        for err in self.halt_errors:
+            log.error("halting the motion on the signal failed: %s", err)
+        self.halt_errors.clear()
+        if self.controller.state.state is not State.STOPPING:
+            self.controller.request_stop(f"signal {signal.Signals(self.seen[0]).name}")
+        return True
+
+
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="flgd run", description="Run the flgd cell-controller daemon.")
     p.add_argument("--config", required=True, help="cell config YAML")
@@ -146,18 +195,8 @@ def main(argv: list[str]) -> int:
     notifier = Notifier()
     controller = Controller(config, policy_path=args.policy, autostart=args.autostart, notifier=notifier,
                             checkpoint_keep=args.checkpoints_keep)
-    signals_seen: list[int] = []
-
-    def on_signal(signum, _frame) -> None:
-        signals_seen.append(signum)
-        if len(signals_seen) > 1 and signum == signal.SIGINT:
-            handler.finish()
-            sys.stderr.write("flgd: second interrupt, exiting now (the store is consistent)\n")
-            sys.stderr.flush()
-            os._exit(130)
-        controller.request_stop(f"signal {signal.Signals(signum).name}")
-
-    previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGTERM, signal.SIGINT)}
+    stop = _SignalStop(controller)
+    previous = {sig: signal.signal(sig, stop.on_signal) for sig in (signal.SIGTERM, signal.SIGINT)}
 
     server = None
     status_stop = threading.Event()
@@ -172,8 +211,8 @@ def main(argv: list[str]) -> int:
                              name="flgd-status").start()
         log.info("ready: %s, %s, state dir %s, socket %s", controller.backend, controller.policy_source,
                  config.state_dir, sock_path)
-        controller.run_loop(stop_requested=lambda: bool(signals_seen))
-    except (StartupError, SocketInUse, OSError) as exc:
+        controller.run_loop(stop_requested=stop.poll)
+    except (StartupError, ConfigError, SocketInUse, OSError) as exc:
         handler.finish()
         print(f"flgd run: {exc}", file=sys.stderr)
         notifier.status(f"failed to start: {exc}")

@@ -17,6 +17,11 @@ One update (``update``):
 * priorities of the batch become |y - Q(s, a)| + epsilon (and are written back
   to the store through ``priority_sink``, so a restart keeps them);
 * the target network copies the online one every ``target_update_every`` updates;
+* an update whose loss, TD errors or gradients are not finite (NaN/Inf) is
+  skipped before the optimizer step: the weights, BatchNorm statistics, Adam
+  moments and priorities stay as they were, ``skipped_updates`` counts it and
+  ``last_error`` says why (the daemon shows it in ``flgctl status``), so a
+  diverging network is neither published to the agent nor checkpointed;
 * with ``mirror_probability`` p > 0 each sampled transition is trained, with
   chance p, as its mirror image (``flgd.learning.augment``; same target).
 
@@ -42,6 +47,7 @@ from __future__ import annotations
 
 import copy
 import logging
+import math
 import os
 import threading
 import time
@@ -54,7 +60,7 @@ import torch.nn.functional as F
 
 from flgd.clutter import grasp_mask, move_mask
 from flgd.actions import Action
-from flgd.config import CellConfig
+from flgd.config import CellConfig, ConfigError
 from flgd.perception import Heightmaps
 
 from flgd.learning.augment import mirror_action, mirror_heightmaps
@@ -95,12 +101,23 @@ class LossTerms:
     actions: list[Action]  # the action trained per transition (mirrored when the transition was)
 
 
-def resolve_device(device: str | torch.device | None) -> torch.device:
+def resolve_device(device: str | torch.device | None, source: str = "<config>") -> torch.device:
+    """The torch device for ``learning.device``; ConfigError (naming ``source``) for a device this machine lacks.
+
+    ConfigError, not a bare ValueError, so that ``flgd run`` reports it as a config problem and exits 1
+    instead of a traceback (``load_config`` normally catches it first).
+    """
     if device is None or str(device) == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    device = torch.device(device)
+    try:
+        device = torch.device(device)
+    except (RuntimeError, TypeError, ValueError) as exc:
+        raise ConfigError(source, [f"learning.device: got {str(device)!r}, expected one of 'cpu', 'cuda', 'auto' "
+                                   f"({exc})"]) from None
     if device.type == "cuda" and not torch.cuda.is_available():
-        raise ValueError("learning.device: got 'cuda', but torch finds no CUDA device; use 'cpu' or 'auto'")
+        raise ConfigError(source, [f"learning.device: got {str(device)!r}, but torch finds no CUDA device on this "
+                                   "machine (CPU-only torch build, or no usable NVIDIA driver); expected 'cpu' or "
+                                   "'auto'"])
     return device
 
 
@@ -114,7 +131,7 @@ class Learner:
             torch.set_num_threads(lc.threads)
         self.config = config
         self.replay = replay
-        self.device = resolve_device(device if device is not None else lc.device)
+        self.device = resolve_device(device if device is not None else lc.device, config.source)
         self.rotations = network.rotations
         self.online = copy.deepcopy(network).to(self.device).train()
         self.target = copy.deepcopy(network).to(self.device).eval()
@@ -129,6 +146,7 @@ class Learner:
         self.thread_nice = thread_nice
         self.updates = 0
         self.failed_updates = 0
+        self.skipped_updates = 0  # updates not applied because the loss, TD errors or gradients were not finite
         self.dropped_updates = 0  # scheduled updates dropped because the backlog was full (max_backlog)
         self.last_error: str | None = None
         self.last_stats: UpdateStats | None = None
@@ -282,17 +300,44 @@ class Learner:
         return LossTerms(loss=loss, td_errors=td, targets=ys, maps=maps, owners=owners, rotations=rots,
                          actions=actions)
 
+    def _not_finite(self, terms: LossTerms) -> str | None:
+        """Why this update must not be applied (loss, TD errors or a gradient not finite), else None."""
+        loss = float(terms.loss.detach())
+        if not math.isfinite(loss):
+            return f"loss is {loss}"
+        if not np.all(np.isfinite(terms.td_errors)):
+            return "a TD error is not finite"
+        for name, p in self.online.named_parameters():
+            if p.grad is not None and not bool(torch.isfinite(p.grad).all()):
+                return f"the gradient of {name} is not finite (loss {loss:.6g})"
+        return None
+
     def update(self) -> UpdateStats | None:
-        """One gradient step on a prioritized batch; None while the replay is empty."""
+        """One gradient step on a prioritized batch; None while the replay is empty or when the update was
+        skipped because it was not finite (see the module docstring)."""
         if len(self.replay) == 0:
             return None
         with self._update_lock:
             start = time.perf_counter()
             beta = self.replay.beta
             indices, transitions, weights = self.replay.sample(self.config.learning.batch_size)
+            # the training-mode forward moves BatchNorm's running statistics: kept to undo a skipped update
+            buffers = {name: b.detach().clone() for name, b in self.online.named_buffers()}
             terms = self.loss_terms(transitions, weights)
             self.optimizer.zero_grad(set_to_none=True)
             terms.loss.backward()
+            why = self._not_finite(terms)
+            if why is not None:
+                # Applying it would turn the weights into NaN for good (and the next checkpoint with them).
+                self.optimizer.zero_grad(set_to_none=True)
+                with torch.no_grad():
+                    for name, b in self.online.named_buffers():
+                        b.copy_(buffers[name])
+                self.skipped_updates += 1
+                self.last_error = (f"update {self.updates + 1} skipped: {why} (weights unchanged; "
+                                   f"{self.skipped_updates} non-finite updates skipped so far)")
+                log.warning("learner: %s", self.last_error)
+                return None
             self.optimizer.step()
             tagged = self.replay.update_priorities(indices, np.abs(terms.td_errors))
             if self.priority_sink is not None and tagged:

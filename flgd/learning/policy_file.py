@@ -11,7 +11,14 @@ uses).  On top of the container's own checks, loading refuses a file unless
 * the variant (and ``expected_variant``, if given) and architecture are known,
   and every tensor name, dtype and shape equals the rebuilt network's;
 * ``weights_sha256`` matches the tensors, and ``metadata_sha256`` matches the
-  other metadata, so a flipped bit anywhere in the file is caught.
+  other metadata, so a flipped bit anywhere in the file is caught;
+* every floating-point tensor is finite: a network that diverged to NaN or Inf
+  would act on garbage Q-maps, so it is refused (naming the first bad tensor)
+  both when loading and when saving.
+
+Before a byte is read, the path must be a regular file of at most
+``MAX_POLICY_BYTES``: ``flgctl policy load /dev/zero`` would otherwise grow the
+daemon until the OOM killer stops it, and a FIFO would block it forever.
 
 Metadata fields: format, format_version, variant, architecture (JSON),
 shapes (JSON name -> shape), training_steps, cell, rolling_success, created
@@ -20,7 +27,10 @@ other caller-supplied keys).
 
 Saving is atomic: the bytes go to a temporary file in the target directory,
 which is fsynced, renamed over the target and the directory fsynced, so a
-crash leaves either the old or the new file, never a torn one.
+crash leaves either the old or the new file, never a torn one.  Saved files
+are mode 0640 (``POLICY_MODE``), not the temporary file's 0600: the daemon
+saves into its state directory as user flgd, and operators in group flgd must
+be able to read (copy out) what ``flgctl policy save FILE`` asked for.
 """
 
 from __future__ import annotations
@@ -30,6 +40,7 @@ import hashlib
 import json
 import math
 import os
+import stat
 import struct
 from dataclasses import dataclass
 from pathlib import Path
@@ -42,14 +53,26 @@ from safetensors.torch import save as _st_save
 from flgd.atomic_file import write_atomically
 from flgd.learning.networks import VARIANTS, QMapNetwork, build_network
 
-__all__ = ["FORMAT", "FORMAT_VERSION", "POLICY_SUFFIX", "PolicyFileError", "LoadedPolicy", "save_policy",
-           "load_policy", "read_metadata"]
+__all__ = ["FORMAT", "FORMAT_VERSION", "POLICY_SUFFIX", "MAX_POLICY_BYTES", "POLICY_MODE", "PolicyFileError",
+           "LoadedPolicy", "save_policy", "load_policy", "read_metadata"]
 
 FORMAT = "flgd-policy"
 FORMAT_VERSION = 1
 POLICY_SUFFIX = ".safetensors"
 MAX_HEADER_BYTES = 16 * 1024 * 1024
-_KNOWN_FIELDS = ("training_steps", "cell", "rolling_success")
+# The shipped fast policy is ~0.3 MB and a DenseNet-121 policy ~30 MB; 512 MB leaves an order of
+# magnitude of room for bigger networks while a mistaken path (a disk image, /dev/zero) is refused
+# before the daemon tries to hold it in memory.
+MAX_POLICY_BYTES = 512 * 1024 * 1024
+# Group-readable, not world-readable: see "Saving" in the module docstring.
+POLICY_MODE = 0o640
+# Paths a systemd unit with ProtectHome=yes / PrivateTmp=yes (systemd/flgd.service) cannot see.
+_SANDBOX_HIDDEN = ("/home", "/root", "/run/user", "/tmp", "/var/tmp")
+SANDBOX_HINT = ("if flgd runs as the systemd service, it cannot see files under /home, /root or /run/user "
+                "(ProtectHome=yes) and has its own private /tmp and /var/tmp (PrivateTmp=yes), even where you can "
+                "see them: copy the policy into the service's state directory (StateDirectory=flgd), e.g. "
+                "`sudo install -d -o flgd -g flgd -m 0750 /var/lib/flgd/policies && "
+                "sudo install -o flgd -g flgd -m 0640 {path} /var/lib/flgd/policies/`, and load it from there")
 
 
 class PolicyFileError(ValueError):
@@ -86,8 +109,28 @@ def _tensors_of(network: QMapNetwork) -> dict[str, torch.Tensor]:
     return {k: v.detach().cpu().clone().contiguous() for k, v in network.state_dict().items()}
 
 
-def save_policy(path: str | os.PathLike, network: QMapNetwork, metadata: dict) -> None:
-    """Write ``network`` and ``metadata`` (training_steps, cell, rolling_success, anything else) atomically."""
+def _first_non_finite(tensors: dict[str, torch.Tensor], order: list[str]) -> str | None:
+    """Describe the first floating-point tensor (in ``order``) holding NaN or Inf, or None if all are finite."""
+    for name in order:
+        t = tensors[name]
+        if not t.is_floating_point():
+            continue  # integer tensors (BN's num_batches_tracked) cannot be NaN
+        finite = torch.isfinite(t)
+        if not bool(finite.all()):
+            bad = int((~finite).sum())
+            kinds = "/".join(k for k, present in (("NaN", bool(torch.isnan(t).any())),
+                                                   ("Inf", bool(torch.isinf(t).any()))) if present)
+            return f"tensor {name!r}: {bad} of {t.numel()} values are not finite ({kinds})"
+    return None
+
+
+def save_policy(path: str | os.PathLike, network: QMapNetwork, metadata: dict, *, mode: int = POLICY_MODE) -> None:
+    """Write ``network`` and ``metadata`` (training_steps, cell, rolling_success, anything else) atomically.
+
+    ``mode`` is the file's permission bits (default 0640, group-readable; see the module docstring).
+    A network with a non-finite weight is refused (PolicyFileError), so a diverged network is never
+    written as a policy or checkpoint.
+    """
     path = Path(path)
     if network.variant not in VARIANTS:
         raise PolicyFileError(path, f"network variant {network.variant!r} is not one of {VARIANTS}")
@@ -104,6 +147,9 @@ def save_policy(path: str | os.PathLike, network: QMapNetwork, metadata: dict) -
     except (TypeError, ValueError) as exc:
         raise PolicyFileError(path, f"metadata is not JSON-serialisable: {exc}") from None
     tensors = _tensors_of(network)
+    bad = _first_non_finite(tensors, list(tensors))
+    if bad is not None:
+        raise PolicyFileError(path, f"not saved: the network has diverged: {bad}")
     meta = {
         "format": FORMAT,
         "format_version": str(FORMAT_VERSION),
@@ -121,7 +167,74 @@ def save_policy(path: str | os.PathLike, network: QMapNetwork, metadata: dict) -
     data = _st_save(tensors, metadata=meta)
 
     path.parent.mkdir(parents=True, exist_ok=True)
-    write_atomically(path, data)
+    write_atomically(path, data, mode=mode)
+
+
+def _read_file(path: Path) -> bytes:
+    """The whole file, but only if it is a regular file of at most MAX_POLICY_BYTES (see the module docstring).
+
+    ``os.stat`` comes first so that a device or FIFO is never even opened (opening some devices has side
+    effects); the file is then opened non-blocking and checked again with ``fstat``, so a path swapped
+    between the two calls cannot slip a FIFO or a huge file past the check, and at most the cap is read.
+    """
+    try:
+        st = os.stat(path)
+    except OSError as exc:
+        raise PolicyFileError(path, _cannot_read(path, exc)) from None
+    _check_regular(path, st)
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_NOCTTY", 0))
+    except OSError as exc:
+        raise PolicyFileError(path, _cannot_read(path, exc)) from None
+    try:
+        opened = os.fstat(fd)
+        if (opened.st_dev, opened.st_ino) != (st.st_dev, st.st_ino):
+            raise PolicyFileError(path, "the file was replaced while it was being opened; try again")
+        _check_regular(path, opened)
+        chunks, total = [], 0
+        while total <= MAX_POLICY_BYTES:
+            chunk = os.read(fd, min(1 << 24, MAX_POLICY_BYTES + 1 - total))
+            if not chunk:
+                break
+            chunks.append(chunk)
+            total += len(chunk)
+    except OSError as exc:
+        raise PolicyFileError(path, f"cannot read: {exc.strerror or exc}") from None
+    finally:
+        os.close(fd)
+    if total > MAX_POLICY_BYTES:
+        raise PolicyFileError(path, f"grew beyond {_size_text(MAX_POLICY_BYTES)} while being read; refused")
+    return b"".join(chunks)
+
+
+def _check_regular(path: Path, st: os.stat_result) -> None:
+    if not stat.S_ISREG(st.st_mode):
+        kind = ("a directory" if stat.S_ISDIR(st.st_mode) else "a FIFO" if stat.S_ISFIFO(st.st_mode)
+                else "a character device" if stat.S_ISCHR(st.st_mode) else "a block device"
+                if stat.S_ISBLK(st.st_mode) else "a socket" if stat.S_ISSOCK(st.st_mode) else "not a regular file")
+        raise PolicyFileError(path, f"is {kind}, expected a regular policy file ({POLICY_SUFFIX})")
+    if st.st_size > MAX_POLICY_BYTES:
+        raise PolicyFileError(path, f"is {_size_text(st.st_size)}, expected at most {_size_text(MAX_POLICY_BYTES)} "
+                                    "(a policy is ~0.3 MB, a DenseNet-121 one ~30 MB; is this the right file?)")
+
+
+def _size_text(n: int) -> str:
+    return f"{n / (1024 * 1024):.1f} MB"
+
+
+def _cannot_read(path: Path, exc: OSError) -> str:
+    """The error text, with the systemd sandbox hint when the path is one the service cannot see.
+
+    Under ProtectHome=yes /home appears empty or inaccessible (ENOENT or EACCES) and under PrivateTmp=yes
+    /tmp is another directory (ENOENT), although the operator sees the file: without the hint the
+    message contradicts what they see.
+    """
+    text = f"cannot read: {exc.strerror or exc}"
+    where = os.path.abspath(path)
+    if isinstance(exc, (FileNotFoundError, PermissionError)) and \
+            any(where == d or where.startswith(d + "/") for d in _SANDBOX_HIDDEN):
+        text += f" ({SANDBOX_HINT.format(path=where)})"
+    return text
 
 
 def _read_header(path: Path, blob: bytes) -> dict:
@@ -161,10 +274,7 @@ def _check_metadata(path: Path, header: dict) -> dict[str, str]:
 def read_metadata(path: str | os.PathLike) -> dict:
     """The checked metadata of a policy file, decoded (without loading the weights into a network)."""
     path = Path(path)
-    try:
-        blob = path.read_bytes()
-    except OSError as exc:
-        raise PolicyFileError(path, f"cannot read: {exc.strerror or exc}") from None
+    blob = _read_file(path)
     try:
         return _decode(_check_metadata(path, _read_header(path, blob)))
     except (ValueError, TypeError) as exc:
@@ -195,10 +305,7 @@ def _decode(meta: dict[str, str]) -> dict:
 def load_policy(path: str | os.PathLike, expected_variant: str | None = None) -> LoadedPolicy:
     """Load and verify a policy file; raises PolicyFileError naming the file and the problem."""
     path = Path(path)
-    try:
-        blob = path.read_bytes()
-    except OSError as exc:
-        raise PolicyFileError(path, f"cannot read: {exc.strerror or exc}") from None
+    blob = _read_file(path)
     meta = _check_metadata(path, _read_header(path, blob))
     try:
         info = _decode(meta)
@@ -236,6 +343,9 @@ def load_policy(path: str | os.PathLike, expected_variant: str | None = None) ->
         raise PolicyFileError(path, "recorded shapes do not match the stored tensors")
     if _weights_digest(tensors) != info["weights_sha256"]:
         raise PolicyFileError(path, "weights checksum mismatch (the tensor data is corrupt)")
+    bad = _first_non_finite(tensors, list(expected))
+    if bad is not None:
+        raise PolicyFileError(path, f"the network has diverged: {bad}; refused, it would act on garbage Q-maps")
     network.load_state_dict(tensors, strict=True)
     network.eval()
     return LoadedPolicy(network=network, metadata=info)
