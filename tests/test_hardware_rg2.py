@@ -225,3 +225,31 @@ def test_xmlrpc_wire_format_matches_the_urcap_signature(rg2):
     drv = _driver(rg2)
     drv.move(0.05, 20)  # the driver converts to floats
     assert rg2.calls[-1][0] != "rg_grip" and any(c[0] == "rg_grip" and isinstance(c[2], float) for c in rg2.calls)
+
+
+def test_stop_from_another_thread_reaches_the_gripper_while_a_call_waits_for_its_reply(rg2):
+    """A stop (signal handler, other thread) lands while the main thread waits on a slow rg_get_busy reply:
+    it must reach the gripper and leave the waiting call's connection alone."""
+    rg2.move_time = 10.0            # the fingers would travel for 10 s
+    drv = _driver(rg2, timeout=5.0)
+    outcome: dict = {}
+
+    def grip():
+        try:
+            drv.move(0.0, 40.0)
+            outcome["ok"] = True
+        except Exception as exc:  # noqa: BLE001 - the test reports whatever the main thread got
+            outcome["error"] = exc
+
+    rg2.delay = 0.3                 # every reply takes 0.3 s: a call is in flight most of the time
+    t = threading.Thread(target=grip)
+    t.start()
+    deadline = time.monotonic() + 5.0
+    while "rg_get_busy" not in rg2.names() and time.monotonic() < deadline:
+        time.sleep(0.005)
+    assert "rg_get_busy" in rg2.names()
+    drv.stop()                       # while that rg_get_busy waits for its reply
+    t.join(timeout=10.0)
+    assert not t.is_alive()
+    assert "rg_stop" in rg2.names()
+    assert outcome == {"ok": True}, outcome   # the move ended because the fingers stopped, not in a fault

@@ -306,3 +306,38 @@ def test_the_backlog_is_capped_and_the_dropped_updates_are_counted():
     # what is owed is still run: the synchronous mode drains the capped backlog exactly
     capped.replay.add(Transition(scene(1), Action("grasp", 9, 20, 3), 1.0, None, True))
     assert len(capped.update_pending()) == 7 and capped.pending == 0 and capped.updates == 7
+
+
+def test_a_stop_whose_join_timed_out_never_leaves_two_learner_threads():
+    """Fault injection: an update that blocks (a slow disk, a stuck device) outlasts ``stop``'s timeout."""
+    cfg = config(updates_per_action=1)
+    replay = PrioritizedReplay.from_config(cfg.learning)
+    replay.add(Transition(scene(0), Action("grasp", 8, 12, 0), 1.0, None, True))
+    lrn = learner(cfg, replay=replay)
+    release, entered = threading.Event(), threading.Event()
+    real_update = lrn.update
+
+    def blocking_update():
+        entered.set()
+        release.wait(30)
+        return real_update()
+
+    lrn.update = blocking_update
+    lrn.start()
+    try:
+        lrn.notify_new_transition()
+        assert entered.wait(30)
+        lrn.stop(timeout=0.05)           # the join times out: the thread is still inside its update
+        assert lrn.running
+        lrn.start()                      # the stop is withdrawn: the same thread carries on
+        alive = [t for t in threading.enumerate() if t.name == "flgd-learner"]
+        assert len(alive) == 1
+        release.set()
+        assert lrn.wait_idle(timeout=60) and lrn.updates == 1
+        lrn.notify_new_transition()      # and it still takes new work
+        assert lrn.wait_idle(timeout=60) and lrn.updates == 2
+    finally:
+        release.set()
+        lrn.stop(timeout=60)
+    assert not lrn.running
+    assert not [t for t in threading.enumerate() if t.name == "flgd-learner"]

@@ -102,6 +102,9 @@ class _TimeoutTransport(xmlrpc.client.Transport):
         return conn
 
 
+STOP_TIMEOUT = 1.0  # s for rg_stop's reply: a stop must not hold up the arm's stopL behind it
+
+
 class RG2XmlRpcDriver(GripperDriver):
     """The RG2 through the OnRobot URCap's XML-RPC server on the controller."""
 
@@ -115,13 +118,16 @@ class RG2XmlRpcDriver(GripperDriver):
         self.host, self.port, self.timeout = host, int(port), float(timeout)
         self.tool_index = int(tool_index)
         self._clock, self._sleep, self._poll = clock, sleep, poll_interval
-        self._proxy = xmlrpc.client.ServerProxy(f"http://{host}:{self.port}/", transport=_TimeoutTransport(timeout),
-                                                allow_none=False)
+        self._proxy = self._new_proxy(timeout)
 
-    def _rpc(self, function: str, *args: Any) -> Any:
+    def _new_proxy(self, timeout: float) -> xmlrpc.client.ServerProxy:
+        return xmlrpc.client.ServerProxy(f"http://{self.host}:{self.port}/", transport=_TimeoutTransport(timeout),
+                                         allow_none=False)
+
+    def _rpc(self, function: str, *args: Any, proxy: xmlrpc.client.ServerProxy | None = None) -> Any:
         where = f"RG2 XML-RPC {function} at {self.host}:{self.port}"
         try:
-            return getattr(self._proxy, function)(self.tool_index, *args)
+            return getattr(proxy or self._proxy, function)(self.tool_index, *args)
         except (socket.timeout, TimeoutError) as exc:
             raise GripperFault(f"{where}: no reply within {self.timeout} s (gripper.timeout)") from exc
         except ConnectionRefusedError as exc:
@@ -158,10 +164,19 @@ class RG2XmlRpcDriver(GripperDriver):
         return max(0.0, float(raw)) / 1000.0
 
     def stop(self) -> None:
+        """Send rg_stop over a connection of its own, best effort.
+
+        Why its own: stop comes from a signal handler or another thread while the main thread may be
+        waiting for a reply on the shared connection; http.client cannot put a second request on it
+        (the stop would be lost) and xmlrpc then closes it under the waiting call.
+        """
+        proxy = self._new_proxy(min(self.timeout, STOP_TIMEOUT))
         try:
-            self._rpc("rg_stop")
+            self._rpc("rg_stop", proxy=proxy)
         except GripperFault:
             pass  # best effort: the caller is already handling a stop or fault
+        finally:
+            proxy("close")()
 
     def close(self) -> None:
         self._proxy("close")()

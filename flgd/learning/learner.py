@@ -162,6 +162,7 @@ class Learner:
         self._busy = False
         self._stop = False
         self._thread: threading.Thread | None = None
+        self._exited = True  # the thread (if any) has left its loop; guarded by _cond
 
     @property
     def network(self) -> QMapNetwork:
@@ -420,12 +421,20 @@ class Learner:
             return self._pending
 
     def start(self) -> None:
-        if self._thread is not None and self._thread.is_alive():
-            return
+        """Run updates in the background thread; never two threads.
+
+        Why the care: a ``stop`` whose join timed out leaves its thread inside a long update.  If that
+        thread has not yet seen the stop it simply carries on (the stop is withdrawn here); only a
+        thread that has left its loop is replaced.
+        """
         with self._cond:
             self._stop = False
-        self._thread = threading.Thread(target=self._run, name="flgd-learner", daemon=True)
-        self._thread.start()
+            old = self._thread
+            if old is not None and old.is_alive() and not self._exited:
+                return
+            self._exited = False
+            self._thread = threading.Thread(target=self._run, name="flgd-learner", daemon=True)
+            self._thread.start()
 
     def stop(self, timeout: float | None = None) -> None:
         """Finish the update in progress, drop the pending ones and join the thread."""
@@ -435,7 +444,8 @@ class Learner:
             self._cond.notify_all()
         if self._thread is not None:
             self._thread.join(timeout)
-            self._thread = None
+            if not self._thread.is_alive():  # a timed-out join keeps it: start() must not add a second one
+                self._thread = None
 
     def update_pending(self) -> list[UpdateStats]:
         """Synchronous mode: run the scheduled updates in the caller's thread, then publish.
@@ -491,6 +501,7 @@ class Learner:
                 while not self._stop and self._pending == 0:
                     self._cond.wait()
                 if self._stop:
+                    self._exited = True
                     return
                 self._pending -= 1
                 self._busy = True
