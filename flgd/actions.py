@@ -9,7 +9,16 @@ from typing import Literal
 Primitive = Literal["grasp", "push", "shift"]
 PRIMITIVES: tuple[str, ...] = ("grasp", "push", "shift")
 
-__all__ = ["Action", "Primitive", "PRIMITIVES", "rotation_angle"]
+__all__ = ["Action", "Primitive", "PRIMITIVES", "rotation_angle", "move_kind_at"]
+
+
+def move_kind_at(height_at_point: float, shift_height: float) -> str:
+    """Paper III-A: a move that starts on an object (higher than ``shift_height``) is a shift, elsewhere a push.
+
+    The one copy of the rule: the agent labels its decisions with it, the plans execute by it and the
+    pictures draw by it, so the three cannot disagree.
+    """
+    return "shift" if height_at_point > shift_height else "push"
 
 
 def rotation_angle(index: int, rotations: int = 16) -> float:

@@ -23,6 +23,7 @@ __all__ = [
     "grasp_reward",
     "grasp_mask",
     "move_mask",
+    "action_masks",
 ]
 
 
@@ -79,3 +80,12 @@ def grasp_mask(height: np.ndarray, rc: RewardConfig) -> np.ndarray:
 def move_mask(height: np.ndarray, rc: RewardConfig) -> np.ndarray:
     """rho_m: rho_g dilated, so that pushes may start beside objects."""
     return cv2.dilate(grasp_mask(height, rc), _kernel(rc.move_mask_dilation))
+
+
+def action_masks(height: np.ndarray, rc: RewardConfig, enabled: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """(rho_g, rho_m) as the agent acts and the learner bootstraps; all ones when ``enabled`` is off
+    (the DPEN ablation).  One function, so that the two can never mask differently."""
+    if enabled:
+        return grasp_mask(height, rc), move_mask(height, rc)
+    ones = np.ones(height.shape, dtype=np.uint8)
+    return ones, ones.copy()

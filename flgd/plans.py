@@ -25,7 +25,7 @@ from typing import Union
 
 import numpy as np
 
-from flgd.actions import Action
+from flgd.actions import Action, move_kind_at
 from flgd.config import CellConfig
 from flgd.geometry import ToolPose, wrap_symmetric_yaw
 from flgd.perception import pixel_to_base
@@ -104,8 +104,8 @@ class Plan:
 
 
 def move_kind(height_at_point: float, config: CellConfig) -> str:
-    """Paper III-A: a move on an object is a shift, elsewhere a push."""
-    return "shift" if height_at_point > config.rewards.shift_height else "push"
+    """Paper III-A: a move on an object is a shift, elsewhere a push (``flgd.actions.move_kind_at``)."""
+    return move_kind_at(height_at_point, config.rewards.shift_height)
 
 
 def _refused(primitive: str, why: str) -> Plan:

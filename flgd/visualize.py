@@ -34,7 +34,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from flgd.actions import Action
+from flgd.actions import Action, move_kind_at
 from flgd.atomic_file import write_atomically
 
 __all__ = ["ActionGlyph", "QmapFigure", "qmap_figure", "qmap_picture", "encode_png", "write_png",
@@ -89,7 +89,7 @@ def greedy_action(q_maps: np.ndarray, grasp_mask: np.ndarray, move_mask: np.ndar
     q[:, 0][:, grasp_mask == 0] = -np.inf
     q[:, 1][:, move_mask == 0] = -np.inf
     rot, ch, row, col = (int(v) for v in np.unravel_index(int(np.argmax(q)), q.shape))
-    prim = "grasp" if ch == 0 else ("shift" if float(height[row, col]) > shift_height else "push")
+    prim = "grasp" if ch == 0 else move_kind_at(float(height[row, col]), shift_height)
     return Action(prim, row, col, rot, q.shape[0])
 
 

@@ -254,3 +254,20 @@ def test_stats_count_the_grasps_whose_descent_stopped_at_a_contact(tmp_path):
     assert stats["grasp_attempts"] == 5
     assert (stats["contact_stops"], stats["contact_stop_share"], stats["contact_stop_mm_median"]) == (3, 0.6, 9.0)
     assert "contact stops        3 of the grasps (60.0%), median 9.0 mm" in format_stats(stats)
+
+
+def test_picks_per_hour_counts_successful_grasps_only_and_status_agrees_with_stats(tmp_path):
+    """A push whose reward counts as a success is not a pick (the status line once counted it)."""
+    from flgd.daemon.metrics import compute_stats, status_summary
+
+    store = Store(tmp_path)
+    try:
+        store.commit_cycle(_row(0, duration=10.0))                                       # a pick
+        store.commit_cycle(_row(1, success=0, reward=0.0, duration=10.0))                # a failed grasp
+        store.commit_cycle(_row(2, primitive="push", kind="push", success=1, duration=10.0))  # a useful push
+        store.commit_cycle(_row(3, outcome="refused", success=None, duration=0.0))
+        stats, status = compute_stats(store), status_summary(store)
+    finally:
+        store.close()
+    assert stats["picks_per_hour"] == pytest.approx(1 * 3600.0 / 30.0)
+    assert status["picks_per_hour"] == stats["picks_per_hour"]

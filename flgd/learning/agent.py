@@ -36,8 +36,8 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from flgd.actions import Action
-from flgd.clutter import grasp_mask, move_mask
+from flgd.actions import Action, move_kind_at
+from flgd.clutter import action_masks, grasp_mask
 from flgd.config import CellConfig
 from flgd.perception import Heightmaps
 
@@ -153,10 +153,7 @@ class Agent:
 
     def masks(self, height: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(rho_g, rho_m) for ``height``; all ones for the DPEN ablation (object presence still checked)."""
-        if self.config.exploration.masks:
-            return grasp_mask(height, self.config.rewards), move_mask(height, self.config.rewards)
-        ones = np.ones(height.shape, dtype=np.uint8)
-        return ones, ones.copy()
+        return action_masks(height, self.config.rewards, self.config.exploration.masks)
 
     def q_maps(self, heightmaps: Heightmaps) -> np.ndarray:
         """All-rotation Q-maps [R,2,H,W] float32 of the acting network."""
@@ -240,8 +237,7 @@ class Agent:
     # ------------------------------------------------------------------ helpers
 
     def _move_kind(self, height_at_point: float) -> str:
-        """flgd.plans.move_kind's rule: a move on an object is a shift, elsewhere a push."""
-        return "shift" if height_at_point > self.config.rewards.shift_height else "push"
+        return move_kind_at(height_at_point, self.config.rewards.shift_height)
 
     @staticmethod
     def _best(masked: np.ndarray, channel: int) -> tuple[int, int, int, int]:

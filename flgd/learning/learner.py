@@ -58,7 +58,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from flgd.clutter import grasp_mask, move_mask
+from flgd.clutter import action_masks
 from flgd.actions import Action
 from flgd.config import CellConfig, ConfigError
 from flgd.perception import Heightmaps
@@ -172,10 +172,7 @@ class Learner:
     # ------------------------------------------------------------------ one update
 
     def _masks(self, height: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        if self.config.exploration.masks:
-            return grasp_mask(height, self.config.rewards), move_mask(height, self.config.rewards)
-        ones = np.ones(height.shape, dtype=np.uint8)
-        return ones, ones
+        return action_masks(height, self.config.rewards, self.config.exploration.masks)
 
     def note_decision(self, state: Heightmaps, decision: Decision, weights_version: int) -> None:
         """Remember the greedy a' the agent found on ``state`` with weights ``weights_version`` (an update count).
