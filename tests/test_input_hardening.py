@@ -54,7 +54,7 @@ def small_net(seed: int = 0):
 def save_unchecked(path: Path, net, monkeypatch) -> None:
     """Save ``net`` as an older flgd (without the finiteness check) would have: valid checksums, bad weights."""
     with monkeypatch.context() as m:
-        m.setattr(policy_file, "_first_non_finite", lambda *a: None)
+        m.setattr(policy_file, "first_non_finite", lambda *a: None)
         save_policy(path, net, {"training_steps": 1})
 
 

@@ -199,6 +199,12 @@ def test_a_trunk_that_does_not_fit_is_refused_and_leaves_the_network_alone(tmp_p
         save_file(whole, str(odd), metadata={"format": "flgd-trunk-1", "width": width, "info": info})
         with pytest.raises(TrunkFileError, match=problem):
             load_trunk(fast, odd)
+    diverged = {k: v.clone() for k, v in whole.items()}
+    diverged["enc2.0.weight"].view(-1)[3] = float("nan")
+    nan_file = tmp_path / "nan.safetensors"
+    save_file(diverged, str(nan_file), metadata={"format": "flgd-trunk-1", "width": "12", "info": "{}"})
+    with pytest.raises(TrunkFileError, match=r"'enc2.0.weight': 1 of .* not finite \(NaN\)"):
+        load_trunk(fast, nan_file)
     assert all(torch.equal(fast.state_dict()[k], v) for k, v in before.items())
     other = tmp_path / "policy-like.safetensors"
     save_file({"enc1.0.weight": torch.zeros(12, 4, 3, 3)}, str(other), metadata={"format": "something-else"})

@@ -53,7 +53,7 @@ from safetensors.torch import save as _st_save
 from flgd.atomic_file import write_atomically
 from flgd.learning.networks import VARIANTS, QMapNetwork, build_network
 
-__all__ = ["FORMAT", "FORMAT_VERSION", "POLICY_SUFFIX", "MAX_POLICY_BYTES", "POLICY_MODE", "PolicyFileError",
+__all__ = ["FORMAT", "FORMAT_VERSION", "POLICY_SUFFIX", "MAX_POLICY_BYTES", "POLICY_MODE", "PolicyFileError", "first_non_finite",
            "LoadedPolicy", "save_policy", "load_policy", "read_metadata"]
 
 FORMAT = "flgd-policy"
@@ -109,7 +109,7 @@ def _tensors_of(network: QMapNetwork) -> dict[str, torch.Tensor]:
     return {k: v.detach().cpu().clone().contiguous() for k, v in network.state_dict().items()}
 
 
-def _first_non_finite(tensors: dict[str, torch.Tensor], order: list[str]) -> str | None:
+def first_non_finite(tensors: dict[str, torch.Tensor], order: list[str]) -> str | None:
     """Describe the first floating-point tensor (in ``order``) holding NaN or Inf, or None if all are finite."""
     for name in order:
         t = tensors[name]
@@ -147,7 +147,7 @@ def save_policy(path: str | os.PathLike, network: QMapNetwork, metadata: dict, *
     except (TypeError, ValueError) as exc:
         raise PolicyFileError(path, f"metadata is not JSON-serialisable: {exc}") from None
     tensors = _tensors_of(network)
-    bad = _first_non_finite(tensors, list(tensors))
+    bad = first_non_finite(tensors, list(tensors))
     if bad is not None:
         raise PolicyFileError(path, f"not saved: the network has diverged: {bad}")
     meta = {
@@ -343,7 +343,7 @@ def load_policy(path: str | os.PathLike, expected_variant: str | None = None) ->
         raise PolicyFileError(path, "recorded shapes do not match the stored tensors")
     if _weights_digest(tensors) != info["weights_sha256"]:
         raise PolicyFileError(path, "weights checksum mismatch (the tensor data is corrupt)")
-    bad = _first_non_finite(tensors, list(expected))
+    bad = first_non_finite(tensors, list(expected))
     if bad is not None:
         raise PolicyFileError(path, f"the network has diverged: {bad}; refused, it would act on garbage Q-maps")
     network.load_state_dict(tensors, strict=True)

@@ -165,6 +165,11 @@ def read_trunk(path: str | Path) -> TrunkFile:
             tensors = {name: f.get_tensor(name) for name in f.keys()}
     except (SafetensorError, OSError, ValueError) as exc:
         raise TrunkFileError(f"trunk file {p}: not a readable safetensors file ({exc})") from None
+    from flgd.learning.policy_file import first_non_finite
+
+    bad = first_non_finite(tensors, sorted(tensors))
+    if bad is not None:  # a trunk that diverged in pretraining would start every fresh network from garbage
+        raise TrunkFileError(f"trunk file {p}: {bad}")
     if meta.get("format") != TRUNK_FORMAT:
         raise TrunkFileError(f"trunk file {p}: format {meta.get('format')!r}, expected {TRUNK_FORMAT!r} "
                              "(written by `flgd pretrain`)")
