@@ -327,11 +327,19 @@ def _convert(value: Any, tp: Any, key: str, meta: dict, problems: list[str], sou
     if tp is float:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             return bad()
-        if not math.isfinite(value):
+        try:
+            finite = math.isfinite(value)
+        except OverflowError:  # an integer with hundreds of digits does not fit a float
+            finite = False
+        if not finite:
             return bad("not a finite number")
         return _check_range(float(value), key, meta, expected, problems)
     if tp is str:
-        return value if isinstance(value, str) else bad()
+        if isinstance(value, str):
+            return value
+        # A camera serial number or a host written without quotes is read by YAML as a number or a date.
+        return bad("quote the value to make it a string" if isinstance(value, (int, float)) and
+                   not isinstance(value, bool) else "")
     raise TypeError(f"unsupported config field type {tp!r} at {key}")
 
 
@@ -505,6 +513,12 @@ class _StrictLoader(yaml.SafeLoader):
         seen: dict = {}
         for key_node, _ in node.value:
             key = self.construct_object(key_node, deep=deep)
+            try:
+                hash(key)
+            except TypeError:  # "? [a, b]" or "? {a: 1}": a list or mapping as a key is never a config key
+                raise yaml.constructor.ConstructorError(
+                    None, None, f"a {type(key).__name__} cannot be a key, expected a plain name",
+                    key_node.start_mark) from None
             if key in seen:
                 raise yaml.constructor.ConstructorError(
                     None, None, f"duplicate key {key!r} (first at line {seen[key] + 1})", key_node.start_mark)
@@ -555,6 +569,8 @@ def load_config(path: str | os.PathLike) -> CellConfig:
         where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
         problem = getattr(exc, "problem", None) or str(exc)
         raise ConfigError(source, [f"invalid YAML{where}: {problem}"]) from None
+    except RecursionError:  # PyYAML parses recursively: thousands of nested brackets exhaust the stack
+        raise ConfigError(source, ["invalid YAML: nested too deeply, expected a mapping of sections"]) from None
     cfg = config_from_dict(data, source)
     # A relative state directory or policy file is relative to the config file, not to the cwd.
     if not os.path.isabs(cfg.state_dir):

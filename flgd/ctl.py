@@ -12,6 +12,7 @@ import argparse
 import base64
 import datetime as _dt
 import json
+import math
 import os
 import shutil
 import socket
@@ -83,7 +84,7 @@ class Client:
         line, _, self._buf = self._buf.partition(b"\n")
         try:
             reply = json.loads(line)
-        except json.JSONDecodeError:
+        except ValueError:  # JSONDecodeError, or UnicodeDecodeError for bytes that are not UTF-8
             raise DaemonUnreachable(f"unreadable reply from {self.path}: {line[:200]!r}", EXIT_FAILED) from None
         if not isinstance(reply, dict) or "ok" not in reply:
             raise DaemonUnreachable(f"unexpected reply from {self.path}: {line[:200]!r}", EXIT_FAILED)
@@ -111,12 +112,23 @@ def _find_socket(explicit: str | None) -> Path:
     return cands[0]
 
 
+def _timeout(text: str) -> float:
+    """argparse type: seconds > 0 (0 would make the socket non-blocking, NaN/inf/negative crash settimeout)."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and 0 < value <= 86400):
+        raise argparse.ArgumentTypeError(f"got {text!r}, expected seconds, a number > 0 and <= 86400")
+    return value
+
+
 def _parser() -> argparse.ArgumentParser:
     common = argparse.ArgumentParser(add_help=False)
     common.add_argument("--json", action="store_true", default=argparse.SUPPRESS,
                         help="print the daemon's reply as JSON")
     common.add_argument("--socket", default=argparse.SUPPRESS, help="control socket path")
-    common.add_argument("--timeout", type=float, default=argparse.SUPPRESS,
+    common.add_argument("--timeout", type=_timeout, default=argparse.SUPPRESS,
                         help="seconds to wait for a reply (default 150)")
     p = argparse.ArgumentParser(prog="flgctl", parents=[common],
                                 description="Command a running flgd daemon over its control socket.")
@@ -194,6 +206,17 @@ def _human(command: str, reply: dict, extra: dict) -> str:
     return f"{command}: ok, state {reply['state']}"
 
 
+def _local_failure(as_json: bool, reply: dict, message: str) -> int:
+    """The daemon succeeded but flgctl's own step failed: say so on stderr, and with --json also as a
+    ``{"ok": false}`` object on stdout, so a script never reads an empty output as success."""
+    print(f"flgctl: {message}", file=sys.stderr)
+    if as_json:
+        print(json.dumps({"ok": False, "id": reply.get("id"), "state": reply.get("state"),
+                          "error": {"code": "local", "message": message}, "daemon_result": reply.get("result")},
+                         indent=2))
+    return EXIT_FAILED
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     parser = _parser()
@@ -240,9 +263,8 @@ def main(argv: list[str] | None = None) -> int:
             if isinstance(exc, PermissionError) and exc.filename == reply["result"]["saved"]:
                 hint = (" (reading it needs group access to the daemon's state directory: be a member of "
                         "group flgd, or copy it as root)")
-            print(f"flgctl: the daemon saved {reply['result']['saved']}, but copying it to {args.file} "
-                  f"failed: {exc}{hint}", file=sys.stderr)
-            return EXIT_FAILED
+            return _local_failure(as_json, reply, f"the daemon saved {reply['result']['saved']}, but copying it "
+                                                  f"to {args.file} failed: {exc}{hint}")
 
     if reply.get("ok") and command == "snapshot":
         try:
@@ -251,8 +273,7 @@ def main(argv: list[str] | None = None) -> int:
             reply["result"]["file"] = os.path.abspath(args.file)
             reply["result"]["bytes"] = len(png)
         except (OSError, ValueError, KeyError) as exc:
-            print(f"flgctl: cannot write {args.file}: {exc}", file=sys.stderr)
-            return EXIT_FAILED
+            return _local_failure(as_json, reply, f"cannot write {args.file}: {exc}")
 
     if as_json:
         print(json.dumps(reply, indent=2))

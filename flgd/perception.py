@@ -13,6 +13,7 @@ cells with no valid point are 0.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -53,14 +54,36 @@ class _RayCache:
             rays[0] = u[None, :]
             rays[1] = v[:, None]
             rays[2] = 1.0
-            self._dirs = np.ascontiguousarray(
-                (rotation @ rays.reshape(3, -1)).astype(np.float32))  # 3 x N
-            self._key = key
+            dirs = np.ascontiguousarray((rotation @ rays.reshape(3, -1)).astype(np.float32))  # 3 x N
+            # Key and rays are replaced together, and the caller gets the rays made for its own key.
+            self._key, self._dirs = key, dirs
+            return dirs
         assert self._dirs is not None
         return self._dirs
 
 
 _rays = _RayCache()
+
+
+def _check_inputs(color: np.ndarray, depth: np.ndarray, intrinsics: np.ndarray, depth_scale: float,
+                  camera_pose: np.ndarray) -> None:
+    """Refuse frames the projection would silently turn into garbage (wrong colour layout, a NaN pose or
+    focal length gives an all-empty heightmap) with a ValueError naming what is wrong."""
+    if np.ndim(depth) != 2:
+        raise ValueError(f"depth: got shape {np.shape(depth)}, expected H x W")
+    h, w = np.shape(depth)
+    if np.shape(color) != (h, w, 3) or np.asarray(color).dtype != np.uint8:
+        raise ValueError(f"color: got shape {np.shape(color)} {np.asarray(color).dtype}, expected {h} x {w} x 3 "
+                         f"uint8 RGB matching the depth image")
+    k = np.asarray(intrinsics, dtype=np.float64)
+    if k.shape != (3, 3) or not np.all(np.isfinite(k)) or not (k[0, 0] > 0 and k[1, 1] > 0):
+        raise ValueError(f"intrinsics: got {k.tolist()}, expected a finite 3x3 pinhole matrix with fx, fy > 0")
+    pose = np.asarray(camera_pose, dtype=np.float64)
+    if pose.shape != (4, 4) or not np.all(np.isfinite(pose)):
+        raise ValueError(f"camera_pose: got {pose.tolist()}, expected a finite 4x4 camera-to-base transform")
+    if not (isinstance(depth_scale, (int, float, np.floating, np.integer)) and math.isfinite(depth_scale)
+            and depth_scale > 0):
+        raise ValueError(f"depth_scale: got {depth_scale!r}, expected a finite number > 0 (metres per unit)")
 
 
 def make_heightmaps(color: np.ndarray, depth: np.ndarray, intrinsics: np.ndarray, depth_scale: float,
@@ -71,9 +94,8 @@ def make_heightmaps(color: np.ndarray, depth: np.ndarray, intrinsics: np.ndarray
     ``depth`` is raw (uint16 units times ``depth_scale`` metres) or float metres
     with ``depth_scale`` 1.  Zero, NaN and out-of-range readings are ignored.
     """
+    _check_inputs(color, depth, intrinsics, depth_scale, camera_pose)
     h, w = depth.shape
-    if color.shape[:2] != (h, w):
-        raise ValueError(f"color {color.shape[:2]} and depth {(h, w)} differ in size")
     intrinsics = np.asarray(intrinsics, dtype=np.float64)
     camera_pose = np.asarray(camera_pose, dtype=np.float64)
     dirs = _rays.get(intrinsics, camera_pose[:3, :3], (h, w))

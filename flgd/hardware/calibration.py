@@ -38,7 +38,7 @@ import yaml
 from flgd.atomic_file import write_atomically
 from flgd.cell import Cell, CellFault, Frame
 from flgd.config import CellConfig, ConfigError, config_from_dict, load_config
-from flgd.geometry import ToolPose, matrix_to_rpy, rotvec_to_matrix
+from flgd.geometry import ToolPose, matrix_to_rpy, rotvec_to_matrix, rpy_to_matrix
 from flgd.hardware.calibration_math import CalibrationError, CalibrationFit, fit_camera_pose
 from flgd.plans import MoveL, Plan
 from flgd.safety import PlanRefused, check_plan
@@ -245,8 +245,9 @@ def write_calibration(path: str | os.PathLike, fit: CalibrationFit) -> CellConfi
     new_text = "\n".join(lines) + ("\n" if text.endswith("\n") or not text else "")
     cfg = config_from_dict(yaml.safe_load(new_text), str(p))  # never write a file that no longer loads
     got = np.array(cfg.camera.pose.position)
-    if not np.allclose(got, position, atol=1e-5) or abs(cfg.camera.depth_scale_correction
-                                                         - fit.depth_scale_correction) > 1e-4:
+    got_r = rpy_to_matrix(*cfg.camera.pose.rpy)
+    if not np.allclose(got, position, atol=1e-5) or not np.allclose(got_r, fit.camera_pose[:3, :3], atol=1e-6) \
+            or abs(cfg.camera.depth_scale_correction - fit.depth_scale_correction) > 1e-4:
         raise ConfigError(str(p), ["camera.pose: the rewritten file does not read back as written"])
     write_atomically(p, new_text.encode("utf-8"), mode=p.stat().st_mode & 0o777)
     return load_config(p)
@@ -256,9 +257,10 @@ def check_fit(fit: CalibrationFit, options: CalibrationOptions) -> str | None:
     """Why a fit must not be written, or None."""
     if fit.used < MIN_DETECTIONS:
         return f"only {fit.used} usable marker detections (at least {MIN_DETECTIONS} needed)"
-    if fit.rms_mm > options.max_residual_mm:
+    if not fit.rms_mm <= options.max_residual_mm:  # a NaN residual is refused too
         return (f"RMS residual {fit.rms_mm:.2f} mm is above --max-residual-mm {options.max_residual_mm} "
-                f"(marker offset wrong, marker loose, or bad depth?)")
+                f"(marker loose, bad depth, or the marker not where the tool's pose says?); note that a wrong "
+                f"--marker-offset does not show up here: it shifts every point alike and the camera pose with it")
     lo, hi = CORRECTION_RANGE
     if not lo <= fit.depth_scale_correction <= hi:
         return f"depth-scale correction {fit.depth_scale_correction:.4f} is outside {lo}..{hi}: implausible"
@@ -276,7 +278,8 @@ def _parser() -> argparse.ArgumentParser:
     ap.add_argument("--aruco-id", type=int, default=0)
     ap.add_argument("--checkerboard", default="4x3", help="inner corners COLSxROWS")
     ap.add_argument("--marker-offset", type=float, nargs=3, default=(0.0, 0.0, 0.0), metavar=("X", "Y", "Z"),
-                    help="marker centre in the tool frame, m (tool z points down along the fingers)")
+                    help="marker centre in the tool frame, m (tool z points down along the fingers); measure it: "
+                         "an error here moves the fitted camera by the same amount without raising the residual")
     ap.add_argument("--grid", type=int, nargs=2, default=(4, 4), metavar=("NX", "NY"))
     ap.add_argument("--heights", type=float, nargs="+", default=(0.10, 0.20),
                     help="TCP heights above the table, m")
@@ -293,8 +296,24 @@ def _options(args: argparse.Namespace) -> CalibrationOptions:
         raise ValueError(f"--checkerboard: got {args.checkerboard!r}, expected COLSxROWS like 4x3")
     if min(args.grid) < 2:
         raise ValueError(f"--grid: got {args.grid}, expected at least 2 x 2")
-    if args.max_residual_mm <= 0 or args.settle < 0 or args.margin < 0:
-        raise ValueError("--max-residual-mm must be > 0, --settle and --margin >= 0")
+    # NaN passes every "< 0" test and would switch the residual gate off, so finiteness is checked first.
+    for flag, value, ok, expected in (
+            ("--max-residual-mm", args.max_residual_mm, lambda v: v > 0, "a finite number > 0"),
+            ("--settle", args.settle, lambda v: v >= 0, "a finite number >= 0 (seconds)"),
+            ("--margin", args.margin, lambda v: v >= 0, "a finite number >= 0 (metres)"),
+            *(("--heights", h, lambda v: v > 0, "finite heights > 0 above the table (metres)") for h in args.heights),
+            *(("--marker-offset", o, lambda v: True, "three finite numbers (metres)") for o in args.marker_offset)):
+        if not (math.isfinite(value) and ok(value)):
+            raise ValueError(f"{flag}: got {value!r}, expected {expected}")
+    # Checked here, before the cell is opened: found during the grid it would stop the run with the arm out.
+    if args.marker == "aruco":
+        dictionary = getattr(cv2.aruco, args.aruco_dict, None) if args.aruco_dict.startswith("DICT_") else None
+        if not isinstance(dictionary, int):
+            raise ValueError(f"--aruco-dict: got {args.aruco_dict!r}, expected an OpenCV ArUco dictionary name "
+                             f"such as DICT_4X4_50")
+        size = cv2.aruco.getPredefinedDictionary(dictionary).bytesList.shape[0]
+        if not 0 <= args.aruco_id < size:
+            raise ValueError(f"--aruco-id: got {args.aruco_id}, expected 0..{size - 1} for {args.aruco_dict}")
     return CalibrationOptions(marker=args.marker, aruco_dict=args.aruco_dict, aruco_id=args.aruco_id,
                               checkerboard=(int(m.group(1)), int(m.group(2))),
                               marker_offset=tuple(args.marker_offset), grid=tuple(args.grid),
@@ -348,6 +367,11 @@ def main(argv: list[str] | None = None, *, cell_factory: Callable[[CellConfig], 
     if args.dry_run:
         print("dry run: config not written")
         return 0
-    write_calibration(args.config, fit)
+    try:
+        write_calibration(args.config, fit)
+    except (OSError, ConfigError, yaml.YAMLError) as exc:
+        print(f"flgd calibrate: measured, but could not write {args.config} (left unchanged): {exc}",
+              file=sys.stderr)
+        return 1
     print(f"wrote camera.pose and camera.depth_scale_correction to {args.config}")
     return 0

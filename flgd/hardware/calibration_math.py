@@ -7,11 +7,12 @@ correction factor ``s``: base = R (s * p_camera) + t.  Scaling the depth
 scales the whole deprojected point, so ``s`` is the scale of a similarity
 transform, solved in closed form with an SVD (Umeyama 1991; with ``s`` fixed
 to 1 it is the Kabsch solution).  Gross outliers (a misdetection) are dropped
-once and the fit repeated.
+and the fit repeated (at most two rounds).
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -53,7 +54,8 @@ def _similarity(p: np.ndarray, q: np.ndarray, with_scale: bool) -> tuple[np.ndar
     return r, s, t
 
 
-def fit_camera_pose(camera_points, base_points, *, estimate_scale: bool = True) -> CalibrationFit:
+def fit_camera_pose(camera_points: np.ndarray, base_points: np.ndarray, *,
+                    estimate_scale: bool = True) -> CalibrationFit:
     """Fit base = R (s p) + t to matched (N, 3) point arrays; see the module docstring."""
     p = np.asarray(camera_points, dtype=float)
     q = np.asarray(base_points, dtype=float)
@@ -63,10 +65,13 @@ def fit_camera_pose(camera_points, base_points, *, estimate_scale: bool = True) 
         raise CalibrationError("the points contain NaN or infinite values")
     if len(p) < MIN_POINTS:
         raise CalibrationError(f"{len(p)} points; at least {MIN_POINTS} are needed")
-    spread = np.linalg.svd(q - q.mean(axis=0), compute_uv=False) / np.sqrt(len(q))
-    if spread[1] < MIN_SPREAD / 2:
-        raise CalibrationError(f"the robot-side points are (nearly) collinear (spread {spread.round(4).tolist()} m); "
-                               f"use a grid that spans the workspace")
+    # Both sides must span a plane: with (nearly) collinear or coincident camera points (a frozen frame, a
+    # depth reading stuck on one spot) the scale and rotation are undetermined and the fit would be NaN.
+    for side, pts in (("robot-side", q), ("camera-side", p)):
+        spread = np.linalg.svd(pts - pts.mean(axis=0), compute_uv=False) / np.sqrt(len(pts))
+        if spread[1] < MIN_SPREAD / 2:
+            raise CalibrationError(f"the {side} points are (nearly) collinear (spread {spread.round(4).tolist()} m); "
+                                   f"use a grid that spans the workspace")
     keep = np.ones(len(p), dtype=bool)
     for _ in range(2):
         r, s, t = _similarity(p[keep], q[keep], estimate_scale)
@@ -78,6 +83,8 @@ def fit_camera_pose(camera_points, base_points, *, estimate_scale: bool = True) 
         keep = new_keep
     r, s, t = _similarity(p[keep], q[keep], estimate_scale)
     err = np.linalg.norm((s * p[keep]) @ r.T + t - q[keep], axis=1)
+    if not (np.all(np.isfinite(r)) and np.all(np.isfinite(t)) and math.isfinite(s) and s > 0):
+        raise CalibrationError(f"the fit is degenerate (scale {s!r}); check the detections")
     pose = np.eye(4)
     pose[:3, :3], pose[:3, 3] = r, t
     return CalibrationFit(camera_pose=pose, depth_scale_correction=s, rms_mm=float(np.sqrt(np.mean(err ** 2)) * 1e3),
