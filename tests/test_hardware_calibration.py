@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import re
 import shutil
 from pathlib import Path
 
@@ -13,9 +14,10 @@ import pytest
 from flgd.cell import ExecutionResult, Frame
 from flgd.config import load_config
 from flgd.geometry import pose_matrix, rpy_to_matrix
-from flgd.hardware.calibration import (CalibrationOptions, check_fit, find_marker, grid_poses, main,
-                                       write_calibration)
-from flgd.hardware.calibration_math import CalibrationError, CalibrationFit, fit_camera_pose
+from flgd.hardware.calibration import (CALIBRATION_YAWS, OFFSET_TOLERANCE_MM, CalibrationOptions, check_fit,
+                                       find_marker, grid_poses, main, write_calibration)
+from flgd.hardware.calibration_math import (CalibrationError, CalibrationFit, fit_camera_pose,
+                                            fit_camera_pose_and_offset)
 
 ROOT = Path(__file__).resolve().parents[1]
 REAL_CONFIG = ROOT / "cell_config" / "ur5e-d415.yaml"
@@ -239,8 +241,9 @@ class FakeCalibrationCell:
         pose = self.moves[-1]
         centre = np.asarray(pose.position) + pose.matrix @ self.offset
         unit = 0.001 * self.depth_error                  # the depth the device reports is off by depth_error
+        yaw = math.atan2(pose.matrix[1, 0], pose.matrix[0, 0])   # the marker turns with the tool
         color, depth = render_marker_frame(self.true_pose, self.k, centre, self.options,
-                                           self.config.workspace.table_z, unit)
+                                           self.config.workspace.table_z, unit, yaw=yaw)
         cam = self.config.camera
         return Frame(color=color, depth=depth, depth_scale=0.001 * cam.depth_scale_correction,
                      intrinsics=self.k, camera_pose=pose_matrix(cam.pose.position, rpy_to_matrix(*cam.pose.rpy)))
@@ -269,6 +272,9 @@ def test_calibrate_command_measures_and_writes_the_camera_pose(tmp_path, capsys)
     assert rotation_error_deg(got[:3, :3], true_camera_pose()[:3, :3]) < 0.5
     assert cfg.camera.depth_scale_correction == pytest.approx(1.015, abs=0.005)
     assert "RMS residual" in out.out
+    m = re.search(r"estimated \((-?[\d.]+), (-?[\d.]+), (-?[\d.]+)\)", out.out)
+    assert m and np.allclose([float(g) for g in m.groups()], (0.0, 0.03, -0.02), atol=0.001)
+    assert len({round(math.atan2(p.matrix[1, 0], p.matrix[0, 0]), 6) for p in cells[0].moves}) == 3
 
 
 def test_calibrate_command_refuses_a_poor_fit_and_leaves_the_file(tmp_path, capsys):
@@ -300,3 +306,111 @@ def test_every_grid_pose_passes_the_envelope_of_the_shipped_config():
     assert len(poses) == 32
     for pose in poses:
         check_plan(Plan("calibrate", (MoveL(pose, cfg.robot.speed, cfg.robot.acceleration),)), cfg)
+
+
+def test_grid_poses_vary_the_tool_yaw_top_down_on_the_same_layout():
+    from flgd.plans import MoveL, Plan
+    from flgd.safety import check_plan
+
+    cfg = load_config(REAL_CONFIG)
+    options = CalibrationOptions()
+    poses = grid_poses(cfg, options)
+    ws = cfg.workspace
+    xs = np.linspace(ws.x[0] + options.margin, ws.x[1] - options.margin, 4)
+    ys = np.linspace(ws.y[0] + options.margin, ws.y[1] - options.margin, 4)
+    layout = [(x, y, ws.table_z + h) for h in options.heights for x in xs for y in ys]
+    np.testing.assert_allclose([p.position for p in poses], layout, atol=1e-12)   # grid and count unchanged
+    yaws = np.array([math.atan2(p.matrix[1, 0], p.matrix[0, 0]) for p in poses])
+    for pose in poses:
+        np.testing.assert_allclose(pose.matrix[:, 2], (0, 0, -1), atol=1e-12)      # top-down
+        check_plan(Plan("calibrate", (MoveL(pose, cfg.robot.speed, cfg.robot.acceleration),)), cfg)
+    assert len(set(np.round(yaws, 6))) == 3 and np.all(np.abs(yaws) < math.radians(90) - 1e-6)
+    # every move turns the wrist the short way through 0, under 180 deg, so it swings back and forth
+    assert np.all(np.abs(np.diff(yaws)) < math.radians(170) + 1e-9)
+    for layer in (yaws[:16], yaws[16:]):
+        assert len(set(np.round(layer, 6))) == 3, "every height sees every yaw"
+    for column in range(4):                                      # yaw is not tied to a row or column of the grid
+        assert len(set(np.round(yaws.reshape(2, 4, 4)[:, :, column].ravel(), 6))) > 1
+        assert len(set(np.round(yaws.reshape(2, 4, 4)[:, column, :].ravel(), 6))) > 1
+
+
+def synthetic_tool_detections(pose, scale, offset, rng, yaws=CALIBRATION_YAWS, sigma_xy=0.0003, sigma_z=0.001):
+    """Camera points of a marker at ``offset`` on a tool moved top-down over the 4x4x2 grid, yaw cycling."""
+    from flgd.geometry import top_down_rotation
+
+    xs, ys, zs = np.meshgrid(np.linspace(0.33, 0.67, 4), np.linspace(-0.17, 0.17, 4), [0.08, 0.18])
+    tcp = np.stack([xs.ravel(), ys.ravel(), zs.ravel()], axis=1)
+    rot = np.array([top_down_rotation(yaws[i % len(yaws)]) for i in range(len(tcp))])
+    marker = tcp + rot @ np.asarray(offset, dtype=float)
+    cam_true = (marker - pose[:3, 3]) @ pose[:3, :3]
+    noise = rng.normal(0, 1, cam_true.shape) * np.array([sigma_xy, sigma_xy, sigma_z])
+    return (cam_true + noise) / scale, tcp, rot
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_the_marker_offset_x_y_is_estimated_with_the_camera_pose(seed):
+    rng = np.random.default_rng(seed)
+    pose, truth = true_camera_pose(), np.array([0.0, 0.03, -0.02])
+    cam, tcp, rot = synthetic_tool_detections(pose, 1.02, truth, rng)
+    for given in ((0.0, 0.0, -0.02), (0.0, 0.03, -0.02), (-0.04, 0.01, -0.02)):
+        fit = fit_camera_pose_and_offset(cam, tcp, rot, given)
+        np.testing.assert_allclose(fit.marker_offset, truth, atol=0.001)
+        assert np.linalg.norm(fit.camera_pose[:3, 3] - pose[:3, 3]) < 0.002
+        assert rotation_error_deg(fit.camera_pose[:3, :3], pose[:3, :3]) < 0.5
+        assert fit.depth_scale_correction == pytest.approx(1.02, abs=0.005) and fit.rms_mm < 3.0
+    # Why the yaw is varied: at one yaw, a fit with the wrong offset has a low residual and a camera off by
+    # the offset's error (the review's finding); at varied yaws the plain fit can no longer hide it.
+    cam1, tcp1, rot1 = synthetic_tool_detections(pose, 1.02, truth, rng, yaws=(0.0,))
+    plain = fit_camera_pose(cam1, tcp1 + rot1 @ np.array([0.0, 0.0, -0.02]))
+    assert plain.rms_mm < 3.0 and np.linalg.norm(plain.camera_pose[:3, 3] - pose[:3, 3]) > 0.025
+    assert fit_camera_pose(cam, tcp + rot @ np.array([0.0, 0.0, -0.02])).rms_mm > 10.0
+
+
+def test_the_marker_offset_z_is_not_observable_and_stays_as_given():
+    rng = np.random.default_rng(3)
+    pose, truth = true_camera_pose(), np.array([0.01, 0.03, -0.02])
+    cam, tcp, rot = synthetic_tool_detections(pose, 1.0, truth, rng)
+    fit = fit_camera_pose_and_offset(cam, tcp, rot, (0.01, 0.03, -0.03))        # z given 1 cm wrong
+    assert fit.marker_offset[2] == -0.03 and fit.rms_mm < 3.0
+    np.testing.assert_allclose(fit.marker_offset[:2], truth[:2], atol=0.001)
+    assert fit.camera_pose[2, 3] - pose[2, 3] == pytest.approx(0.01, abs=0.002), "z error goes into the camera"
+
+
+def test_the_marker_offset_cannot_be_checked_from_one_yaw():
+    rng = np.random.default_rng(4)
+    cam, tcp, rot = synthetic_tool_detections(true_camera_pose(), 1.0, (0, 0.03, -0.02), rng, yaws=(0.0,))
+    with pytest.raises(CalibrationError, match="yaws"):
+        fit_camera_pose_and_offset(cam, tcp, rot, (0, 0.03, -0.02))
+
+
+def test_check_fit_refuses_an_offset_that_disagrees_with_the_estimate():
+    options = CalibrationOptions(marker_offset=(0.0, 0.0, -0.02))
+    near = CalibrationFit(true_camera_pose(), 1.0, 1.0, 2.0, np.ones(20, bool), np.array([0.003, -0.003, -0.02]))
+    assert check_fit(near, options) is None
+    far = CalibrationFit(true_camera_pose(), 1.0, 1.0, 2.0, np.ones(20, bool), np.array([0.0, 0.03, -0.02]))
+    why = check_fit(far, options)
+    assert why is not None and "given (0.0000, 0.0000, -0.0200)" in why and "estimated (0.0000, 0.0300, -0.0200)" in why
+    assert f"tolerance {OFFSET_TOLERANCE_MM} mm" in why and "--marker-offset" in why
+
+
+def test_calibrate_command_refuses_a_wrong_marker_offset(tmp_path, capsys):
+    """The review's reproduction: marker at (0, 0.03, -0.02) on the tool, run with --marker-offset 0 0 0.
+
+    Before the yaw was varied this wrote a camera pose ~3 cm off with an RMS of 0.5 mm and exit 0.
+    """
+    path = tmp_path / "cell.yaml"
+    shutil.copy(REAL_CONFIG, path)
+    before = path.read_bytes()
+    factory = lambda cfg: FakeCalibrationCell(cfg, true_camera_pose(), marker_offset=(0.0, 0.03, -0.02))  # noqa: E731
+    code = main(["--config", str(path), "--marker-offset", "0", "0", "0"], cell_factory=factory,
+                sleep=lambda s: None)
+    out = capsys.readouterr()
+    assert code == 1 and "refused" in out.err and "left unchanged" in out.err
+    assert path.read_bytes() == before
+    assert "given (0.0000, 0.0000, 0.0000)" in out.err
+    m = re.search(r"estimated \((-?[\d.]+), (-?[\d.]+), (-?[\d.]+)\)", out.err)
+    assert m and abs(float(m.group(1))) < 0.001 and abs(float(m.group(2)) - 0.03) < 0.001
+    assert "--marker-offset" in out.err and "z cannot be estimated" in out.err
+    # --dry-run reports the same refusal
+    assert main(["--config", str(path), "--dry-run"], cell_factory=factory, sleep=lambda s: None) == 1
+    assert path.read_bytes() == before

@@ -5,8 +5,26 @@ up, at ``--marker-offset`` in the tool frame.  The arm moves the tool through
 a grid of poses over the workspace; every pose passes the safety envelope
 first.  At each pose the marker centre is found with OpenCV in the colour
 image, its 3D point read from the aligned depth, and paired with the marker
-position the arm reports.  ``fit_camera_pose`` then solves camera -> base and
-a depth-scale correction.
+position the arm reports.  ``fit_camera_pose_and_offset`` then solves
+camera -> base, a depth-scale correction and the marker offset's x and y.
+
+The grid cycles the tool yaw through 0, +80 and -80 degrees (all top-down).
+With one yaw for every pose, a wrong ``--marker-offset`` would shift every
+marker point by the same vector; the fit would move the camera by it and the
+residual would stay low.  With the yaw varied, the offset's horizontal part is
+observable and is estimated with the camera pose.  Its vertical part (tool z)
+is not: top-down, the tool z axis is always vertical, so o_z still has to be
+measured.
+
+A given offset that differs from the estimate by more than
+``OFFSET_TOLERANCE_MM`` is refused rather than silently replaced.  The
+estimate would give a consistent camera pose, but a large discrepancy means
+the offset was mis-measured or given in the wrong frame or sign. The z
+component, which nothing can check, was very likely measured the same way.
+Writing a camera pose a robot will move by, on an offset we know to be wrong,
+is the wrong default: the user is shown both offsets and asked to measure and
+re-run.  Within the tolerance, the joint fit (with the estimated x, y) is
+written.
 
 The result (``camera.pose`` position + rpy and ``camera.depth_scale_correction``)
 is written back into the config file in place -- only those lines change, the
@@ -14,8 +32,9 @@ rest of the file (comments included) stays as it was -- with the RMS residual
 in a comment.  It is refused (exit code 1, file untouched) when the residual
 is above ``--max-residual-mm`` (default 5 mm: about twice the D415's depth
 noise at 0.7 m, and well under the 2 mm/px heightmap's tolerance for grasps),
-when the depth correction is implausible (outside 0.9..1.1), or when fewer
-than 6 poses gave a detection.
+when the depth correction is implausible (outside 0.9..1.1), when fewer
+than 6 poses gave a detection, or when the marker offset disagrees with the
+estimate (above).
 """
 
 from __future__ import annotations
@@ -39,16 +58,24 @@ from flgd.atomic_file import write_atomically
 from flgd.cell import Cell, CellFault, Frame
 from flgd.config import CellConfig, ConfigError, config_from_dict, load_config
 from flgd.geometry import ToolPose, matrix_to_rpy, rotvec_to_matrix, rpy_to_matrix
-from flgd.hardware.calibration_math import CalibrationError, CalibrationFit, fit_camera_pose
+from flgd.hardware.calibration_math import CalibrationError, CalibrationFit, fit_camera_pose_and_offset
 from flgd.plans import MoveL, Plan
 from flgd.safety import PlanRefused, check_plan
 
 __all__ = ["main", "find_marker", "grid_poses", "marker_camera_point", "write_calibration",
-           "CalibrationOptions", "collect_points", "DEFAULT_MAX_RESIDUAL_MM"]
+           "CalibrationOptions", "collect_points", "DEFAULT_MAX_RESIDUAL_MM", "CALIBRATION_YAWS",
+           "OFFSET_TOLERANCE_MM"]
 
 DEFAULT_MAX_RESIDUAL_MM = 5.0
 MIN_DETECTIONS = 6
 CORRECTION_RANGE = (0.9, 1.1)
+OFFSET_TOLERANCE_MM = 5.0  # given vs estimated marker offset (x, y) beyond this: refused
+# Tool yaws cycled over the grid.  All within (-90, +90) deg, so the shortest turn between any two (the way a
+# MoveL goes) passes through 0: the wrist swings back and forth and never winds up, and no step is exactly
+# 180 deg (whose direction would be ambiguous).  +-80 keeps the offset well conditioned (the information on
+# o_x, o_y is 0.80 of that of an even 0/120/240 spread, which would wind the wrist by 120 deg per pose).  A
+# cycle of 3 does not line up with the rows of the grid, so yaw is not correlated with position.
+CALIBRATION_YAWS = (0.0, math.radians(80.0), math.radians(-80.0))
 _DEPTH_WINDOW = 2  # px: the marker depth is the median of a (2w+1)^2 window around its centre
 
 
@@ -117,24 +144,26 @@ def marker_camera_point(frame: Frame, uv: tuple[float, float], depth_scale: floa
 # --------------------------------------------------------------------------- motion
 
 def grid_poses(config: CellConfig, options: CalibrationOptions) -> list[ToolPose]:
-    """Top-down tool poses over the workspace: grid x grid at each height."""
+    """Top-down tool poses over the workspace: grid x grid at each height, the yaw cycling through
+    ``CALIBRATION_YAWS`` pose by pose (so that the marker offset can be estimated)."""
     ws = config.workspace
     nx, ny = options.grid
     xs = np.linspace(ws.x[0] + options.margin, ws.x[1] - options.margin, nx)
     ys = np.linspace(ws.y[0] + options.margin, ws.y[1] - options.margin, ny)
-    return [ToolPose.top_down(float(x), float(y), ws.table_z + h, 0.0)
-            for h in options.heights for x in xs for y in ys]
+    points = [(float(x), float(y), ws.table_z + h) for h in options.heights for x in xs for y in ys]
+    return [ToolPose.top_down(x, y, z, CALIBRATION_YAWS[i % len(CALIBRATION_YAWS)])
+            for i, (x, y, z) in enumerate(points)]
 
 
 def collect_points(cell: Cell, options: CalibrationOptions, *, tool_pose: Callable[[], Sequence[float]],
                    log: Callable[[str], None] = print, sleep: Callable[[float], None] = time.sleep,
-                   ) -> tuple[np.ndarray, np.ndarray]:
-    """Move through the grid, detect the marker, return matched (camera points, base points)."""
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Move through the grid, detect the marker; return matched camera points (N, 3), and the TCP positions
+    (N, 3) and tool rotations (N, 3, 3) the arm reported at them."""
     cfg = cell.config
     rb = cfg.robot
     device_scale_of = lambda frame: frame.depth_scale / cfg.camera.depth_scale_correction  # noqa: E731
-    cam_pts, base_pts = [], []
-    offset = np.asarray(options.marker_offset, dtype=float)
+    cam_pts, tcp_pts, tool_rots = [], [], []
     poses = grid_poses(cfg, options)
     for i, pose in enumerate(poses, 1):
         where = f"pose {i}/{len(poses)} at ({pose.position[0]:.3f}, {pose.position[1]:.3f}, {pose.position[2]:.3f})"
@@ -155,11 +184,12 @@ def collect_points(cell: Cell, options: CalibrationOptions, *, tool_pose: Callab
             log(f"{where}: marker not {'seen' if uv is None else 'measured (no depth at its centre)'}")
             continue
         actual = np.asarray(tool_pose(), dtype=float)
-        base = actual[:3] + rotvec_to_matrix(actual[3:6]) @ offset
         cam_pts.append(point)
-        base_pts.append(base)
+        tcp_pts.append(actual[:3])
+        tool_rots.append(rotvec_to_matrix(actual[3:6]))
         log(f"{where}: marker at pixel ({uv[0]:.1f}, {uv[1]:.1f}), depth {point[2]:.4f} m")
-    return np.array(cam_pts).reshape(-1, 3), np.array(base_pts).reshape(-1, 3)
+    return (np.array(cam_pts).reshape(-1, 3), np.array(tcp_pts).reshape(-1, 3),
+            np.array(tool_rots).reshape(-1, 3, 3))
 
 
 # --------------------------------------------------------------------------- writing the config
@@ -259,12 +289,26 @@ def check_fit(fit: CalibrationFit, options: CalibrationOptions) -> str | None:
         return f"only {fit.used} usable marker detections (at least {MIN_DETECTIONS} needed)"
     if not fit.rms_mm <= options.max_residual_mm:  # a NaN residual is refused too
         return (f"RMS residual {fit.rms_mm:.2f} mm is above --max-residual-mm {options.max_residual_mm} "
-                f"(marker loose, bad depth, or the marker not where the tool's pose says?); note that a wrong "
-                f"--marker-offset does not show up here: it shifts every point alike and the camera pose with it")
+                f"(marker loose on its mount, bad depth, or the tool not where its pose says?)")
     lo, hi = CORRECTION_RANGE
     if not lo <= fit.depth_scale_correction <= hi:
         return f"depth-scale correction {fit.depth_scale_correction:.4f} is outside {lo}..{hi}: implausible"
+    if fit.marker_offset is not None:
+        given = np.asarray(options.marker_offset, dtype=float)
+        est = np.asarray(fit.marker_offset, dtype=float)
+        off_mm = float(np.linalg.norm(est[:2] - given[:2]) * 1e3)
+        if not off_mm <= OFFSET_TOLERANCE_MM:
+            return (f"the marker is not where --marker-offset says: given {_fmt_offset(given)} m, estimated "
+                    f"{_fmt_offset(est)} m from the tool yaws ({off_mm:.1f} mm apart in tool x/y, tolerance "
+                    f"{OFFSET_TOLERANCE_MM} mm; z cannot be estimated and is the given one). Measure the marker "
+                    f"centre in the tool frame and re-run with --marker-offset X Y Z (the estimate suggests "
+                    f"--marker-offset {np.round(est[0], 4) + 0.0:.4f} {np.round(est[1], 4) + 0.0:.4f} Z, with Z "
+                    f"measured)")
     return None
+
+
+def _fmt_offset(o: np.ndarray) -> str:
+    return "(" + ", ".join(f"{v + 0.0:.4f}" for v in np.round(o, 4)) + ")"   # + 0.0: no "-0.0000"
 
 
 # --------------------------------------------------------------------------- command line
@@ -278,8 +322,10 @@ def _parser() -> argparse.ArgumentParser:
     ap.add_argument("--aruco-id", type=int, default=0)
     ap.add_argument("--checkerboard", default="4x3", help="inner corners COLSxROWS")
     ap.add_argument("--marker-offset", type=float, nargs=3, default=(0.0, 0.0, 0.0), metavar=("X", "Y", "Z"),
-                    help="marker centre in the tool frame, m (tool z points down along the fingers); measure it: "
-                         "an error here moves the fitted camera by the same amount without raising the residual")
+                    help="marker centre in the tool frame, m (tool z points down along the fingers); measure it. "
+                         "X and Y are estimated from the varied tool yaws and the run is refused if they differ "
+                         f"by more than {OFFSET_TOLERANCE_MM:g} mm; Z cannot be estimated (the tool is always "
+                         "top-down) and an error in it moves the fitted camera by the same amount")
     ap.add_argument("--grid", type=int, nargs=2, default=(4, 4), metavar=("NX", "NY"))
     ap.add_argument("--heights", type=float, nargs="+", default=(0.10, 0.20),
                     help="TCP heights above the table, m")
@@ -344,14 +390,14 @@ def main(argv: list[str] | None = None, *, cell_factory: Callable[[CellConfig], 
         return 1
     try:
         tool_pose = cell.arm.tcp_pose
-        cam, base = collect_points(cell, options, tool_pose=tool_pose, sleep=sleep)
+        cam, tcp, rot = collect_points(cell, options, tool_pose=tool_pose, sleep=sleep)
     except (CellFault, PlanRefused) as exc:
         print(f"flgd calibrate: stopped: {exc}", file=sys.stderr)
         return 1
     finally:
         cell.close()
     try:
-        fit = fit_camera_pose(cam, base)
+        fit = fit_camera_pose_and_offset(cam, tcp, rot, options.marker_offset)
     except CalibrationError as exc:
         print(f"flgd calibrate: refused: {exc} ({len(cam)} detections)", file=sys.stderr)
         return 1
@@ -360,6 +406,9 @@ def main(argv: list[str] | None = None, *, cell_factory: Callable[[CellConfig], 
           f"{[round(math.degrees(a), 2) for a in rpy]} deg, depth-scale correction "
           f"{fit.depth_scale_correction:.4f}; RMS residual {fit.rms_mm:.2f} mm (max {fit.max_mm:.2f} mm) over "
           f"{fit.used} of {len(cam)} points")
+    print(f"marker offset (tool frame): given {_fmt_offset(np.asarray(options.marker_offset, dtype=float))} m, "
+          f"estimated {_fmt_offset(fit.marker_offset)} m (x, y estimated; z is the given one, not observable "
+          f"with top-down poses)")
     why = check_fit(fit, options)
     if why:
         print(f"flgd calibrate: refused, {args.config} left unchanged: {why}", file=sys.stderr)

@@ -8,21 +8,36 @@ scales the whole deprojected point, so ``s`` is the scale of a similarity
 transform, solved in closed form with an SVD (Umeyama 1991; with ``s`` fixed
 to 1 it is the Kabsch solution).  Gross outliers (a misdetection) are dropped
 and the fit repeated (at most two rounds).
+
+``fit_camera_pose_and_offset`` also estimates the marker's offset on the tool.
+The robot-side point is p_base = p_tcp + R_tool o, with o the marker centre in
+the tool frame.  If every pose had the same R_tool, an error in o would add the
+same vector to every point and vanish into the camera translation with no rise
+in the residual, so the calibration grid varies the tool yaw and o is fitted
+jointly: for a fixed R and s, base = R (s p) + t is linear in (t, o_x, o_y),
+so the fit alternates (similarity with the current o; then t and o_x, o_y by
+linear least squares) until o stops moving.  o_z is NOT observable: every
+calibration pose is top-down, the tool z axis is always vertical, and
+R_tool (0, 0, o_z) is the same vector for every pose -- it is kept at the
+caller's value and must be measured.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
-__all__ = ["CalibrationFit", "fit_camera_pose", "CalibrationError"]
+__all__ = ["CalibrationFit", "fit_camera_pose", "fit_camera_pose_and_offset", "CalibrationError"]
 
 MIN_POINTS = 4
 MIN_SPREAD = 0.02         # m: the points must span at least this much in two directions
 OUTLIER_FLOOR = 0.005     # m: a point is an outlier only if its error exceeds this ...
 OUTLIER_FACTOR = 4.0      # ... and this many times the median error
+MIN_YAW_SPREAD = 0.3      # the tool's x/y axes must vary this much (RMS about their mean) to fit o_x, o_y
+OFFSET_ITERATIONS = 50    # cap on the pose/offset alternation
+OFFSET_CONVERGED = 1e-7   # m: the alternation stops when o moves less than this
 
 
 class CalibrationError(ValueError):
@@ -36,6 +51,7 @@ class CalibrationFit:
     rms_mm: float                     # residual over the inliers
     max_mm: float
     inliers: np.ndarray               # bool mask over the input points
+    marker_offset: np.ndarray | None = None  # (3,) tool-frame offset the fit used (x, y estimated), if fitted
 
     @property
     def used(self) -> int:
@@ -89,3 +105,54 @@ def fit_camera_pose(camera_points: np.ndarray, base_points: np.ndarray, *,
     pose[:3, :3], pose[:3, 3] = r, t
     return CalibrationFit(camera_pose=pose, depth_scale_correction=s, rms_mm=float(np.sqrt(np.mean(err ** 2)) * 1e3),
                           max_mm=float(err.max() * 1e3), inliers=keep)
+
+
+def fit_camera_pose_and_offset(camera_points: np.ndarray, tcp_positions: np.ndarray, tool_rotations: np.ndarray,
+                               marker_offset, *, estimate_scale: bool = True) -> CalibrationFit:
+    """Fit base = R (s p) + t and the marker offset's x, y; see the module docstring.
+
+    ``tcp_positions`` (N, 3) and ``tool_rotations`` (N, 3, 3) are the poses the arm reported;
+    ``marker_offset`` is the user's (x, y, z) in the tool frame, the starting point and the source of o_z.
+    The returned fit's ``marker_offset`` is the estimate; its residual is that of the joint fit.
+    Raises ``CalibrationError`` when the tool's yaws do not vary enough for o_x, o_y to be determined.
+    """
+    p = np.asarray(camera_points, dtype=float)
+    tcp = np.asarray(tcp_positions, dtype=float)
+    rot = np.asarray(tool_rotations, dtype=float)
+    o = np.array(marker_offset, dtype=float).reshape(3)
+    if tcp.shape != p.shape or rot.shape != (len(p), 3, 3):
+        raise CalibrationError(f"expected (N, 3) camera points, (N, 3) TCP positions and (N, 3, 3) tool "
+                               f"rotations, got {p.shape}, {tcp.shape} and {rot.shape}")
+    if not (np.all(np.isfinite(tcp)) and np.all(np.isfinite(rot)) and np.all(np.isfinite(o))):
+        raise CalibrationError("the tool poses or the marker offset contain NaN or infinite values")
+
+    def base_points(off: np.ndarray) -> np.ndarray:
+        return tcp + rot @ off
+
+    def check_spread(keep: np.ndarray) -> None:
+        axes = rot[keep][:, :, :2]                          # the tool's x and y axes, which o_x, o_y scale
+        centred = (axes - axes.mean(axis=0)).reshape(-1, 2)
+        spread = np.linalg.svd(centred, compute_uv=False) / np.sqrt(max(int(keep.sum()), 1))
+        if spread[-1] < MIN_YAW_SPREAD:
+            raise CalibrationError(f"the tool yaws of the usable detections do not vary enough to check the "
+                                   f"marker offset (spread {spread.round(3).tolist()}, need {MIN_YAW_SPREAD})")
+
+    check_spread(np.ones(len(p), dtype=bool))
+    fit = fit_camera_pose(p, base_points(o), estimate_scale=estimate_scale)
+    for _ in range(OFFSET_ITERATIONS):
+        keep = fit.inliers
+        check_spread(keep)
+        r, s = fit.camera_pose[:3, :3], fit.depth_scale_correction
+        # R (s p_i) + t = tcp_i + R_i[:, :2] o_xy + R_i[:, 2] o_z   ->   t - R_i[:, :2] o_xy = rhs_i
+        rhs = (tcp[keep] + rot[keep][:, :, 2] * o[2] - (s * p[keep]) @ r.T).reshape(-1)
+        a = np.zeros((3 * int(keep.sum()), 5))
+        a[:, :3] = np.tile(np.eye(3), (int(keep.sum()), 1))
+        a[:, 3:] = -rot[keep][:, :, :2].reshape(-1, 2)
+        sol = np.linalg.lstsq(a, rhs, rcond=None)[0]
+        new_o = np.array([sol[3], sol[4], o[2]])
+        moved = float(np.linalg.norm(new_o - o))
+        o = new_o
+        fit = fit_camera_pose(p, base_points(o), estimate_scale=estimate_scale)
+        if moved < OFFSET_CONVERGED:
+            break
+    return replace(fit, marker_offset=o)
