@@ -10,6 +10,12 @@ Three parts, all frozen and greedy (``flgd eval`` defaults), each with
 3. held-out novel objects alone and in clutter (paper Table III)
    -- target: grasp success >= 90 % in clutter.
 
+and, only when asked for (``--parts validation``), the check for choosing
+between policies: random clutter of 20 blocks, ``--validation-runs`` runs at
+each of the evaluation seeds 7, 8, 9 and 10 (never training seeds), pooled --
+target: grasp success >= 92 %.  It touches neither VPG's scenes nor the
+held-out objects, so a choice made on it does not tune on test data.
+
 The same ``Evaluator`` as ``flgd eval`` runs every part (one cycle, one
 definition of the metrics).  ``--json`` writes the reports, atomically,
 after each part, so a bench cut short keeps the parts it finished.
@@ -34,6 +40,9 @@ REPO = Path(__file__).resolve().parents[1]
 DEFAULT_CONFIG = REPO / "cell_config" / "sim.yaml"
 DEFAULT_VPG = REPO.parent / "shared" / "external" / "vpg"
 EXIT_OK, EXIT_FAILED, EXIT_USAGE, EXIT_INTERRUPTED = 0, 1, 2, 130
+PARTS = ("vpg", "presets", "novel", "validation")
+VALIDATION_SEEDS = (7, 8, 9, 10)   # evaluation seeds: no training run uses them (training seeds are 0-2)
+VALIDATION_OBJECTS, VALIDATION_COUNT = "blocks", 20
 
 
 def _fail(message: str, code: int = EXIT_USAGE) -> int:
@@ -89,6 +98,21 @@ def _evaluate(config: Any, network: Any, policy: dict, scenes: list, runs: int, 
                         seconds=time.perf_counter() - t0)
 
 
+def _validation_name(seed: int) -> str:
+    return f"validation: {VALIDATION_COUNT} random {VALIDATION_OBJECTS}, seed {seed}"
+
+
+def validation_pooled(reports: dict[str, dict]) -> tuple[int, int, int, int] | None:
+    """(grasp successes, grasp attempts, completed runs, counted runs) summed over the validation seeds
+    present in ``reports``; None when none is.  Pooled counts, not a mean of rates: seeds whose runs
+    took more grasps weigh more, as every grasp is one trial."""
+    parts = [reports[_validation_name(s)]["overall"] for s in VALIDATION_SEEDS if _validation_name(s) in reports]
+    if not parts:
+        return None
+    return (sum(p["grasp_successes"] for p in parts), sum(p["grasp_attempts"] for p in parts),
+            sum(p["completed_runs"] for p in parts), sum(p["counted_runs"] for p in parts))
+
+
 def _line(name: str, s: dict) -> str:
     return (f"| {name} | {s['counted_runs']} | {_pct(s['completion'])} | {_pct(s['grasp_success'])} "
             f"({s['grasp_successes']}/{s['grasp_attempts']}) | {_pct(s['action_efficiency'])} | "
@@ -108,21 +132,28 @@ def main(argv: list[str]) -> int:
                          "its grasp success is known to a few points, not to ten)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--max-actions", type=int, help="cap per run (default: flgd eval's)")
-    ap.add_argument("--parts", default="vpg,presets,novel", help="comma list of vpg, presets, novel")
+    ap.add_argument("--validation-runs", type=int, default=5,
+                    help="runs of 20 random blocks per validation seed (default 5; seeds "
+                         f"{', '.join(map(str, VALIDATION_SEEDS))})")
+    ap.add_argument("--parts", default="vpg,presets,novel",
+                    help="comma list of vpg, presets, novel, validation (default: the first three)")
     ap.add_argument("--json", help="write the reports here")
     args = ap.parse_args(argv)
 
     from flgd.config import ConfigError, load_config
     from flgd.evaluation.evaluator import EvalOptions, EvaluationError, Evaluator
-    from flgd.evaluation.scene_sets import SceneSetError, named_set
+    from flgd.evaluation.scene_sets import SceneSetError, clutter_scene, named_set
     from flgd.learning.policy_file import PolicyFileError, load_policy
     from flgd.learning.trunk import TrunkFileError
 
     parts = [p.strip() for p in args.parts.split(",") if p.strip()]
-    unknown = sorted(set(parts) - {"vpg", "presets", "novel"})
-    if unknown or args.runs < 1 or args.clutter_runs < 1:
-        return _fail(f"--parts: unknown {unknown}" if unknown else
-                     f"--runs and --clutter-runs: got {args.runs} and {args.clutter_runs}, expected >= 1")
+    unknown = sorted(set(parts) - set(PARTS))
+    if unknown:
+        return _fail(f"--parts: unknown {unknown}, expected some of {', '.join(PARTS)}")
+    for flag, value in (("--runs", args.runs), ("--clutter-runs", args.clutter_runs),
+                        ("--validation-runs", args.validation_runs)):
+        if value < 1:
+            return _fail(f"{flag}: got {value}, expected >= 1")
     if args.max_actions is not None and args.max_actions < 1:
         return _fail(f"--max-actions: got {args.max_actions}, expected >= 1")
     try:
@@ -142,16 +173,22 @@ def main(argv: list[str]) -> int:
             policy = {"path": args.policy, "variant": loaded.metadata["variant"],
                       "training_steps": loaded.metadata["training_steps"],
                       "weights_sha256": loaded.metadata["weights_sha256"]}
-        suites: list[tuple[str, list, bool, int]] = []
+        # (name, scenes, grasp-only, runs, seed)
+        suites: list[tuple[str, list, bool, int, int]] = []
         if "vpg" in parts:
-            suites.append(("VPG hard test cases", named_set("vpg-hard", args.vpg), False, args.runs))
+            suites.append(("VPG hard test cases", named_set("vpg-hard", args.vpg), False, args.runs, args.seed))
         if "presets" in parts:
             presets = named_set("presets")
-            suites.append(("presets, grasp-only", presets, True, args.runs))
-            suites.append(("presets, grasp-and-move", presets, False, args.runs))
+            suites.append(("presets, grasp-only", presets, True, args.runs, args.seed))
+            suites.append(("presets, grasp-and-move", presets, False, args.runs, args.seed))
         if "novel" in parts:
-            suites.append(("novel objects, isolated", named_set("novel-isolated"), False, args.runs))
-            suites.append(("novel objects, clutter of 10", named_set("novel-clutter"), False, args.clutter_runs))
+            suites.append(("novel objects, isolated", named_set("novel-isolated"), False, args.runs, args.seed))
+            suites.append(("novel objects, clutter of 10", named_set("novel-clutter"), False, args.clutter_runs,
+                           args.seed))
+        if "validation" in parts:
+            blocks = [clutter_scene(VALIDATION_OBJECTS, VALIDATION_COUNT)]
+            for seed in VALIDATION_SEEDS:
+                suites.append((_validation_name(seed), blocks, False, args.validation_runs, seed))
         # what the Evaluator refuses (a real-cell config, --max-actions 0), refused now rather than as a
         # traceback: it is built per part, and building it is cheap (no simulator until a scene runs)
         with Evaluator(config, network, EvalOptions(runs=args.runs, seed=args.seed, max_actions=args.max_actions)):
@@ -167,11 +204,11 @@ def main(argv: list[str]) -> int:
     reports: dict[str, dict] = {}
     write_error = ""
     t0 = time.perf_counter()
-    for name, scenes, grasp_only, runs in suites:
+    for name, scenes, grasp_only, runs, seed in suites:
         print(f"  {name} ...", file=sys.stderr, flush=True)
         kept = f"; the parts done are in {json_out}" if json_out is not None and reports else ""
         try:
-            reports[name] = _evaluate(config, network, policy, scenes, runs, args.seed, grasp_only,
+            reports[name] = _evaluate(config, network, policy, scenes, runs, seed, grasp_only,
                                       args.max_actions)
         except KeyboardInterrupt:
             return _fail(f"interrupted during {name!r}{kept}", EXIT_INTERRUPTED)
@@ -208,5 +245,12 @@ def main(argv: list[str]) -> int:
     if "novel objects, clutter of 10" in reports:
         s = reports["novel objects, clutter of 10"]["overall"]
         print(f"target novel clutter: grasp success {_pct(s['grasp_success'])} (target >= 90 %; paper 94.7 %)")
+    pooled = validation_pooled(reports)
+    if pooled is not None:
+        successes, attempts, cleared, counted = pooled
+        rate = successes / attempts if attempts else None
+        print(f"validation (20 random blocks, seeds {', '.join(map(str, VALIDATION_SEEDS))} pooled): grasp success "
+              f"{_pct(rate)} ({successes}/{attempts}), completion {_pct(cleared / counted if counted else None)} "
+              f"(target >= 92 % grasp success)")
     print(f"total time {time.perf_counter() - t0:.0f} s")
     return _fail(write_error, EXIT_FAILED) if write_error else EXIT_OK

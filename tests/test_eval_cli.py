@@ -277,7 +277,7 @@ def test_bench_eval_runs_the_novel_clutter_its_own_number_of_times(tmp_path, cap
     from benchmarks import eval as bench_eval
 
     assert bench_eval.main(["--fresh", "--clutter-runs", "0"]) == 2
-    assert "--clutter-runs: got 3 and 0, expected >= 1" in capsys.readouterr().err
+    assert "--clutter-runs: got 0, expected >= 1" in capsys.readouterr().err
     out = tmp_path / "bench.json"
     assert bench_eval.main(["--fresh", "--parts", "novel", "--runs", "1", "--clutter-runs", "2",
                             "--max-actions", "1", "--json", str(out)]) == 0
@@ -286,3 +286,20 @@ def test_bench_eval_runs_the_novel_clutter_its_own_number_of_times(tmp_path, cap
     assert {s["runs"] for s in isolated["scenes"]} == {1} and len(isolated["scenes"]) == 8
     assert [s["runs"] for s in clutter["scenes"]] == [2]
     assert "(2 of the novel clutter)" in capsys.readouterr().out
+
+
+def test_bench_eval_validation_runs_20_blocks_at_each_evaluation_seed_and_pools_them(tmp_path, capsys):
+    from benchmarks import eval as bench_eval
+
+    out = tmp_path / "validation.json"
+    assert bench_eval.main(["--fresh", "--parts", "validation", "--validation-runs", "1", "--max-actions", "1",
+                            "--json", str(out)]) == 0
+    reports = json.loads(out.read_text())
+    assert list(reports) == [f"validation: 20 random blocks, seed {s}" for s in bench_eval.VALIDATION_SEEDS]
+    assert [r["options"]["seed"] for r in reports.values()] == list(bench_eval.VALIDATION_SEEDS)
+    assert all(r["scenes"][0]["objects"] == 20 and r["scenes"][0]["runs"] == 1 for r in reports.values())
+    successes, attempts, _, counted = bench_eval.validation_pooled(reports)
+    assert attempts == sum(r["overall"]["grasp_attempts"] for r in reports.values()) and counted == 4
+    assert f"({successes}/{attempts})" in capsys.readouterr().out
+    assert bench_eval.main(["--fresh", "--parts", "validation", "--validation-runs", "0"]) == 2
+    assert "--validation-runs: got 0, expected >= 1" in capsys.readouterr().err
