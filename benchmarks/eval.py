@@ -200,7 +200,9 @@ def main(argv: list[str]) -> int:
     print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cpus, python "
           f"{platform.python_version()}; config {args.config}; policy {policy['path']} "
           f"({policy.get('training_steps', 0)} training steps); {args.runs} run(s) per scene "
-          f"({args.clutter_runs} of the novel clutter), seed {args.seed}")
+          f"({args.clutter_runs} of the novel clutter), seed {args.seed}"
+          + (f"; validation {args.validation_runs} run(s) at each of seeds {', '.join(map(str, VALIDATION_SEEDS))}"
+             if "validation" in parts else ""))
     reports: dict[str, dict] = {}
     write_error = ""
     t0 = time.perf_counter()

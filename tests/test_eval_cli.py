@@ -300,6 +300,7 @@ def test_bench_eval_validation_runs_20_blocks_at_each_evaluation_seed_and_pools_
     assert all(r["scenes"][0]["objects"] == 20 and r["scenes"][0]["runs"] == 1 for r in reports.values())
     successes, attempts, _, counted = bench_eval.validation_pooled(reports)
     assert attempts == sum(r["overall"]["grasp_attempts"] for r in reports.values()) and counted == 4
-    assert f"({successes}/{attempts})" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert f"({successes}/{attempts})" in printed and "validation 1 run(s) at each of seeds 7, 8, 9, 10" in printed
     assert bench_eval.main(["--fresh", "--parts", "validation", "--validation-runs", "0"]) == 2
     assert "--validation-runs: got 0, expected >= 1" in capsys.readouterr().err
