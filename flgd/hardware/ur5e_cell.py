@@ -149,7 +149,8 @@ class UR5eCell(Cell):
             reason = (f"the arm stands at [{where}] m, outside the safety envelope ({exc.reason}; envelope "
                       f"x {list(sf.envelope_x)}, y {list(sf.envelope_y)}, z {list(sf.envelope_z)} m, table floor "
                       f"{floor:.4f} m, tilt <= {sf.max_tilt} rad in {self.config.source}); nothing was sent: "
-                      f"jog the arm inside the envelope on the pendant, then flgctl reset")
+                      f"jog the arm inside the envelope on the pendant, then flgctl reset (or, in flgd "
+                      f"calibrate, run it again)")
             self.arm.latch(reason)
             raise CellFault(f"UR {self.arm.host}: {reason}") from None
 
