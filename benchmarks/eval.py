@@ -50,24 +50,6 @@ def _fail(message: str, code: int = EXIT_USAGE) -> int:
     return code
 
 
-def _check_output(path: str) -> Path:
-    """The --json path, checked before hours of evaluation rather than after (as flgd eval does): its
-    directory is created if missing and must be writable; the path must not be a directory."""
-    out = Path(path)
-    blocking = next((d for d in [out.parent, *out.parent.parents] if d.exists()), None)
-    if blocking is not None and not blocking.is_dir():
-        raise OSError(f"--json {out}: {blocking} is a file, not a directory")
-    try:
-        out.parent.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise OSError(f"--json {out}: cannot create its directory ({exc.strerror or exc})") from None
-    if out.is_dir():
-        raise OSError(f"--json {out}: is a directory, expected a file path")
-    if not os.access(out.parent, os.W_OK):
-        raise OSError(f"--json {out}: directory {out.parent} is not writable")
-    return out
-
-
 def _write_reports(out: Path, reports: dict) -> None:
     from flgd.atomic_file import write_atomically
 
@@ -142,6 +124,7 @@ def main(argv: list[str]) -> int:
 
     from flgd.config import ConfigError, load_config
     from flgd.evaluation.evaluator import EvalOptions, EvaluationError, Evaluator
+    from flgd.evaluation.cli import prepare_output
     from flgd.evaluation.scene_sets import SceneSetError, clutter_scene, named_set
     from flgd.learning.policy_file import PolicyFileError, load_policy
     from flgd.learning.trunk import TrunkFileError
@@ -157,7 +140,7 @@ def main(argv: list[str]) -> int:
     if args.max_actions is not None and args.max_actions < 1:
         return _fail(f"--max-actions: got {args.max_actions}, expected >= 1")
     try:
-        json_out = _check_output(args.json) if args.json else None
+        json_out = prepare_output(args.json, "--json")
     except OSError as exc:
         return _fail(str(exc))
     try:

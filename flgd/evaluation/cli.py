@@ -117,10 +117,15 @@ def _collect_scenes(args: argparse.Namespace, config: Any) -> list[Any]:
     return scenes
 
 
-def _prepare_output(path: str | None, what: str) -> Path | None:
+def prepare_output(path: str | None, what: str) -> Path | None:
+    """An output path checked before hours of evaluation rather than after: its directory is created if
+    missing and must be writable, the path must not be a directory.  OSError naming ``what`` otherwise."""
     if path is None:
         return None
     out = Path(path)
+    blocking = next((d for d in [out.parent, *out.parent.parents] if d.exists()), None)
+    if blocking is not None and not blocking.is_dir():
+        raise OSError(f"{what} {out}: {blocking} is a file, not a directory")
     try:
         out.parent.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
@@ -169,8 +174,8 @@ def main(argv: list[str]) -> int:
     except SceneSetError as exc:
         return _fail(str(exc))
     try:
-        json_out = _prepare_output(args.json, "--json")
-        png_out = _prepare_output(args.png, "--png") or (json_out.with_suffix(".png") if json_out else None)
+        json_out = prepare_output(args.json, "--json")
+        png_out = prepare_output(args.png, "--png") or (json_out.with_suffix(".png") if json_out else None)
         qmap_dir = Path(args.save_qmaps) if args.save_qmaps else None
         if qmap_dir is not None:
             qmap_dir.mkdir(parents=True, exist_ok=True)

@@ -232,13 +232,12 @@ def _recorded_settings(path: Path) -> dict | None:
     if not path.exists():
         return None
     fix = f"{path.parent} was not changed; restore {path.name} or use a new --out"
+    from flgd.training.records import read_json_record
+
     try:
-        info = json.loads(path.read_text(encoding="utf-8"))
-    except json.JSONDecodeError as exc:
-        raise PretrainFileError(f"{path}: not valid JSON ({exc.msg}: line {exc.lineno} column {exc.colno}; "
-                                f"truncated?); {fix}") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise PretrainFileError(f"{path}: cannot be read ({exc}); {fix}") from None
+        info = read_json_record(path, fix)
+    except ValueError as exc:
+        raise PretrainFileError(str(exc)) from None
     settings = info.get("settings") if isinstance(info, dict) else None
     if not isinstance(settings, dict):
         what = (f"key 'settings' is {'missing' if settings is None else type(settings).__name__}"

@@ -109,13 +109,12 @@ def read_run_info(out: Path) -> dict | None:
         return None
     fix = (f"the run in {path.parent} was not changed; restore {RUN_FILE} (its settings are also in "
            f"the policy metadata of checkpoints/) or start the run in another directory")
+    from flgd.training.records import read_json_record
+
     try:
-        info = json.loads(path.read_text(encoding="utf-8"))
-    except json.JSONDecodeError as exc:
-        raise RunFileError(f"{path}: not valid JSON ({exc.msg}: line {exc.lineno} column {exc.colno}; "
-                           f"truncated?); {fix}") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise RunFileError(f"{path}: cannot be read ({exc}); {fix}") from None
+        info = read_json_record(path, fix)
+    except ValueError as exc:
+        raise RunFileError(str(exc)) from None
     if not isinstance(info, dict):
         raise RunFileError(f"{path}: expected a JSON object (settings, segments, status), got "
                            f"{type(info).__name__}; {fix}")
