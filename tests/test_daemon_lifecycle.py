@@ -115,13 +115,29 @@ def test_start_pause_reset_start_stop_and_stats_match_the_log(daemon_factory, tm
     third.wait_for(lambda s: s["cycles"] >= st["cycles"] + 1, "a cycle after a bad trainer state")
 
 
+def _checkpoint_and_state(state_dir: Path) -> tuple[int, int | None] | None:
+    """(newest checkpoint's update count, trainer state's update count or None), read from the files."""
+    from safetensors import safe_open
+
+    ckpts = sorted((state_dir / "checkpoints").glob("checkpoint-*.safetensors"))
+    if not ckpts:
+        return None
+    newest = int(ckpts[-1].stem.split("-")[1])
+    path = state_dir / "trainer-state.safetensors"
+    if not path.exists():
+        return newest, None
+    with safe_open(str(path), framework="pt") as f:
+        return newest, int((f.metadata() or {})["updates"])
+
+
 def test_kill_9_at_random_points_then_resume(daemon_factory, tmp_path):
-    """Five runs killed at random instants: nothing corrupt, replay == stored, learning resumes."""
+    """Five runs killed at random instants (one just after a checkpoint): nothing corrupt, learning resumes."""
     rng = random.Random(11)
     state_dir = tmp_path / "state"
     config = write_config(tmp_path, state_dir)
     last_updates = 0
     restored = 0
+    on_disk: tuple[int, int | None] | None = None
     for run in range(5):
         d = daemon_factory(config=config, state_dir=state_dir, args=["--autostart"]).start().wait_ready()
         st = d.ok("status")
@@ -130,16 +146,18 @@ def test_kill_9_at_random_points_then_resume(daemon_factory, tmp_path):
         assert st["replay_size"] == st["stored_transitions"] == stored.transition_count()
         assert st["step"] == stored.next_step()
         if run > 0:
-            ckpts = sorted((state_dir / "checkpoints").glob("checkpoint-*.safetensors"))
-            assert ckpts, "a checkpoint must exist after the first runs"
-            newest = int(ckpts[-1].stem.split("-")[1])
+            assert on_disk is not None, "a checkpoint must exist after the first runs"
+            newest, state_updates = on_disk
             assert st["resumed_from_updates"] == newest and "checkpoint" in st["policy"]
             assert newest >= last_updates  # never goes back
             last_updates = newest
-            # restored with its checkpoint, unless the kill fell between the checkpoint and its trainer state
+            # restored exactly when the kill left the trainer state of that very checkpoint on disk
             ts = st["trainer_state"]
-            restored += ts == f"restored at update {newest}"
-            assert ts == f"restored at update {newest}" or ("is of update" in ts or "not found" in ts), ts
+            if state_updates == newest:
+                assert ts == f"restored at update {newest}", ts
+                restored += 1
+            else:
+                assert "is of update" in ts or "not found" in ts, ts
         stored.close()
         # let some cycles and updates happen, then kill at a random moment (maybe mid-cycle, mid-checkpoint)
         target = st["cycles"] + rng.randint(1, 4)
@@ -147,8 +165,13 @@ def test_kill_9_at_random_points_then_resume(daemon_factory, tmp_path):
         if run == 0:  # the resume checks below need one checkpoint; a loaded machine may be slow to learn
             d.wait_for(lambda s: any((state_dir / "checkpoints").glob("checkpoint-*.safetensors")),
                        "a first checkpoint", poll=0.1)
-        time.sleep(rng.uniform(0.0, 1.5))
+        if run == 2:  # one kill just after a checkpoint and its trainer state are both written
+            d.wait_for(lambda s: (lambda p: p is not None and p[0] == p[1])(_checkpoint_and_state(state_dir)),
+                       "a checkpoint with its trainer state", poll=0.02)
+        else:
+            time.sleep(rng.uniform(0.0, 1.5))
         d.kill9()
+        on_disk = _checkpoint_and_state(state_dir)
     store = Store(state_dir)
     assert store.integrity_check() == "ok"
     assert store.transition_count() == store.query("SELECT COUNT(*) FROM actions WHERE transition_id IS NOT NULL")[0][0]
