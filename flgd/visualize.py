@@ -113,9 +113,19 @@ def _heat(values: np.ndarray, lo: float, hi: float, mask: np.ndarray, base: np.n
 
 
 def _text(img: np.ndarray, text: str, org: tuple[int, int], scale: float = 0.42) -> None:
-    """White text with a black outline: readable on any heat map or heightmap."""
-    cv2.putText(img, text, org, cv2.FONT_HERSHEY_SIMPLEX, scale, _OUTLINE, 3, cv2.LINE_AA)
-    cv2.putText(img, text, org, cv2.FONT_HERSHEY_SIMPLEX, scale, _TEXT, 1, cv2.LINE_AA)
+    """White text with a black outline: readable on any heat map or heightmap.
+
+    The outline is drawn glyph by glyph at the thin text's glyph positions: OpenCV widens the advance of
+    thick text, so a whole outlined string drifts right of its fill and shows as a second, ghost label.
+    """
+    font = cv2.FONT_HERSHEY_SIMPLEX
+    x, y = org
+    for i, ch in enumerate(text):
+        if ch.isspace():
+            continue
+        dx = cv2.getTextSize(text[:i], font, scale, 1)[0][0] - 1 if i else 0
+        cv2.putText(img, ch, (x + dx, y), font, scale, _OUTLINE, 3, cv2.LINE_AA)
+    cv2.putText(img, text, org, font, scale, _TEXT, 1, cv2.LINE_AA)
 
 
 def _draw_action(img: np.ndarray, action: Action, centre: tuple[int, int], scale: float,

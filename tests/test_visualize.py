@@ -12,6 +12,7 @@ from flgd.actions import Action
 from flgd.evaluation.metrics import ActionEntry, RunLog
 from flgd.evaluation.report import build_report, summary_picture
 from flgd.evaluation.scene_sets import SceneSpec
+from flgd import visualize
 from flgd.visualize import ACTION_COLORS, ActionGlyph, encode_png, heat_color, qmap_figure, qmap_picture
 
 H = W = 64
@@ -156,3 +157,17 @@ def test_summary_bars_are_proportional_to_the_rates():
     legend = green_pixels(_report(0, 4))   # completion 0: only the legend swatch is green
     assert full > legend > 0
     assert (full - legend) == pytest.approx(2 * (half - legend), rel=0.03)
+
+
+def test_label_outline_stays_under_its_text():
+    """The black outline must sit under the white letters: drawn as one thick string it ran ~10 px past a
+    32-character label's end (OpenCV widens thick text), a ghost copy of the label beside it."""
+    label = "colour heightmap + chosen action"
+    img = np.full((24, 320, 3), 128, dtype=np.uint8)
+    visualize._text(img, label, (4, 14))
+    width = cv2.getTextSize(label, cv2.FONT_HERSHEY_SIMPLEX, 0.42, 1)[0][0]
+    touched = np.nonzero((img != 128).any(axis=(0, 2)))[0]
+    assert touched.min() >= 2 and touched.max() <= 4 + width + 2, (touched.min(), touched.max(), width)
+    white = (img > 200).all(axis=2)
+    dark = (img < 100).all(axis=2)
+    assert white.sum() > 100 and dark.sum() > 100  # both the letters and their outline are there
