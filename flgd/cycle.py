@@ -189,7 +189,15 @@ class CycleRunner:
     def _reset_scene(self, timer: _Timer) -> None:
         with timer.phase("execute"):
             self.cell.reset_scene()
+        self._new_scene()
+
+    def _new_scene(self) -> None:
+        """A new scene: a fresh capture, and the agent's failed-grasp streak and previous location, which
+        are about the scene they happened in, are forgotten."""
         self.forget_state()
+        reset_episode = getattr(self.agent, "reset_episode", None)
+        if reset_episode is not None:
+            reset_episode()
 
     def _run_checked(self, plan: Any, what: str) -> ExecutionResult:
         """Check and run a follow-up plan (release, home); a refusal here is a cell fault."""
@@ -265,7 +273,7 @@ class CycleRunner:
                 self._reset_scene(timer)
             else:
                 record.refill_needed = True
-                self.forget_state()  # after the refill the next cycle starts with a fresh picture
+                self._new_scene()  # after the refill the next cycle starts with a fresh picture
             return finish()
         self.last_decided = (state, decision, self.step)
         if self.learner is not None and hasattr(self.learner, "note_decision"):

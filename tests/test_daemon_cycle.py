@@ -106,6 +106,9 @@ class ScriptedAgent:
     def maybe_swap_weights(self):
         return self.agent.maybe_swap_weights()
 
+    def reset_episode(self):
+        self.agent.reset_episode()
+
 
 def _setup(tmp_path, objects=3, script=None):
     cfg = load_config(REPO / "cell_config" / "sim.yaml")
@@ -198,6 +201,25 @@ def test_unstable_execution_is_discarded_and_the_scene_reset(tmp_path):
     finally:
         cell.close()
     assert store.action_log()[1]["outcome"] == "discarded"
+
+
+@pytest.mark.parametrize("how", ["unstable", "empty"])
+def test_a_new_scene_clears_the_agents_streak_and_previous_location(tmp_path, how):
+    """Sec. IV-A's "two failed grasps, then move" and Sec. III-D's "not the same place again" are about
+    one scene: a streak left over from the last scene forced a move after one failure in the next."""
+    cfg, cell, store, replay, runner = _setup(tmp_path, objects=3 if how == "unstable" else 0)
+    agent = runner.agent.agent
+    try:
+        agent.failed_grasps = 1
+        agent.previous = Action("grasp", 100, 100, 3)
+        if how == "unstable":
+            runner.current = runner.perceive_now()
+            cell.fail_next = "unstable"
+        rec = runner.run_once()
+    finally:
+        cell.close()
+    assert rec.outcome == ("discarded" if how == "unstable" else "empty") and cell.resets == 1
+    assert agent.failed_grasps == 0 and agent.previous is None
 
 
 def test_a_contact_stop_of_the_descent_goes_into_the_action_log(tmp_path):

@@ -4,6 +4,7 @@ compact shared states and the rebuild path used after a restart."""
 from __future__ import annotations
 
 import threading
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -11,6 +12,8 @@ import pytest
 from flgd.actions import Action
 from flgd.learning.replay import PrioritizedReplay, SumTree, Transition, pack_heightmaps, unpack_heightmaps
 from flgd.perception import Heightmaps
+
+REPO = Path(__file__).resolve().parents[1]
 
 # chi-square critical values at p = 0.001
 CHI2_999 = {7: 24.322, 15: 37.697}
@@ -199,3 +202,23 @@ def test_a_bad_td_error_changes_no_priority_of_the_batch():
     with pytest.raises(ValueError, match="slot 2"):
         replay.update_priorities([0, 1, 2], [0.3, 0.2, float("nan")])
     assert [replay.priority(i) for i in range(3)] == before
+
+
+def test_a_resumed_learner_continues_the_beta_schedule():
+    """beta anneals over sampled batches, one per update; a resumed run must not restart at beta_start."""
+    from flgd.config import load_config
+    from flgd.learning.networks import build_network
+    from flgd.wiring import build_agent_and_learner
+
+    cfg = load_config(REPO / "cell_config" / "sim.yaml")
+    lc = cfg.learning
+    replay = PrioritizedReplay.from_config(lc)
+    assert replay.beta == pytest.approx(lc.priority_beta_start)
+    half = lc.priority_beta_steps // 2
+    build_agent_and_learner(cfg, build_network(lc.network, rotations=16, seed=0), replay,
+                            checkpoint_callback=None, updates=half)
+    assert replay.beta == pytest.approx(lc.priority_beta_start + (1 - lc.priority_beta_start) * half / lc.priority_beta_steps)
+    replay.resume_annealing(10 * lc.priority_beta_steps)
+    assert replay.beta == pytest.approx(1.0)
+    with pytest.raises(ValueError, match="samples drawn"):
+        replay.resume_annealing(-1)

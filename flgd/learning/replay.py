@@ -239,6 +239,15 @@ class PrioritizedReplay:
             frac = min(1.0, self._samples / self.beta_steps)
             return self.beta_start + (1.0 - self.beta_start) * frac
 
+    def resume_annealing(self, samples_drawn: int) -> None:
+        """Continue the beta schedule of a run that already drew ``samples_drawn`` batches (one per
+        learner update): a resumed run would otherwise fall back to ``beta_start`` and weaken the
+        importance correction again for another ``beta_steps`` updates."""
+        if not (isinstance(samples_drawn, int) and samples_drawn >= 0):
+            raise ValueError(f"samples drawn: got {samples_drawn!r}, expected an integer >= 0")
+        with self._lock:
+            self._samples = samples_drawn
+
     @property
     def stored_bytes(self) -> int:
         """Bytes held by the packed states (the bulk of the memory)."""
