@@ -3,8 +3,10 @@
 Why SQLite in WAL mode: one cycle is written as one transaction (the action-log
 row, the transition and any new heightmap), so a process killed at any instant
 leaves either the whole cycle or none of it, and readers (``flgctl stats``)
-never block the writer.  ``synchronous=NORMAL`` is durable against a killed
-process; only a power cut may lose the last few commits, never corrupt them.
+never block the writer.  ``synchronous=FULL``: a commit is on disk when it
+returns (one fsync of the WAL per cycle, about 0.3 ms on the dev machine's
+disk), so a power cut loses at most the cycle in flight, as a killed process
+does; with NORMAL it could also lose the last few committed cycles.
 
 Schema (``SCHEMA_VERSION`` 2), file ``<state_dir>/flgd.sqlite``:
 
@@ -214,7 +216,7 @@ class Store:
             mode = self._db.execute("PRAGMA journal_mode").fetchone()[0]
             if str(mode).lower() != "wal":
                 raise StoreError(f"store {self.path}: could not switch to WAL mode (got {mode!r})")
-            self._db.execute("PRAGMA synchronous=NORMAL")
+            self._db.execute("PRAGMA synchronous=FULL")
             self._db.execute("PRAGMA foreign_keys=ON")
             self._db.executescript(_SCHEMA)
             row = self._db.execute("SELECT value FROM meta WHERE key='schema_version'").fetchone()
