@@ -130,7 +130,8 @@ class ToolPoseConfig:
 @dataclass(frozen=True)
 class RobotConfig:
     host: str = param("", help="controller address (real cell)")
-    home: ToolPoseConfig = param(default_factory=lambda: ToolPoseConfig((-0.5, 0.0, 0.35), 0.0))
+    home: ToolPoseConfig = param(default_factory=lambda: ToolPoseConfig((-0.45, 0.30, 0.30), 0.0),
+                                 help="where every picture is taken from: beside the workspace, out of the camera's view")
     place: ToolPoseConfig = param(default_factory=lambda: ToolPoseConfig((-0.5, 0.32, 0.30), 0.0),
                                   help="where a grasped object is released, outside the heightmap")
     approach_height: float = param(0.10, unit="m", gt=0.0, help="above the target before descending")
@@ -428,6 +429,11 @@ def _check_relations(cfg: CellConfig, problems: list[str]) -> None:
             problems.append(f"robot.{pose_key}.position: z = {pose.position[2]!r} is below the table clearance "
                             f"floor {floor:.4f} m (workspace.z[0] {ws.table_z!r} + safety.min_table_clearance "
                             f"{sf.min_table_clearance!r}); expected z >= {floor:.4f}")
+    hx, hy = cfg.robot.home.position[0], cfg.robot.home.position[1]
+    if ws.x[0] <= hx <= ws.x[1] and ws.y[0] <= hy <= ws.y[1]:
+        problems.append(f"robot.home.position: (x, y) = ({hx!r}, {hy!r}) is over the workspace (x {list(ws.x)!r}, "
+                        f"y {list(ws.y)!r}); every picture is taken with the arm at home, so the arm would be in "
+                        "every heightmap. Expected a home beside the workspace, out of the camera's view")
     rb = cfg.robot
     for key in ("speed", "approach_speed"):
         if getattr(rb, key) > sf.max_speed:

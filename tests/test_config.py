@@ -74,6 +74,8 @@ BROKEN = {
                                        ["workspace.x", "safety.envelope_x"]),
     "home outside the envelope": (with_change("robot.home", {"position": [0.5, 0.0, 0.3], "yaw": 0.0}),
                                   ["robot.home.position", "x = 0.5"]),
+    "home over the workspace": (with_change("robot.home", {"position": [-0.5, 0.1, 0.3], "yaw": 0.0}),
+                                ["robot.home.position", "over the workspace", "in every heightmap"]),
     "resolution not dividing": (with_change("workspace.resolution", 0.0031), ["workspace.resolution", "whole pixels"]),
     "nan value": (with_change("rewards.delta", float("nan")), ["rewards.delta", "finite"]),
     "epsilon out of range": (with_change("exploration.epsilon_start", 1.5), ["exploration.epsilon_start", "<= 1.0"]),
