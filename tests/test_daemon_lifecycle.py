@@ -17,7 +17,7 @@ import pytest
 
 from flgd.store import Store
 
-from tests.test_daemon_harness import REPO, daemon_factory, tmpfs, write_config  # noqa: F401 (fixture)
+from tests.test_daemon_harness import REPO, DaemonProcess, daemon_factory, tmpfs, write_config  # noqa: F401 (fixture)
 
 
 def _db_counts(state_dir: Path) -> dict:
@@ -262,3 +262,17 @@ def test_read_only_state_dir_gives_a_fault_at_startup(daemon_factory, tmp_path):
         assert d.ok("status")["state"] == "FAULT"
         d.proc.send_signal(signal.SIGTERM)
         assert d.wait_exit() == 0
+
+
+def test_a_second_daemon_on_the_same_state_directory_is_refused(daemon_factory, tmp_path):
+    """Two daemons on one cell would drive one arm and write one store; the second exits, naming why."""
+    first = daemon_factory().start().wait_ready()
+    (tmp_path / "second").mkdir()
+    second = DaemonProcess(tmp_path / "second", config=first.config, state_dir=first.state_dir)
+    try:
+        code = second.start().wait_exit(timeout=120)
+        assert code != 0
+        assert "is using the state directory" in second.log() and str(first.state_dir) in second.log()
+    finally:
+        second.cleanup()
+    assert first.ok("status")["state"] == "IDLE"  # the first one is untouched

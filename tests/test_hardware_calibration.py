@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import os
 import re
 import shutil
 from pathlib import Path
@@ -414,3 +415,39 @@ def test_calibrate_command_refuses_a_wrong_marker_offset(tmp_path, capsys):
     # --dry-run reports the same refusal
     assert main(["--config", str(path), "--dry-run"], cell_factory=factory, sleep=lambda s: None) == 1
     assert path.read_bytes() == before
+
+
+def test_calibrate_refuses_while_a_daemon_holds_the_cell_and_runs_once_it_is_gone(tmp_path, capsys):
+    """The daemon and calibrate would both drive the arm: calibrate checks the daemon's state-dir lock
+    (the same ``flgd.lock`` the daemon takes) before it opens anything."""
+    from flgd.state_dir_lock import StateDirBusy, lock_state_dir
+
+    state = tmp_path / "state"
+    path = tmp_path / "cell.yaml"
+    path.write_text(REAL_CONFIG.read_text().replace("state_dir: /var/lib/flgd", f"state_dir: {state}"))
+    opened = []
+
+    def factory(cfg):
+        opened.append(FakeCalibrationCell(cfg, true_camera_pose()))
+        return opened[-1]
+
+    daemon_fd = lock_state_dir(state, create=True)  # what a running daemon holds
+    try:
+        code = main(["--config", str(path), "--dry-run"], cell_factory=factory, sleep=lambda s: None)
+        err = capsys.readouterr().err
+        assert code == 1 and not opened, err
+        assert str(state) in err and "systemctl stop flgd" in err
+    finally:
+        os.close(daemon_fd)
+    # the daemon gone: calibrate runs, and holds the lock meanwhile (a daemon started now would be refused)
+    held = []
+
+    def probing_factory(cfg):
+        with pytest.raises(StateDirBusy):
+            lock_state_dir(state, create=True)
+        held.append(True)
+        return factory(cfg)
+
+    assert main(["--config", str(path), "--dry-run"], cell_factory=probing_factory, sleep=lambda s: None) == 0
+    assert held and opened[-1].closed
+    os.close(lock_state_dir(state, create=True))  # released afterwards

@@ -14,7 +14,6 @@ import base64
 import concurrent.futures
 import dataclasses
 import datetime as _dt
-import fcntl
 import logging
 import os
 import queue
@@ -114,18 +113,15 @@ class Controller:
             self.state.transition(State.FAULT, self.store_problem)
 
     def _take_state_dir_lock(self) -> None:
+        from flgd.state_dir_lock import StateDirBusy, lock_state_dir
+
         try:
-            self.state_dir.mkdir(parents=True, exist_ok=True)
-            fd = os.open(self.state_dir / "flgd.lock", os.O_RDWR | os.O_CREAT, 0o640)
+            self._lock_fd = lock_state_dir(self.state_dir, create=True)
+        except StateDirBusy as exc:
+            raise StartupError(str(exc)) from None
         except OSError as exc:
             log.warning("cannot create the lock file in %s: %s", self.state_dir, exc)
-            return  # the store will report the same problem as a FAULT
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            os.close(fd)
-            raise StartupError(f"another flgd is using the state directory {self.state_dir}") from None
-        self._lock_fd = fd
+            # the store will report the same problem as a FAULT
 
     def _open_store(self) -> bool:
         try:

@@ -61,6 +61,7 @@ from flgd.geometry import ToolPose, matrix_to_rpy, rotvec_to_matrix, rpy_to_matr
 from flgd.hardware.calibration_math import CalibrationError, CalibrationFit, fit_camera_pose_and_offset
 from flgd.plans import MoveL, Plan
 from flgd.safety import PlanRefused, check_plan
+from flgd.state_dir_lock import StateDirBusy, lock_state_dir
 
 __all__ = ["main", "find_marker", "grid_poses", "marker_camera_point", "write_calibration",
            "CalibrationOptions", "collect_points", "DEFAULT_MAX_RESIDUAL_MM", "CALIBRATION_YAWS",
@@ -383,6 +384,27 @@ def main(argv: list[str] | None = None, *, cell_factory: Callable[[CellConfig], 
     except (ValueError, ConfigError) as exc:
         print(f"flgd calibrate: {exc}", file=sys.stderr)
         return 2
+    try:
+        lock_fd: int | None = lock_state_dir(config.state_dir, create=False)
+    except StateDirBusy as exc:
+        print(f"flgd calibrate: {exc}: it drives this arm and camera. Stop it first (systemctl stop flgd), "
+              "then calibrate", file=sys.stderr)
+        return 1
+    except FileNotFoundError:
+        lock_fd = None  # no daemon has used this state directory
+    except OSError as exc:
+        print(f"flgd calibrate: warning: cannot check whether flgd is running ({exc}); make sure it is stopped",
+              file=sys.stderr)
+        lock_fd = None
+    try:
+        return _calibrate(args, options, config, cell_factory, sleep)
+    finally:
+        if lock_fd is not None:
+            os.close(lock_fd)
+
+
+def _calibrate(args: argparse.Namespace, options: CalibrationOptions, config: CellConfig,
+               cell_factory: Callable[[CellConfig], Any], sleep: Callable[[float], None]) -> int:
     try:
         cell = cell_factory(config)
     except CellFault as exc:
