@@ -10,6 +10,7 @@ import socket
 import subprocess
 import sys
 import tempfile
+import time
 from pathlib import Path
 
 import cv2
@@ -222,6 +223,16 @@ def test_backend_swap_failure_keeps_the_old_cell(idle_daemon):
     assert p.returncode == 0, p.stderr
     assert "sim -> sim" in p.stdout
     assert idle_daemon.ok("status")["state"] == "IDLE"
+    # swapped while running, the daemon pauses: a newly connected arm never starts moving on its own
+    assert idle_daemon.ctl("start").returncode == 0
+    idle_daemon.wait_for(lambda s: s["cycles"] >= 1, "a cycle")
+    p = idle_daemon.ctl("backend", "sim")
+    assert p.returncode == 0, p.stderr
+    status = idle_daemon.wait_for(lambda s: not s["cycle_in_flight"], "the cycle in flight to finish")
+    assert status["state"] == "PAUSED" and "backend swapped" in status["cause"], status
+    cycles = status["cycles"]
+    time.sleep(1.0)
+    assert idle_daemon.ok("status")["cycles"] == cycles
 
 
 def test_snapshot_in_idle_is_a_real_picture(idle_daemon, tmp_path):

@@ -683,6 +683,12 @@ class Controller:
             except Exception as exc:
                 log.error("closing the %s cell failed: %s", old_name, exc)
         self._event("backend", f"{old_name} -> {name}")
+        # A new cell never starts moving on its own: the operator looks at it, then starts it.
+        try:
+            self.state.transition(State.PAUSED, f"backend swapped {old_name} -> {name}: flgctl start to run on it",
+                                  allowed_from=frozenset({State.RUNNING}))
+        except IllegalTransition:
+            pass  # not running (idle, paused, in fault): the state stays as it was
         return {"backend": name, "previous": old_name}
 
     def _snapshot(self) -> dict:
