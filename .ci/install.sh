@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Installs flgd and everything it needs on a bare machine (Python 3.11, root or sudo):
 # apt's libusb-1.0-0 (pyrealsense2) and python3-venv if missing, a venv in .venv,
-# torch 2.13.0 (CPU build by default), and flgd with its test extras.
+# torch 2.13.0 from the pip index (public PyPI: the CUDA-bundling wheel; CPU-only:
+# FLGD_TORCH_INDEX_URL=https://download.pytorch.org/whl/cpu), and flgd with its test extras.
 # GPU cell: FLGD_TORCH_INDEX_URL=<PyTorch CUDA wheel index> bash .ci/install.sh
 set -euo pipefail
 cd "$(dirname "$0")/.."
