@@ -69,8 +69,9 @@ def _evaluate(config: Any, network: Any, policy: dict, scenes: list, runs: int, 
     t0 = time.perf_counter()
 
     def progress(spec: Any, log: Any) -> None:
-        print(f"    {spec.name} run {log.run}: {log.end}, {len(log.actions)} actions "
-              f"({log.seconds:.0f} s)", file=sys.stderr, flush=True)
+        from flgd.evaluation.report import run_line
+
+        print(f"    {run_line(spec.name, log, runs)}", file=sys.stderr, flush=True)
 
     with Evaluator(config, network, options, progress=progress) as ev:
         results = ev.evaluate(scenes)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import pytest
 
 from flgd.evaluation.metrics import (FAILURE_LIMIT, ActionEntry, RunLog, longest_failure_streak, run_result,
@@ -108,3 +110,16 @@ def test_malformed_entries_are_refused():
         ActionEntry("grasp", True, refused=True)
     with pytest.raises(ValueError, match="end"):
         run([G_OK], end="bored")
+
+
+def test_the_run_line_says_whether_a_cleared_run_completed_and_what_was_lost():
+    from flgd.evaluation.report import run_line
+
+    grasps = (ActionEntry("grasp", True), ActionEntry("push", True), ActionEntry("grasp", True))
+    clean = RunLog(scene="pile", run=2, objects=2, actions=grasps, objects_left=0, objects_grasped=2, end="cleared",
+                   seconds=3.04)
+    assert run_line("pile", clean, 3) == ("pile run 2 of 3: cleared (completed), 3 actions, 2/2 grasps, 1 push, "
+                                          "0 shift, 0/2 objects left (3.0 s)")
+    pushed_off = dataclasses.replace(clean, objects=3)  # the table is clear, but one object went over the edge
+    line = run_line("pile", pushed_off)
+    assert line.startswith("pile run 2: cleared (not completed, 1 lost), ") and "0/3 objects left" in line

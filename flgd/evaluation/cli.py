@@ -142,13 +142,9 @@ def _progress(quiet: bool, runs: int) -> Callable[[Any, Any], None]:
     def show(spec: Any, log: Any) -> None:
         if quiet:
             return
-        from flgd.evaluation.metrics import run_result
+        from flgd.evaluation.report import run_line
 
-        res = run_result(log)
-        print(f"  {spec.name} run {log.run} of {runs}: {log.end}{' (completed)' if res.completed else ''}, "
-              f"{res.actions} actions, {res.grasp_successes}/{res.grasp_attempts} grasps, "
-              f"{res.moves['push']} push, {res.moves['shift']} shift, {log.objects_left}/{log.objects} objects "
-              f"left ({log.seconds:.1f} s)", file=sys.stderr, flush=True)
+        print(f"  {run_line(spec.name, log, runs)}", file=sys.stderr, flush=True)
     return show
 
 

@@ -31,7 +31,8 @@ import numpy as np
 from flgd.evaluation.metrics import FAILURE_LIMIT, RunLog, run_result, summarize
 from flgd.evaluation.scene_sets import SceneSpec
 
-__all__ = ["FORMAT", "VERSION", "STATUSES", "build_report", "format_table", "summary_picture", "partial_note"]
+__all__ = ["FORMAT", "VERSION", "STATUSES", "build_report", "format_table", "summary_picture", "partial_note",
+           "run_line"]
 
 FORMAT = "flgd-eval"
 VERSION = 1
@@ -79,6 +80,18 @@ def build_report(results: list[tuple[SceneSpec, list[RunLog]]], *, policy: dict[
             "overall": summarize(everything, limit).as_dict(), "seconds": round(seconds, 1),
             "status": status, "complete": status == "complete", "runs_finished": finished, "runs_planned": planned,
             "stopped": stopped}
+
+
+def run_line(scene: str, log: RunLog, runs: int | None = None) -> str:
+    """One finished run for the terminal.  A cleared table with an object pushed off or dropped is not a
+    completed run, so the line says which it was and how many were lost."""
+    res = run_result(log)
+    lost = log.objects_lost
+    verdict = "completed" if res.completed else ("not completed" + (f", {lost} lost" if lost else ""))
+    of = f" of {runs}" if runs is not None else ""
+    return (f"{scene} run {log.run}{of}: {log.end} ({verdict}), {res.actions} actions, "
+            f"{res.grasp_successes}/{res.grasp_attempts} grasps, {res.moves['push']} push, "
+            f"{res.moves['shift']} shift, {log.objects_left}/{log.objects} objects left ({log.seconds:.1f} s)")
 
 
 def partial_note(report: dict[str, Any]) -> str:
