@@ -223,16 +223,23 @@ def test_backend_swap_failure_keeps_the_old_cell(idle_daemon):
     assert p.returncode == 0, p.stderr
     assert "sim -> sim" in p.stdout
     assert idle_daemon.ok("status")["state"] == "IDLE"
-    # swapped while running, the daemon pauses: a newly connected arm never starts moving on its own
-    assert idle_daemon.ctl("start").returncode == 0
-    idle_daemon.wait_for(lambda s: s["cycles"] >= 1, "a cycle")
-    p = idle_daemon.ctl("backend", "sim")
-    assert p.returncode == 0, p.stderr
-    status = idle_daemon.wait_for(lambda s: not s["cycle_in_flight"], "the cycle in flight to finish")
-    assert status["state"] == "PAUSED" and "backend swapped" in status["cause"], status
-    cycles = status["cycles"]
-    time.sleep(1.0)
-    assert idle_daemon.ok("status")["cycles"] == cycles
+
+
+def test_a_backend_swap_while_running_pauses(tmp_path):
+    """A newly connected arm never starts moving on its own: the operator looks at it, then starts it."""
+    d = DaemonProcess(tmp_path).start().wait_ready()
+    try:
+        assert d.ctl("start").returncode == 0
+        d.wait_for(lambda s: s["cycles"] >= 1, "a cycle")
+        p = d.ctl("backend", "sim")
+        assert p.returncode == 0, p.stderr
+        status = d.wait_for(lambda s: not s["cycle_in_flight"], "the cycle in flight to finish")
+        assert status["state"] == "PAUSED" and "backend swapped" in status["cause"], status
+        cycles = status["cycles"]
+        time.sleep(1.0)
+        assert d.ok("status")["cycles"] == cycles
+    finally:
+        d.cleanup()
 
 
 def test_snapshot_in_idle_is_a_real_picture(idle_daemon, tmp_path):

@@ -393,9 +393,12 @@ class FakeRTDEFactory:
 # --------------------------------------------------------------------------- fixtures
 
 def real_config(**gripper) -> CellConfig:
+    """The real-cell example config, on loopback, with its policy read from this checkout (the example
+    names the installed copy under /opt/flgd)."""
     cfg = load_config(ROOT / "cell_config" / "ur5e-d415.yaml")
     return dataclasses.replace(cfg, robot=dataclasses.replace(cfg.robot, host="127.0.0.1"),
-                               gripper=dataclasses.replace(cfg.gripper, **gripper))
+                               gripper=dataclasses.replace(cfg.gripper, **gripper),
+                               policy=str(ROOT / "policies" / Path(cfg.policy).name))
 
 
 class _NoCamera:
