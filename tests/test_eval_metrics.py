@@ -123,3 +123,6 @@ def test_the_run_line_says_whether_a_cleared_run_completed_and_what_was_lost():
     pushed_off = dataclasses.replace(clean, objects=3)  # the table is clear, but one object went over the edge
     line = run_line("pile", pushed_off)
     assert line.startswith("pile run 2: cleared (not completed, 1 lost), ") and "0/3 objects left" in line
+    gave_up = dataclasses.replace(clean, end="unstable", objects_left=2, objects_grasped=1)
+    line = run_line("pile", gave_up)
+    assert "unstable (not counted in the rates)" in line and "objects left" not in line

@@ -87,11 +87,15 @@ def run_line(scene: str, log: RunLog, runs: int | None = None) -> str:
     completed run, so the line says which it was and how many were lost."""
     res = run_result(log)
     lost = log.objects_lost
-    verdict = "completed" if res.completed else ("not completed" + (f", {lost} lost" if lost else ""))
     of = f" of {runs}" if runs is not None else ""
+    left = f", {log.objects_left}/{log.objects} objects left"
+    if log.aborted:  # the simulator gave up: the scene was reset, its objects were not counted
+        verdict, left = "not counted in the rates", ""
+    else:
+        verdict = "completed" if res.completed else ("not completed" + (f", {lost} lost" if lost else ""))
     return (f"{scene} run {log.run}{of}: {log.end} ({verdict}), {res.actions} actions, "
             f"{res.grasp_successes}/{res.grasp_attempts} grasps, {res.moves['push']} push, "
-            f"{res.moves['shift']} shift, {log.objects_left}/{log.objects} objects left ({log.seconds:.1f} s)")
+            f"{res.moves['shift']} shift{left} ({log.seconds:.1f} s)")
 
 
 def partial_note(report: dict[str, Any]) -> str:
