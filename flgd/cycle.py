@@ -195,9 +195,7 @@ class CycleRunner:
         """A new scene: a fresh capture, and the agent's failed-grasp streak and previous location, which
         are about the scene they happened in, are forgotten."""
         self.forget_state()
-        reset_episode = getattr(self.agent, "reset_episode", None)
-        if reset_episode is not None:
-            reset_episode()
+        self.agent.reset_episode()
 
     def _run_checked(self, plan: Any, what: str) -> ExecutionResult:
         """Check and run a follow-up plan (release, home); a refusal here is a cell fault."""

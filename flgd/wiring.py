@@ -109,6 +109,5 @@ def build_agent_and_learner(config: CellConfig, network: Any, replay: Any, *,
     learner = Learner(config, network, replay, mailbox=agent.mailbox, checkpoint_callback=checkpoint_callback,
                       priority_sink=None if store is None else store.save_priorities)
     learner.updates = int(updates)
-    if hasattr(replay, "resume_annealing"):  # one batch per update: beta goes on where the run left it
-        replay.resume_annealing(int(updates))
+    replay.resume_annealing(int(updates))  # one batch per update: beta goes on where the run left it
     return agent, learner

@@ -136,6 +136,9 @@ class _GraspTheEmptyCorner:
     def record_outcome(self, action, success) -> None:
         pass
 
+    def reset_episode(self) -> None:
+        pass
+
 
 def test_a_run_stops_at_the_eleventh_consecutive_failure(config, tmp_path):
     scene = tmp_path / "one-cube.yaml"
