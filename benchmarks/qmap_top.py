@@ -81,7 +81,10 @@ def main(argv: list[str]) -> int:
         states = []
         for _ in range(args.scenes):
             cell.make_clutter(args.count)
-            states.append(frame_heightmaps(cell.capture(), config.workspace, config.camera.depth_range))
+            hm = frame_heightmaps(cell.capture(), config.workspace, config.camera.depth_range)
+            mask = grasp_mask(np.asarray(hm.height), config.rewards)
+            if mask.any():   # a scene whose blocks all fell off the table has nothing to measure
+                states.append((hm, mask))
     finally:
         cell.close()
 
@@ -92,10 +95,7 @@ def main(argv: list[str]) -> int:
     print(f"\n| policy | max grasp Q | median grasp Q on objects | {heads} |\n|---|---|---|" + "---|" * len(MARGINS))
     for path, net in networks:
         tops, medians, shares = [], [], []
-        for hm in states:
-            mask = grasp_mask(np.asarray(hm.height), config.rewards)
-            if not mask.any():
-                continue
+        for hm, mask in states:
             with torch.inference_mode():
                 grasp = q_maps(net, hm, config.learning.rotations).numpy()[:, 0]
             top, share = top_shares(grasp, mask)
@@ -103,7 +103,7 @@ def main(argv: list[str]) -> int:
             medians.append(float(np.median(grasp[:, mask])))
             shares.append(share)
         if not tops:
-            print(f"| {path} | no scene with objects | | " + " | " * len(MARGINS))
+            print(f"| {path} | no scene with objects |" + " - |" * (1 + len(MARGINS)))
             continue
         mid = np.median(np.asarray(shares), axis=0)
         cells = " | ".join(f"{100 * s:.2f} %" for s in mid)
