@@ -246,6 +246,9 @@ class SimConfig:
     depth_noise: bool = param(True)
     domain_randomization: bool = param(True)
     seed: int = param(0, ge=0)
+    packed_scenes: float = param(0.0, ge=0.0, le=1.0,
+                                 help="share of new random scenes that are packed arrangements (rows of blocks "
+                                      "laid flush, sim_cell.packed) instead of dropped clutter")
     scene: str = param("", help="scene file to load instead of random clutter")
     time_step: float = param(1.0 / 240.0, unit="s", gt=0.0, le=0.01)
 

@@ -82,7 +82,7 @@ from flgd.geometry import ToolPose
 from flgd.plans import GripperCommand, MeasureWidth, MoveL
 from flgd.safety import CheckedPlan
 from sim_cell import camera as simcam
-from sim_cell import kinematics, motion, objects, scenes, shapes
+from sim_cell import kinematics, motion, objects, packed, scenes, shapes
 from sim_cell.robot import FINGER_SPEED, GRIPPER_TCP_OFFSET, READY_JOINTS, SimRobot
 
 __all__ = ["SimCell", "ObjectState", "PRESET_DIR", "preset_scenes"]
@@ -329,6 +329,8 @@ class SimCell(Cell):
             self._check_open()
             if self.config.sim.scene:
                 self.load_scene(self.config.sim.scene)
+            elif self.config.sim.packed_scenes > 0 and self._scene_rng.random() < self.config.sim.packed_scenes:
+                self.make_packed()
             else:
                 self._clear_objects()
                 self._randomise_domain()
@@ -851,12 +853,7 @@ class SimCell(Cell):
         friction = float(rng.uniform(0.4, 0.9)) if dr else 0.6
         if kind.startswith("block:"):
             shape = kind.split(":", 1)[1]
-            dims = shapes.random_block_dims(shape, rng)
-            density = float(rng.uniform(400, 900)) if dr else 600.0
-            geom = shapes.make_block(shape, dims)
-            volume = float(np.prod(geom.extents)) * 0.7
-            return objects.ObjectSpec(shape=shape, size=dims, color=colour, mass=max(volume * density, 0.02),
-                                      friction=friction)
+            return self._block_spec(shape, shapes.random_block_dims(shape, rng), colour, friction)
         if kind.startswith(objects.MESH_PREFIX):
             path = kind[len(objects.MESH_PREFIX):]
             density = float(rng.uniform(400, 900)) if dr else 600.0
@@ -868,6 +865,44 @@ class SimCell(Cell):
                                         self.config.gripper.open_width, self.config.learning.rotations)
         mass = float(rng.uniform(0.03, 0.15)) if dr else None
         return objects.ObjectSpec(urdf=kind, scale=scale, color=colour, mass=mass, friction=friction)
+
+    def _block_spec(self, shape: str, dims: tuple[float, ...], colour: tuple[float, float, float] | None = None,
+                    friction: float | None = None) -> objects.ObjectSpec:
+        """A procedural block with this cell's colours, densities and frictions (random where the
+        domain is randomised); ``colour``/``friction`` given when the caller drew them already."""
+        rng = self._scene_rng
+        dr = self.config.sim.domain_randomization
+        if colour is None:
+            colour = tuple(np.clip(_PALETTE[int(rng.integers(len(_PALETTE)))] + rng.uniform(-0.06, 0.06, 3),
+                                   0, 1).tolist())
+        if friction is None:
+            friction = float(rng.uniform(0.4, 0.9)) if dr else 0.6
+        density = float(rng.uniform(400, 900)) if dr else 600.0
+        volume = float(np.prod(shapes.make_block(shape, dims).extents)) * 0.7
+        return objects.ObjectSpec(shape=shape, size=dims, color=colour, mass=max(volume * density, 0.02),
+                                  friction=friction)
+
+    def make_packed(self, groups: int | None = None) -> int:
+        """Replace the objects by a packed arrangement (sim_cell.packed): rows of blocks laid flush.
+        Returns the count."""
+        with self._lock:
+            self._check_open()
+            self._clear_objects()
+            self._randomise_domain()
+            ws = self._ws
+            scene = packed.packed_scene(self._scene_rng, (ws.x[1] - ws.x[0]) / 2, (ws.y[1] - ws.y[0]) / 2,
+                                        DROP_MARGIN - 0.02, self._block_spec, groups)
+            origin = scenes.workspace_origin(ws)
+            try:
+                for spec in scene.objects:
+                    self._add(spec.moved(np.asarray(spec.position) + origin, spec.orientation))
+                self._settle(0.25)
+            except _Unstable:   # counted by _settle; a dropped scene instead, as reset_scene would
+                self._clear_objects()
+                self._drop_random_objects(self._object_count)
+            self._remove_outside()
+            self.stats["scenes"] += 1
+            return len(self._objects)
 
     def make_clutter(self, n: int, spread: float | None = None) -> int:
         """Replace the objects by ``n`` random ones dropped within +-``spread`` m of the workspace

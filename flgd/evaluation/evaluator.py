@@ -59,6 +59,7 @@ __all__ = ["EvalOptions", "EvaluationError", "EpisodeCell", "Evaluator", "evalua
 
 DEFAULT_ACTIONS_PER_OBJECT = 10
 MIN_DEFAULT_ACTIONS = 30  # so VPG's failure rule (11 in a row) can always end a run first
+PACKED_CELL = "<packed arrangements>"   # key of the cell that lays packed scenes
 
 
 class EvaluationError(RuntimeError):
@@ -186,13 +187,14 @@ class Evaluator:
 
     # ------------------------------------------------------------------ cells
     def _cell_for(self, spec: SceneSpec) -> Any:
-        """One simulated cell per object set (scene files share the config's)."""
-        key = spec.objects if spec.is_clutter else ""
+        """One simulated cell per object set (scene files share the config's; packed scenes have their own,
+        so that the arrangements a seed gives do not depend on what else is evaluated)."""
+        key = spec.objects if spec.is_clutter else PACKED_CELL if spec.packed else ""
         if key not in self._cells:
             from sim_cell.cell import SimCell
 
             cfg = self.config
-            if key:
+            if spec.is_clutter:
                 cfg = dataclasses.replace(cfg, sim=dataclasses.replace(cfg.sim, object_set=key))
             try:
                 self._cells[key] = SimCell(cfg)
@@ -242,6 +244,8 @@ class Evaluator:
     def _set_scene(self, cell: Any, spec: SceneSpec) -> int:
         from sim_cell.scenes import SceneError
 
+        if spec.packed:
+            return cell.make_packed()
         if spec.is_clutter:
             return cell.make_clutter(spec.count)
         try:

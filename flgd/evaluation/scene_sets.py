@@ -16,7 +16,10 @@ Named sets (``--set``):
   "Isolation");
 * ``novel-clutter``  -- 10 held-out novel objects mixed (Table III, "Clutter");
 * ``urdf-clutter``   -- 10 objects of pybullet_data's random_urdfs/000-099
-  (novel shapes that may be used for tuning).
+  (novel shapes that may be used for tuning);
+* ``packed``         -- packed arrangements of our blocks (sim_cell.packed: rows
+  laid flush, a new arrangement every run, fixed by the seed): hard cases of
+  our own, for choosing between policies without VPG's scenes.
 
 The held-out objects (duck, teddy, mug, ...: ``HELD_OUT_OBJECTS``) are never
 trained or tuned on; random_urdfs are ours to use.
@@ -44,6 +47,7 @@ SCENE_SETS = {
     "novel-isolated": "each held-out novel object alone: " + ", ".join(HELD_OUT_OBJECTS),
     "novel-clutter": f"{CLUTTER_COUNT} held-out novel objects mixed",
     "urdf-clutter": f"{CLUTTER_COUNT} objects of pybullet_data {TUNING_OBJECTS}",
+    "packed": "packed arrangements of blocks (rows laid flush; a new one every run)",
 }
 
 
@@ -59,12 +63,15 @@ class SceneSpec:
     objects: str = ""                 # object set of random clutter
     count: int = 0                    # objects per random clutter
     group: str = ""                   # the named set it belongs to ("" = given one by one)
+    packed: bool = False              # a packed arrangement of blocks, laid anew for every run
 
     @property
     def is_clutter(self) -> bool:
-        return self.path is None
+        return self.path is None and not self.packed
 
     def describe(self) -> str:
+        if self.packed:
+            return "packed arrangement of blocks"
         return str(self.path) if self.path is not None else f"{self.count} x {self.objects}"
 
 
@@ -158,6 +165,8 @@ def named_set(name: str, vpg_dir: str | os.PathLike | None = None, count: int = 
         return [clutter_scene(",".join(HELD_OUT_OBJECTS), count, name=f"novel x{count}", group=name)]
     if name == "urdf-clutter":
         return [clutter_scene(TUNING_OBJECTS, count, name=f"random_urdfs x{count}", group=name)]
+    if name == "packed":
+        return [SceneSpec(name="packed blocks", objects="blocks", packed=True, group=name)]
     raise SceneSetError(f"--set: got {name!r}, expected one of {', '.join(SCENE_SETS)}")
 
 
