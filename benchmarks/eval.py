@@ -15,6 +15,9 @@ between policies: random clutter of 20 blocks, ``--validation-runs`` runs at
 each of the evaluation seeds 7, 8, 9 and 10 (never training seeds), pooled --
 target: grasp success >= 92 %.  It touches neither VPG's scenes nor the
 held-out objects, so a choice made on it does not tune on test data.
+``--parts packed`` is its companion for hard arrangements: packed scenes of our
+blocks (``flgd eval --set packed``: rows laid flush, a new one every run),
+``--validation-runs`` runs at each of the same seeds, pooled.
 
 The same ``Evaluator`` as ``flgd eval`` runs every part (one cycle, one
 definition of the metrics).  ``--json`` writes the reports, atomically,
@@ -40,7 +43,7 @@ REPO = Path(__file__).resolve().parents[1]
 DEFAULT_CONFIG = REPO / "cell_config" / "sim.yaml"
 DEFAULT_VPG = REPO.parent / "shared" / "external" / "vpg"
 EXIT_OK, EXIT_FAILED, EXIT_USAGE, EXIT_INTERRUPTED = 0, 1, 2, 130
-PARTS = ("vpg", "presets", "novel", "validation")
+PARTS = ("vpg", "presets", "novel", "validation", "packed")
 VALIDATION_SEEDS = (7, 8, 9, 10)   # evaluation seeds: no training run uses them (training seeds are 0-2)
 VALIDATION_OBJECTS, VALIDATION_COUNT = "blocks", 20
 
@@ -85,11 +88,16 @@ def _validation_name(seed: int) -> str:
     return f"validation: {VALIDATION_COUNT} random {VALIDATION_OBJECTS}, seed {seed}"
 
 
-def validation_pooled(reports: dict[str, dict]) -> tuple[int, int, int, int] | None:
+def _packed_name(seed: int) -> str:
+    return f"packed arrangements, seed {seed}"
+
+
+def validation_pooled(reports: dict[str, dict], name_of=_validation_name) -> tuple[int, int, int, int] | None:
     """(grasp successes, grasp attempts, completed runs, counted runs) summed over the validation seeds
-    present in ``reports``; None when none is.  Pooled counts, not a mean of rates: seeds whose runs
-    took more grasps weigh more, as every grasp is one trial."""
-    parts = [reports[_validation_name(s)]["overall"] for s in VALIDATION_SEEDS if _validation_name(s) in reports]
+    present in ``reports`` (``name_of(seed)`` names a seed's report: the 20-block or the packed part);
+    None when none is.  Pooled counts, not a mean of rates: seeds whose runs took more grasps weigh
+    more, as every grasp is one trial."""
+    parts = [reports[name_of(s)]["overall"] for s in VALIDATION_SEEDS if name_of(s) in reports]
     if not parts:
         return None
     return (sum(p["grasp_successes"] for p in parts), sum(p["grasp_attempts"] for p in parts),
@@ -116,10 +124,10 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--max-actions", type=int, help="cap per run (default: flgd eval's)")
     ap.add_argument("--validation-runs", type=int, default=5,
-                    help="runs of 20 random blocks per validation seed (default 5; seeds "
-                         f"{', '.join(map(str, VALIDATION_SEEDS))})")
+                    help="runs of 20 random blocks (and of packed arrangements) per validation seed "
+                         f"(default 5; seeds {', '.join(map(str, VALIDATION_SEEDS))})")
     ap.add_argument("--parts", default="vpg,presets,novel",
-                    help="comma list of vpg, presets, novel, validation (default: the first three)")
+                    help="comma list of vpg, presets, novel, validation, packed (default: the first three)")
     ap.add_argument("--json", help="write the reports here")
     args = ap.parse_args(argv)
 
@@ -173,6 +181,10 @@ def main(argv: list[str]) -> int:
             blocks = [clutter_scene(VALIDATION_OBJECTS, VALIDATION_COUNT)]
             for seed in VALIDATION_SEEDS:
                 suites.append((_validation_name(seed), blocks, False, args.validation_runs, seed))
+        if "packed" in parts:
+            packed = named_set("packed")
+            for seed in VALIDATION_SEEDS:
+                suites.append((_packed_name(seed), packed, False, args.validation_runs, seed))
         # what the Evaluator refuses (a real-cell config, --max-actions 0), refused now rather than as a
         # traceback: it is built per part, and building it is cheap (no simulator until a scene runs)
         with Evaluator(config, network, EvalOptions(runs=args.runs, seed=args.seed, max_actions=args.max_actions)):
@@ -186,7 +198,7 @@ def main(argv: list[str]) -> int:
           f"({policy.get('training_steps', 0)} training steps); {args.runs} run(s) per scene "
           f"({args.clutter_runs} of the novel clutter), seed {args.seed}"
           + (f"; validation {args.validation_runs} run(s) at each of seeds {', '.join(map(str, VALIDATION_SEEDS))}"
-             if "validation" in parts else ""))
+             if {"validation", "packed"} & set(parts) else ""))
     reports: dict[str, dict] = {}
     write_error = ""
     t0 = time.perf_counter()
@@ -238,5 +250,11 @@ def main(argv: list[str]) -> int:
         print(f"validation (20 random blocks, seeds {', '.join(map(str, VALIDATION_SEEDS))} pooled): grasp success "
               f"{_pct(rate)} ({successes}/{attempts}), completion {_pct(cleared / counted if counted else None)} "
               f"(target >= 92 % grasp success)")
+    pooled = validation_pooled(reports, _packed_name)
+    if pooled is not None:
+        successes, attempts, cleared, counted = pooled
+        rate = successes / attempts if attempts else None
+        print(f"packed arrangements (seeds {', '.join(map(str, VALIDATION_SEEDS))} pooled): grasp success "
+              f"{_pct(rate)} ({successes}/{attempts}), completion {_pct(cleared / counted if counted else None)}")
     print(f"total time {time.perf_counter() - t0:.0f} s")
     return _fail(write_error, EXIT_FAILED) if write_error else EXIT_OK

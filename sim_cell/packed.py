@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import math
 
+import cv2
 import numpy as np
 
 from sim_cell import shapes
@@ -36,10 +37,10 @@ def _footprint(geom: shapes.BlockGeometry) -> tuple[float, float, float]:
     return ex, ey, ez
 
 
-def _group(rng: np.random.Generator) -> list[tuple[str, tuple[float, ...], float, float, float, float]]:
+def _group(rng: np.random.Generator, max_per_row: int = 5) -> list[tuple[str, tuple[float, ...], float, float, float, float]]:
     """One group in its own frame: (shape, dims, x, y, yaw, half height) per block, rows along +x."""
     rows = 2 if rng.random() < 0.3 else 1
-    per_row = int(rng.integers(2, 6))
+    per_row = int(rng.integers(2, max(2, max_per_row) + 1))
     blocks = []
     y_cursor = 0.0
     for _ in range(rows):
@@ -67,13 +68,18 @@ def _group(rng: np.random.Generator) -> list[tuple[str, tuple[float, ...], float
     return [(s, d, x - cx, y - cy, yaw, hz) for s, d, x, y, yaw, hz in blocks]
 
 
-def _radius(group, shape_cache) -> float:
-    """A circle around the group's footprint (centre at its origin)."""
-    r = 0.0
-    for shape, dims, x, y, _yaw, _hz in group:
-        ex, ey, _ = shape_cache[(shape, dims)]
-        r = max(r, math.hypot(x, y) + math.hypot(ex, ey) / 2)
-    return r
+def _corners(group, footprints, psi: float, spot: tuple[float, float]) -> list[np.ndarray]:
+    """Each block's footprint rectangle (4 x 2, workspace frame) for the group turned by ``psi`` at ``spot``."""
+    c, s = math.cos(psi), math.sin(psi)
+    out = []
+    for shape, dims, x, y, yaw, _hz in group:
+        ex, ey, _ = footprints[(shape, dims)]
+        a = psi + yaw
+        ca, sa = math.cos(a), math.sin(a)
+        local = np.array([[-ex, -ey], [ex, -ey], [ex, ey], [-ex, ey]]) / 2
+        rot = local @ np.array([[ca, sa], [-sa, ca]])
+        out.append(rot + np.array([spot[0] + c * x - s * y, spot[1] + s * x + c * y]))
+    return out
 
 
 def packed_scene(rng: np.random.Generator, half_x: float, half_y: float, margin: float,
@@ -82,41 +88,57 @@ def packed_scene(rng: np.random.Generator, half_x: float, half_y: float, margin:
 
     ``half_x``/``half_y``: half the workspace size (m); ``margin``: kept free inside its edge;
     ``block_spec(shape, dims)`` gives a block's ObjectSpec (colour, mass, friction; the pose is set
-    here).  ``groups`` (1-3) defaults to a random count.
-    A group that does not fit anywhere is left out, so a scene has at least one group.
+    here).  ``groups`` (1-3) defaults to a random count.  A group that fits nowhere (inside the
+    margin, ``GROUP_CLEARANCE`` from the others) is laid again smaller, then left out; the first
+    group always fits.
     """
     if groups is None:
         groups = int(rng.integers(1, 4))
     if not 1 <= groups <= 3:
         raise ValueError(f"packed scene: groups: got {groups!r}, expected 1..3")
-    placed: list[tuple[float, float, float]] = []   # (x, y, radius) of groups already placed
-    specs: list[ObjectSpec] = []
-    cache: dict = {}
+    cell = 0.005                                   # occupancy grid of the table, m per cell
+    shape_px = (int(math.ceil(2 * half_y / cell)), int(math.ceil(2 * half_x / cell)))
+    taken = np.zeros(shape_px, np.uint8)
+    specs: list = []
+    footprints: dict = {}
+
+    def raster(rects: list[np.ndarray], grow: float) -> np.ndarray:
+        img = np.zeros(shape_px, np.uint8)
+        for r in rects:
+            centre = r.mean(axis=0)
+            grown = r + np.sign(r - centre) * grow
+            px = np.round((grown + [half_x, half_y]) / cell).astype(np.int32)
+            cv2.fillConvexPoly(img, px, 1)
+        return img
+
     for g in range(groups):
-        group = _group(rng)
-        for shape, dims, *_ in group:
-            if (shape, dims) not in cache:
-                cache[(shape, dims)] = _footprint(shapes.make_block(shape, dims))
-        radius = _radius(group, cache)
-        spot = None
-        for _ in range(PLACEMENT_TRIES):
-            lim_x, lim_y = half_x - margin - radius, half_y - margin - radius
-            if lim_x <= 0 or lim_y <= 0:
+        for attempt in range(3):
+            group = _group(rng, max_per_row=5 - attempt)
+            for shape, dims, *_ in group:
+                if (shape, dims) not in footprints:
+                    footprints[(shape, dims)] = _footprint(shapes.make_block(shape, dims))
+            rects = None
+            for _ in range(PLACEMENT_TRIES):
+                psi = float(rng.uniform(0.0, math.pi))
+                spot = (float(rng.uniform(-half_x, half_x)), float(rng.uniform(-half_y, half_y)))
+                cand = _corners(group, footprints, psi, spot)
+                pts = np.concatenate(cand)
+                if np.any(np.abs(pts[:, 0]) > half_x - margin) or np.any(np.abs(pts[:, 1]) > half_y - margin):
+                    continue
+                if np.any(raster(cand, GROUP_CLEARANCE) & taken):
+                    continue
+                rects = cand
                 break
-            x, y = float(rng.uniform(-lim_x, lim_x)), float(rng.uniform(-lim_y, lim_y))
-            if all(math.hypot(x - px, y - py) >= radius + pr + GROUP_CLEARANCE for px, py, pr in placed):
-                spot = (x, y)
+            if rects is not None:
                 break
-        if spot is None:
-            if g == 0:   # always a scene: the first group goes to the centre, it fits an empty table
-                spot = (0.0, 0.0)
-            else:
-                continue
-        placed.append((*spot, radius))
-        psi = float(rng.uniform(0.0, math.pi))
-        c, s = math.cos(psi), math.sin(psi)
-        for shape, dims, x, y, yaw, hz in group:
-            wx, wy = spot[0] + c * x - s * y, spot[1] + s * x + c * y
+        if rects is None and g == 0:   # an empty table: the last (smallest) group goes to its centre
+            psi, rects = 0.0, _corners(group, footprints, 0.0, (0.0, 0.0))
+        if rects is None:
+            continue
+        taken |= raster(rects, 0.0)
+        for (shape, dims, _x, _y, yaw, hz), r in zip(group, rects):
+            centre = r.mean(axis=0)
             a = (psi + yaw) / 2
-            specs.append(block_spec(shape, dims).moved((wx, wy, hz + 0.0005), (0.0, 0.0, math.sin(a), math.cos(a))))
+            specs.append(block_spec(shape, dims).moved((float(centre[0]), float(centre[1]), hz + 0.0005),
+                                                       (0.0, 0.0, math.sin(a), math.cos(a))))
     return Scene(objects=tuple(specs), source="<packed arrangement>")
