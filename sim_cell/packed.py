@@ -32,13 +32,8 @@ GROUP_CLEARANCE = 0.03       # m between the footprints of two groups
 PLACEMENT_TRIES = 60
 
 
-def _footprint(geom: shapes.BlockGeometry) -> tuple[float, float, float]:
-    ex, ey, ez = (float(v) for v in geom.extents)
-    return ex, ey, ez
-
-
-def _group(rng: np.random.Generator, max_per_row: int = 5) -> list[tuple[str, tuple[float, ...], float, float, float, float]]:
-    """One group in its own frame: (shape, dims, x, y, yaw, half height) per block, rows along +x."""
+def _group(rng: np.random.Generator, max_per_row: int = 5) -> list[tuple]:
+    """One group in its own frame, rows along +x: per block (shape, dims, x, y, yaw, extents x, y, z)."""
     rows = 2 if rng.random() < 0.3 else 1
     per_row = int(rng.integers(2, max(2, max_per_row) + 1))
     blocks = []
@@ -48,32 +43,31 @@ def _group(rng: np.random.Generator, max_per_row: int = 5) -> list[tuple[str, tu
         for _ in range(per_row):
             shape = PACKED_SHAPES[int(rng.integers(len(PACKED_SHAPES)))]
             dims = shapes.random_block_dims(shape, rng)
-            ex, ey, ez = _footprint(shapes.make_block(shape, dims))
+            ex, ey, ez = (float(v) for v in shapes.make_block(shape, dims).extents)
             across = rng.random() < 0.5          # long side across the row
             if (ex >= ey) == across:
                 yaw, along, width = math.pi / 2, ey, ex
             else:
                 yaw, along, width = 0.0, ex, ey
-            row.append((shape, dims, yaw, along, width, ez))
+            row.append((shape, dims, yaw, along, width, (ex, ey, ez)))
         row_width = max(r[4] for r in row)
         x = 0.0
-        for shape, dims, yaw, along, width, ez in row:
-            blocks.append((shape, dims, x + along / 2, y_cursor + row_width / 2, yaw, ez / 2))
+        for shape, dims, yaw, along, width, extents in row:
+            blocks.append((shape, dims, x + along / 2, y_cursor + row_width / 2, yaw, extents))
             x += along + float(rng.uniform(*GAP))
         y_cursor += row_width + float(rng.uniform(*GAP))
     # centre the group on its own origin
     xs = [b[2] for b in blocks]
     ys = [b[3] for b in blocks]
     cx, cy = (min(xs) + max(xs)) / 2, (min(ys) + max(ys)) / 2
-    return [(s, d, x - cx, y - cy, yaw, hz) for s, d, x, y, yaw, hz in blocks]
+    return [(s, d, x - cx, y - cy, yaw, *ext) for s, d, x, y, yaw, ext in blocks]
 
 
-def _corners(group, footprints, psi: float, spot: tuple[float, float]) -> list[np.ndarray]:
+def _corners(group, psi: float, spot: tuple[float, float]) -> list[np.ndarray]:
     """Each block's footprint rectangle (4 x 2, workspace frame) for the group turned by ``psi`` at ``spot``."""
     c, s = math.cos(psi), math.sin(psi)
     out = []
-    for shape, dims, x, y, yaw, _hz in group:
-        ex, ey, _ = footprints[(shape, dims)]
+    for _shape, _dims, x, y, yaw, ex, ey, _ez in group:
         a = psi + yaw
         ca, sa = math.cos(a), math.sin(a)
         local = np.array([[-ex, -ey], [ex, -ey], [ex, ey], [-ex, ey]]) / 2
@@ -100,7 +94,6 @@ def packed_scene(rng: np.random.Generator, half_x: float, half_y: float, margin:
     shape_px = (int(math.ceil(2 * half_y / cell)), int(math.ceil(2 * half_x / cell)))
     taken = np.zeros(shape_px, np.uint8)
     specs: list = []
-    footprints: dict = {}
 
     def raster(rects: list[np.ndarray], grow: float) -> np.ndarray:
         img = np.zeros(shape_px, np.uint8)
@@ -113,15 +106,12 @@ def packed_scene(rng: np.random.Generator, half_x: float, half_y: float, margin:
 
     for g in range(groups):
         for attempt in range(3):
-            group = _group(rng, max_per_row=5 - attempt)
-            for shape, dims, *_ in group:
-                if (shape, dims) not in footprints:
-                    footprints[(shape, dims)] = _footprint(shapes.make_block(shape, dims))
+            group = _group(rng, 5 - attempt)
             rects = None
             for _ in range(PLACEMENT_TRIES):
                 psi = float(rng.uniform(0.0, math.pi))
                 spot = (float(rng.uniform(-half_x, half_x)), float(rng.uniform(-half_y, half_y)))
-                cand = _corners(group, footprints, psi, spot)
+                cand = _corners(group, psi, spot)
                 pts = np.concatenate(cand)
                 if np.any(np.abs(pts[:, 0]) > half_x - margin) or np.any(np.abs(pts[:, 1]) > half_y - margin):
                     continue
@@ -132,13 +122,13 @@ def packed_scene(rng: np.random.Generator, half_x: float, half_y: float, margin:
             if rects is not None:
                 break
         if rects is None and g == 0:   # an empty table: the last (smallest) group goes to its centre
-            psi, rects = 0.0, _corners(group, footprints, 0.0, (0.0, 0.0))
+            psi, rects = 0.0, _corners(group, 0.0, (0.0, 0.0))
         if rects is None:
             continue
         taken |= raster(rects, 0.0)
-        for (shape, dims, _x, _y, yaw, hz), r in zip(group, rects):
+        for (shape, dims, _x, _y, yaw, _ex, _ey, ez), r in zip(group, rects):
             centre = r.mean(axis=0)
             a = (psi + yaw) / 2
-            specs.append(block_spec(shape, dims).moved((float(centre[0]), float(centre[1]), hz + 0.0005),
+            specs.append(block_spec(shape, dims).moved((float(centre[0]), float(centre[1]), ez / 2 + 0.0005),
                                                        (0.0, 0.0, math.sin(a), math.cos(a))))
     return Scene(objects=tuple(specs), source="<packed arrangement>")
