@@ -90,8 +90,8 @@ def packed_scene(rng: np.random.Generator, half_x: float, half_y: float, margin:
         groups = int(rng.integers(1, 4))
     if not 1 <= groups <= 3:
         raise ValueError(f"packed scene: groups: got {groups!r}, expected 1..3")
-    cell = 0.005                                   # occupancy grid of the table, m per cell
-    shape_px = (int(math.ceil(2 * half_y / cell)), int(math.ceil(2 * half_x / cell)))
+    grid_m = 0.005                                 # occupancy grid of the table, m per grid cell
+    shape_px = (int(math.ceil(2 * half_y / grid_m)), int(math.ceil(2 * half_x / grid_m)))
     taken = np.zeros(shape_px, np.uint8)
     specs: list = []
 
@@ -100,7 +100,7 @@ def packed_scene(rng: np.random.Generator, half_x: float, half_y: float, margin:
         for r in rects:
             centre = r.mean(axis=0)
             grown = r + np.sign(r - centre) * grow
-            px = np.round((grown + [half_x, half_y]) / cell).astype(np.int32)
+            px = np.round((grown + [half_x, half_y]) / grid_m).astype(np.int32)
             cv2.fillConvexPoly(img, px, 1)
         return img
 
