@@ -243,18 +243,15 @@ def main(argv: list[str]) -> int:
     if "novel objects, clutter of 10" in reports:
         s = reports["novel objects, clutter of 10"]["overall"]
         print(f"target novel clutter: grasp success {_pct(s['grasp_success'])} (target >= 90 %; paper 94.7 %)")
-    pooled = validation_pooled(reports)
-    if pooled is not None:
-        successes, attempts, cleared, counted = pooled
-        rate = successes / attempts if attempts else None
-        print(f"validation (20 random blocks, seeds {', '.join(map(str, VALIDATION_SEEDS))} pooled): grasp success "
-              f"{_pct(rate)} ({successes}/{attempts}), completion {_pct(cleared / counted if counted else None)} "
-              f"(target >= 92 % grasp success)")
-    pooled = validation_pooled(reports, _packed_name)
-    if pooled is not None:
-        successes, attempts, cleared, counted = pooled
-        rate = successes / attempts if attempts else None
-        print(f"packed arrangements (seeds {', '.join(map(str, VALIDATION_SEEDS))} pooled): grasp success "
-              f"{_pct(rate)} ({successes}/{attempts}), completion {_pct(cleared / counted if counted else None)}")
+    seeds = ', '.join(map(str, VALIDATION_SEEDS))
+    for label, name_of, target in ((f"validation (20 random blocks, seeds {seeds} pooled)", _validation_name,
+                                    " (target >= 92 % grasp success)"),
+                                   (f"packed arrangements (seeds {seeds} pooled)", _packed_name, "")):
+        pooled = validation_pooled(reports, name_of)
+        if pooled is not None:
+            successes, attempts, cleared, counted = pooled
+            rate = successes / attempts if attempts else None
+            print(f"{label}: grasp success {_pct(rate)} ({successes}/{attempts}), completion "
+                  f"{_pct(cleared / counted if counted else None)}{target}")
     print(f"total time {time.perf_counter() - t0:.0f} s")
     return _fail(write_error, EXIT_FAILED) if write_error else EXIT_OK
