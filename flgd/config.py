@@ -230,6 +230,10 @@ class LearningConfig:
     priority_beta_steps: int = param(5000, ge=1)
     priority_epsilon: float = param(0.01, gt=0.0)
     huber_delta: float = param(1.0, gt=0.0)
+    batchnorm: Literal["batch", "frozen"] = param(
+        "batch", help="'batch': BatchNorm normalises each update's batch and moves its running statistics "
+                      "(training from scratch); 'frozen': updates use and keep the network's running statistics "
+                      "(fine-tuning a trained policy, whose statistics a batch of 4 transitions would drift)")
     checkpoint_every: int = param(100, ge=1, unit="updates")
     threads: int = param(0, ge=0, help="torch CPU threads; 0 = all cores")
     device: Literal["cpu", "cuda", "auto"] = param("auto")

@@ -341,3 +341,34 @@ def test_a_stop_whose_join_timed_out_never_leaves_two_learner_threads():
         lrn.stop(timeout=60)
     assert not lrn.running
     assert not [t for t in threading.enumerate() if t.name == "flgd-learner"]
+
+
+def _bn_stats(net: torch.nn.Module) -> dict[str, torch.Tensor]:
+    return {k: v.clone() for k, v in net.state_dict().items() if "running_" in k or "num_batches" in k}
+
+
+@pytest.mark.parametrize("mode", ["batch", "frozen"])
+def test_frozen_batchnorm_keeps_the_running_statistics_while_the_weights_learn(mode):
+    lrn = learner(config(batchnorm=mode, learning_rate=1e-3))
+    for i in range(3):
+        lrn.replay.add(Transition(scene(i), Action("grasp", 12, 12, i), float(i % 2), scene(i + 5), False))
+    stats_before = _bn_stats(lrn.online)
+    conv_before = lrn.online.enc1[0].weight.detach().clone()
+    bn_scale_before = lrn.online.enc1[1].weight.detach().clone()
+    for _ in range(3):
+        assert lrn.update() is not None
+    stats_after = _bn_stats(lrn.online)
+    moved = [k for k in stats_before if not torch.equal(stats_before[k], stats_after[k])]
+    assert not torch.equal(conv_before, lrn.online.enc1[0].weight)
+    assert not torch.equal(bn_scale_before, lrn.online.enc1[1].weight)  # BN's scale learns in both modes
+    if mode == "frozen":
+        assert moved == []
+        # the training forward normalised with the running statistics: it matches the eval-mode output
+        t = Transition(scene(1), Action("grasp", 12, 12, 1), 1.0, None, True)
+        train_pred = lrn.loss_terms([t], np.ones(1, np.float32)).maps.detach()
+        lrn.online.eval()
+        with torch.no_grad():
+            eval_pred = lrn.loss_terms([t], np.ones(1, np.float32)).maps
+        assert torch.allclose(train_pred, eval_pred, atol=1e-5)
+    else:
+        assert any("running_mean" in k for k in moved) and any("running_var" in k for k in moved)
