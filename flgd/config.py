@@ -225,6 +225,10 @@ class LearningConfig:
     init_trunk: str = param("", help="trunk file from `flgd pretrain` that a fresh network starts from (relative "
                                      "to the config file); empty = random initial weights")
     replay_capacity: int = param(20000, ge=1)
+    min_replay: int = param(0, ge=0, unit="transitions",
+                            help="no update is scheduled until the replay holds this many transitions (0 = learn "
+                                 "from the first); a fine-tune's first updates otherwise fit a handful of "
+                                 "transitions")
     priority_alpha: float = param(0.6, ge=0.0, le=1.0)
     priority_beta_start: float = param(0.4, ge=0.0, le=1.0)
     priority_beta_steps: int = param(5000, ge=1)

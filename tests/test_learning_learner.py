@@ -372,3 +372,16 @@ def test_frozen_batchnorm_keeps_the_running_statistics_while_the_weights_learn(m
         assert torch.allclose(train_pred, eval_pred, atol=1e-5)
     else:
         assert any("running_mean" in k for k in moved) and any("running_var" in k for k in moved)
+
+
+def test_no_update_is_scheduled_until_the_replay_holds_min_replay_transitions():
+    lrn = learner(config(min_replay=3, updates_per_action=2))
+    for i in range(2):
+        lrn.replay.add(Transition(scene(i), Action("grasp", 12, 12, i), 1.0, None, True))
+        lrn.notify_new_transition()
+        assert lrn.pending == 0
+    assert lrn.update_pending() == [] and lrn.updates == 0
+    lrn.replay.add(Transition(scene(2), Action("grasp", 12, 12, 2), 0.0, None, True))
+    lrn.notify_new_transition()
+    assert lrn.pending == 2
+    assert [s.update for s in lrn.update_pending()] == [1, 2]   # the two skipped actions are not made up

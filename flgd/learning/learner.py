@@ -413,13 +413,16 @@ class Learner:
     # ------------------------------------------------------------------ background thread
 
     def notify_new_transition(self) -> None:
-        """A transition was added: schedule ``updates_per_action`` updates.
+        """A transition was added: schedule ``updates_per_action`` updates (none while the replay holds fewer
+        than ``min_replay`` transitions).
 
         With ``max_backlog`` > 0 at most that many (and never fewer than one action's) stay owed: on a cell
         whose cycles are faster than the learner (the simulator) the backlog would otherwise grow without
         end, and the updates would be of ever older data.  The dropped ones are counted.
         """
         lc = self.config.learning
+        if len(self.replay) < lc.min_replay:
+            return  # too few transitions yet: updates now would fit these few (they are not made up later)
         with self._cond:
             self._pending += lc.updates_per_action
             if lc.max_backlog > 0:
