@@ -203,6 +203,8 @@ class ExplorationConfig:
                                                help="chance a chosen move is kept during the curriculum")
     masks: bool = param(True, help="use the grasp/move masks (false = DPEN ablation)")
     grasp_only: bool = param(False, help="never choose a move (paper's Grasping-only mode, Table II)")
+    twin_grasps: bool = param(False, help="act on the mean of a grasp's two rotations (theta and theta + pi close "
+                                          "the two-finger gripper the same way) instead of each alone")
 
 
 @dataclass(frozen=True)

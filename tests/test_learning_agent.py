@@ -261,3 +261,33 @@ def test_grasp_only_never_moves_even_after_failures_or_exploration():
     # The same agent without grasp_only takes the move.
     b = agent(config())
     assert b.select(q, height, 0).action.is_move
+
+
+def test_twin_grasps_act_on_the_mean_of_a_grasp_and_its_half_turn_and_leave_moves_alone():
+    height = scene_height()
+    q = np.zeros((R, 2, N, N), np.float32)
+    # rotation 3 alone looks best at (10, 10), but its twin (11) says it is poor; rotation 5 and its twin 13
+    # agree on a slightly lower value at (22, 20): only the mean sees that 5/13 is the better grasp
+    q[3, 0, 10, 10], q[11, 0, 10, 10] = 1.0, 0.0
+    q[5, 0, 22, 20], q[13, 0, 22, 20] = 0.8, 0.8
+    q[2, 1, 10, 10], q[10, 1, 10, 10] = 0.3, -0.3   # moves are directional: no averaging
+    plain = agent().select(q, height, 0)
+    assert (plain.action.primitive, plain.action.rotation, plain.action.row) == ("grasp", 3, 10)
+
+    from flgd.learning.networks import twin_grasp_maps
+    twins = twin_grasp_maps(q)
+    assert twins[3, 0, 10, 10] == twins[11, 0, 10, 10] == pytest.approx(0.5)
+    assert np.array_equal(twins[:, 1], q[:, 1])
+    assert twin_grasp_maps(q[:15]) is not None and np.array_equal(twin_grasp_maps(q[:15]), q[:15])  # odd R
+    chosen = agent().select(twins, height, 0)
+    assert chosen.action.primitive == "grasp" and chosen.action.rotation % 8 == 5 and chosen.action.row == 22
+
+    # decide() applies it to the network's maps when the option is on, and only then
+    color = np.zeros((N, N, 3), np.uint8)
+    color[height > 0] = (200, 100, 50)
+    hm = Heightmaps(color, height)
+    on = agent(config(twin_grasps=True))
+    with torch.no_grad():
+        raw = q_maps(on.network, hm).numpy()
+    assert np.allclose(on.decide(hm, 0).q_maps, twin_grasp_maps(raw))
+    assert np.array_equal(agent().decide(hm, 0).q_maps, raw)

@@ -385,3 +385,26 @@ def test_no_update_is_scheduled_until_the_replay_holds_min_replay_transitions():
     lrn.notify_new_transition()
     assert lrn.pending == 2
     assert [s.update for s in lrn.update_pending()] == [1, 2]   # the two skipped actions are not made up
+
+
+def test_twin_grasps_targets_take_a_prime_and_its_value_from_twin_means():
+    cfg = config(gamma=0.5)
+    cfg = dataclasses.replace(cfg, exploration=dataclasses.replace(cfg.exploration, twin_grasps=True,
+                                                                   grasp_only=True))
+    lrn = learner(cfg)
+    lrn.target.load_state_dict(build_network("fast", 16, seed=5).state_dict())
+    s2 = scene(4)
+    t = Transition(scene(3), Action("grasp", 5, 5, 0), 0.25, s2, False)
+    gmask, mmask = Agent(cfg, lrn.online).masks(s2.height)
+    lrn.online.eval()
+    with torch.no_grad():
+        online = q_maps(lrn.online, s2).numpy()
+        target = q_maps(lrn.target, s2).numpy()
+    lrn.online.train()
+    from flgd.learning.networks import twin_grasp_maps
+    rot, ch, row, col = greedy_index(twin_grasp_maps(online), gmask, mmask, grasp_only=True)
+    assert ch == 0
+    expected = 0.25 + 0.5 * (target[rot, 0, row, col] + target[(rot + 8) % 16, 0, row, col]) / 2
+    assert lrn.targets([t])[0] == pytest.approx(expected, abs=1e-5)
+    # and that is not what the plain rule gives (the twins' values differ)
+    assert target[rot, 0, row, col] != pytest.approx(target[(rot + 8) % 16, 0, row, col], abs=1e-4)

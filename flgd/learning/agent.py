@@ -41,7 +41,7 @@ from flgd.clutter import action_masks, grasp_mask
 from flgd.config import CellConfig
 from flgd.perception import Heightmaps
 
-from flgd.learning.networks import QMapNetwork, q_maps
+from flgd.learning.networks import QMapNetwork, q_maps, twin_grasp_maps
 
 __all__ = ["Decision", "Agent", "WeightsMailbox", "RULES", "epsilon_at", "masked_maps", "greedy_index"]
 
@@ -156,10 +156,12 @@ class Agent:
         return action_masks(height, self.config.rewards, self.config.exploration.masks)
 
     def q_maps(self, heightmaps: Heightmaps) -> np.ndarray:
-        """All-rotation Q-maps [R,2,H,W] float32 of the acting network."""
+        """All-rotation Q-maps [R,2,H,W] float32 of the acting network (grasp twins averaged when
+        ``exploration.twin_grasps``)."""
         with torch.inference_mode():
             q = q_maps(self.network, heightmaps, self.rotations)
-        return q.float().cpu().numpy()
+        q = q.float().cpu().numpy()
+        return twin_grasp_maps(q) if self.config.exploration.twin_grasps else q
 
     def decide(self, heightmaps: Heightmaps, step: int) -> Decision | None:
         """The next action for ``heightmaps`` at training step ``step``; None when nothing is on the table."""

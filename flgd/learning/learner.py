@@ -7,7 +7,8 @@ One update (``update``):
   of the *online* network over all rotations of s' under the masks of s' (the
   same masks the agent acts with; none for the DPEN ablation; no moves in
   grasp-only mode) and only a'`s rotation is forwarded through the target
-  network (double DQN);
+  network (double DQN); with ``exploration.twin_grasps`` both use the mean of
+  a grasp's two twin rotations, as the agent does;
 * prediction: only the executed rotation i is forwarded through the online
   network, plus its twin (i + R/2) % R for a grasp, since the two-finger
   gripper closing along u or -u is the same grasp; both are trained towards y;
@@ -72,7 +73,7 @@ from flgd.perception import Heightmaps
 
 from flgd.learning.augment import mirror_action, mirror_heightmaps
 from flgd.learning.agent import Decision, WeightsMailbox, greedy_index
-from flgd.learning.networks import QMapNetwork, q_maps, rotated_inputs, unrotate_maps
+from flgd.learning.networks import QMapNetwork, q_maps, rotated_inputs, twin_grasp_maps, unrotate_maps
 from flgd.learning.replay import PrioritizedReplay, Transition, state_key
 
 __all__ = ["Learner", "UpdateStats", "LossTerms", "resolve_device"]
@@ -219,6 +220,8 @@ class Learner:
         height = np.nan_to_num(np.asarray(t.next_state.height, dtype=np.float32), nan=0.0)
         gmask, mmask = self._masks(height)
         q_next = q_maps(self.online, t.next_state, self.rotations).cpu().numpy()
+        if self.config.exploration.twin_grasps:
+            q_next = twin_grasp_maps(q_next)  # a' as the agent would choose it
         index = greedy_index(q_next, gmask, mmask, self.config.exploration.grasp_only)
         self.argmax_computed += 1
         if max_age > 0 and key is not None:
@@ -240,8 +243,13 @@ class Learner:
             if cached is not None and cached[0] == index:
                 return cached[1]
         rot, ch, row, col = index
-        q_t = q_maps(self.target, t.next_state, self.rotations, rotation_indices=[rot])
-        value = float(q_t[0, ch, row, col])
+        if ch == 0 and self.config.exploration.twin_grasps and self.rotations % 2 == 0:
+            twin = (rot + self.rotations // 2) % self.rotations
+            q_t = q_maps(self.target, t.next_state, self.rotations, rotation_indices=[rot, twin])
+            value = float(q_t[:, ch, row, col].mean())
+        else:
+            q_t = q_maps(self.target, t.next_state, self.rotations, rotation_indices=[rot])
+            value = float(q_t[0, ch, row, col])
         if key is not None and self.config.learning.next_argmax_max_age > 0:
             self._next_value[key] = (index, value)
         return value

@@ -486,3 +486,24 @@ def q_maps(net: QMapNetwork, heightmaps, rotations: int = 16,
     out = net(color, height)
     h, w = np.asarray(heightmaps.height).shape
     return unrotate_maps(out, indices, rotations, h, w)
+
+
+def twin_grasp_maps(q: np.ndarray) -> np.ndarray:
+    """Q-maps [R,2,H,W] whose grasp channel at rotation i is the mean of rotations i and i + R/2.
+
+    Why: a two-finger grasp at angle theta and at theta + pi is the same
+    grasp (the learner trains both towards one target), but the network
+    predicts them apart, and an argmax over both picks whichever twin's error
+    happens to be higher.  The mean of the two is the better estimate.  Moves
+    are directional and keep their values; an odd R has no twins.
+    """
+    q = np.asarray(q)
+    rotations = q.shape[0]
+    if rotations % 2:
+        return q
+    out = np.array(q, copy=True)
+    half = rotations // 2
+    mean = (q[:half, 0] + q[half:, 0]) / 2
+    out[:half, 0] = mean
+    out[half:, 0] = mean
+    return out
