@@ -205,8 +205,6 @@ class ExplorationConfig:
     grasp_only: bool = param(False, help="never choose a move (paper's Grasping-only mode, Table II)")
     twin_grasps: bool = param(False, help="act on the mean of a grasp's two rotations (theta and theta + pi close "
                                           "the two-finger gripper the same way) instead of each alone")
-    mirror_average: bool = param(False, help="act on the mean of the Q-maps of the scene and of its mirror image "
-                                             "(twice the decision's network passes)")
 
 
 @dataclass(frozen=True)

@@ -291,21 +291,3 @@ def test_twin_grasps_act_on_the_mean_of_a_grasp_and_its_half_turn_and_leave_move
         raw = q_maps(on.network, hm).numpy()
     assert np.allclose(on.decide(hm, 0).q_maps, twin_grasp_maps(raw))
     assert np.array_equal(agent().decide(hm, 0).q_maps, raw)
-
-
-def test_mirror_average_acts_on_the_mean_of_the_scene_and_its_mirror_image():
-    from flgd.learning.augment import mirror_heightmaps, unmirror_maps
-    height = scene_height()
-    color = np.zeros((N, N, 3), np.uint8)
-    color[height > 0] = (200, 100, 50)
-    hm = Heightmaps(color, height)
-    a = agent(config(mirror_average=True))
-    with torch.no_grad():
-        direct = q_maps(a.network, hm).numpy()
-        mirrored = q_maps(a.network, mirror_heightmaps(hm)).numpy()
-    got = a.decide(hm, 0).q_maps
-    assert np.allclose(got, (direct + unmirror_maps(mirrored)) / 2, atol=1e-6)
-    assert not np.allclose(got, direct, atol=1e-3)   # the second view changes the values
-    # the averaged maps are mirror-consistent: the mirrored scene gets the mirrored values
-    again = a.decide(mirror_heightmaps(hm), 0).q_maps
-    assert np.allclose(unmirror_maps(again), got, atol=1e-5)

@@ -87,17 +87,3 @@ def test_the_learner_puts_the_gradient_at_the_mirrored_pixel_and_rotations(p, mi
     else:
         assert terms.actions == [t.action] and terms.rotations == [3, 11]
         assert nonzero == {(0, 0, 12, 6), (1, 0, 12, 6)}
-
-
-def test_unmirrored_maps_hold_the_mirrored_scenes_value_of_each_original_action():
-    from flgd.learning.augment import unmirror_maps
-    rng = np.random.default_rng(3)
-    q = rng.normal(size=(16, 2, 9, 12)).astype(np.float32)
-    back = unmirror_maps(q)
-    for _ in range(200):
-        i, ch, r, c = (int(v) for v in (rng.integers(16), rng.integers(2), rng.integers(9), rng.integers(12)))
-        m = mirror_action(Action("grasp" if ch == 0 else "push", r, c, i, 16), 12)
-        assert back[i, ch, r, c] == q[m.rotation, ch, m.row, m.col]
-    assert np.array_equal(unmirror_maps(back), q)   # a mirror twice is the identity
-    with pytest.raises(ValueError, match="even"):
-        unmirror_maps(q[:15])

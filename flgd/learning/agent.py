@@ -41,7 +41,6 @@ from flgd.clutter import action_masks, grasp_mask
 from flgd.config import CellConfig
 from flgd.perception import Heightmaps
 
-from flgd.learning.augment import mirror_heightmaps, unmirror_maps
 from flgd.learning.networks import QMapNetwork, q_maps, twin_grasp_maps
 
 __all__ = ["Decision", "Agent", "WeightsMailbox", "RULES", "epsilon_at", "masked_maps", "greedy_index"]
@@ -157,13 +156,11 @@ class Agent:
         return action_masks(height, self.config.rewards, self.config.exploration.masks)
 
     def q_maps(self, heightmaps: Heightmaps) -> np.ndarray:
-        """All-rotation Q-maps [R,2,H,W] float32 of the acting network (averaged with the mirror scene's when
-        ``exploration.mirror_average``, grasp twins averaged when ``exploration.twin_grasps``)."""
+        """All-rotation Q-maps [R,2,H,W] float32 of the acting network (grasp twins averaged when
+        ``exploration.twin_grasps``)."""
         with torch.inference_mode():
-            q = q_maps(self.network, heightmaps, self.rotations).float().cpu().numpy()
-            if self.config.exploration.mirror_average and self.rotations % 2 == 0:
-                mirrored = q_maps(self.network, mirror_heightmaps(heightmaps), self.rotations).float().cpu().numpy()
-                q = (q + unmirror_maps(mirrored)) / 2
+            q = q_maps(self.network, heightmaps, self.rotations)
+        q = q.float().cpu().numpy()
         return twin_grasp_maps(q) if self.config.exploration.twin_grasps else q
 
     def decide(self, heightmaps: Heightmaps, step: int) -> Decision | None:

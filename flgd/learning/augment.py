@@ -17,7 +17,7 @@ import numpy as np
 from flgd.actions import Action
 from flgd.perception import Heightmaps
 
-__all__ = ["mirror_heightmaps", "mirror_action", "unmirror_maps"]
+__all__ = ["mirror_heightmaps", "mirror_action"]
 
 
 def mirror_heightmaps(hm: Heightmaps) -> Heightmaps:
@@ -32,17 +32,3 @@ def mirror_action(action: Action, width: int) -> Action:
         raise ValueError(f"mirror_action: {action.rotations} rotations; a mirror needs an even number")
     rotation = (action.rotations // 2 - action.rotation) % action.rotations
     return Action(action.primitive, action.row, width - 1 - action.col, rotation, action.rotations)
-
-
-def unmirror_maps(q: np.ndarray) -> np.ndarray:
-    """Q-maps [R,2,H,W] computed on the mirrored scene, as values of the original scene's actions.
-
-    The original action (i, row, col) is the mirrored scene's ((R/2 - i) mod R, row, W - 1 - col), so the
-    two maps can be averaged: an estimate from a second view at the cost of a second pass.
-    """
-    q = np.asarray(q)
-    rotations = q.shape[0]
-    if rotations % 2:
-        raise ValueError(f"unmirror_maps: {rotations} rotations; a mirror needs an even number")
-    order = [(rotations // 2 - i) % rotations for i in range(rotations)]
-    return np.ascontiguousarray(q[order][..., ::-1])
