@@ -299,3 +299,37 @@ def test_a_run_can_start_from_a_policy_file_and_refuses_a_bad_one(tmp_path, caps
     err = capsys.readouterr().err
     assert "--init-policy" in err and "bad.safetensors" in err
     assert not (tmp_path / "never" / "run.json").exists()
+
+
+def test_give_up_after_starts_a_new_scene_after_that_many_actions_without_a_grasp(tmp_path, capsys):
+    out = tmp_path / "run"
+    # a fresh network on 10 objects: long stretches without a successful grasp
+    cfg = yaml.safe_load(Path(CONFIG).read_text())
+    cfg["policy"] = ""
+    cfg["state_dir"] = str(tmp_path / "state")
+    cfg["learning"].update({"init_trunk": "", "updates_per_action": 1})
+    config = tmp_path / "fresh.yaml"
+    config.write_text(yaml.safe_dump(cfg))
+    assert train_main(["--config", str(config), "--out", str(out), "--threads", "1", "--steps", "8", "--seed", "1",
+                       "--give-up-after", "3"]) == 0
+    rows = read_rows(out / "actions.csv")
+    streak, expected_scene, give_ups = 0, int(rows[0]["scene"]), 0
+    for before, after in zip(rows, rows[1:]):
+        grasped = before["primitive"] == "grasp" and before["success"] == "1"
+        streak = 0 if grasped else streak + 1
+        cleared = before["objects_left"] == "1" and grasped
+        if streak >= 3 or cleared:
+            expected_scene += 1
+            give_ups += streak >= 3
+            streak = 0
+            assert int(after["objects_left"]) >= 8   # a fresh scene of 10 (one may settle outside the workspace)
+        assert int(after["scene"]) == expected_scene
+    assert give_ups >= 1
+    events = Store(out).events("give-up")
+    assert len(events) == give_ups and "3 actions without a successful grasp" in events[0]["message"]
+    assert json.loads((out / "run.json").read_text())["settings"]["give_up_after"] == 3
+    # resuming keeps the setting; another value is refused with the flag named
+    assert train_main(["--out", str(out), "--steps", "9", "--threads", "1"]) == 0
+    assert train_main(["--out", str(out), "--steps", "10", "--threads", "1", "--give-up-after", "5"]) == 2
+    assert "--give-up-after: got 5" in capsys.readouterr().err
+    assert train_main(["--config", str(config), "--out", str(tmp_path / "neg"), "--give-up-after", "-1"]) == 2

@@ -87,12 +87,14 @@ class RunSettings:
     curriculum: bool = False
     grasp_only: bool = False
     init_policy: str = ""  # a new run starts from this policy file's weights (fresh replay and optimizer)
+    give_up_after: int = 0  # new scene after this many actions in a row without a successful grasp (0 = never)
 
     def describe(self) -> str:
         scene = "curriculum 10->20 objects + presets" if self.curriculum else f"{self.objects} objects"
         mode = ", grasp only" if self.grasp_only else ""
         start = f", from {self.init_policy}" if self.init_policy else ""
-        return f"{self.variant} ({TRAIN_VARIANTS[self.variant][2]}), {scene}{mode}, seed {self.seed}{start}"
+        give_up = f", new scene after {self.give_up_after} actions without a grasp" if self.give_up_after else ""
+        return f"{self.variant} ({TRAIN_VARIANTS[self.variant][2]}), {scene}{mode}, seed {self.seed}{start}{give_up}"
 
 
 class RunFileError(ValueError):
@@ -226,6 +228,7 @@ class TrainingRun:
         self._cycle_scene: tuple[int | None, str] = (None, "")
         self.last_checkpoint_updates = -1
         self.consecutive_faults = 0
+        self.actions_without_grasp = 0  # in the current scene (give_up_after)
         self._lock_fd: int | None = None
 
     # ------------------------------------------------------------------ setup
@@ -434,6 +437,7 @@ class TrainingRun:
                 self.progress.message(f"flgd train: {what}")
         self.runner.forget_state()
         self.agent.reset_episode()
+        self.actions_without_grasp = 0
 
     def train(self) -> int:
         """Train until ``settings.steps`` or a stop signal; returns the exit code."""
@@ -479,6 +483,9 @@ class TrainingRun:
             self.actions.append(row)
             if record.done or record.outcome == "discarded":  # the runner has started a new scene
                 self.scene_count += 1
+                self.actions_without_grasp = 0
+            elif record.outcome == "executed":
+                self._maybe_give_up(record)
             done = self.runner.step - start_step
             rate = done / max(1e-9, time.monotonic() - t0)
             eta = (target - self.runner.step) / rate if rate > 0 else math.inf
@@ -492,6 +499,31 @@ class TrainingRun:
                               f"{self.runner.step}, {self.learner.updates} updates; log {self.out / LOG_FILE}, "
                               f"curve {self.out / CURVE_FILE}")
         return EXIT_INTERRUPTED if interrupted else EXIT_OK
+
+    def _maybe_give_up(self, record) -> None:
+        """A new scene after ``give_up_after`` actions in a row without a successful grasp.
+
+        Why: a scene the policy cannot clear is otherwise kept for ever, and
+        the move reward pays for shuffling its last objects about (each shift
+        changes the heightmap by more than tau1): a fine-tune collapsed that
+        way on a single block (BENCHMARKS.md, session 11).
+        """
+        if record.primitive == "grasp" and record.success:
+            self.actions_without_grasp = 0
+            return
+        self.actions_without_grasp += 1
+        limit = self.settings.give_up_after
+        if limit <= 0 or self.actions_without_grasp < limit:
+            return
+        what = (f"{self.actions_without_grasp} actions without a successful grasp at step {self.runner.step}, "
+                f"{self.cell.object_count} objects left: new scene")
+        self.progress.message(f"flgd train: {what}")
+        self.store.record_event("give-up", what)
+        self.cell.reset_scene()
+        self.runner.forget_state()
+        self.agent.reset_episode()
+        self.scene_count += 1
+        self.actions_without_grasp = 0
 
     def _status(self, rate: float | None, eta: float | None) -> str:
         r50, r200 = rolling(self.grasps, 50), rolling(self.grasps, 200)
@@ -579,6 +611,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--init-policy", metavar="FILE",
                    help="start a new run from this policy file (e.g. to fine-tune the shipped policy on other "
                         "objects) instead of a fresh network; the replay and optimizer start empty")
+    p.add_argument("--give-up-after", type=int, metavar="N",
+                   help="start a new scene after N actions in a row without a successful grasp (default 0: never; "
+                        "a run started without it keeps never)")
     p.add_argument("--threads", type=int, help="torch CPU threads (default: learning.threads of the config)")
     p.add_argument("--log-every", type=int, default=25, help="steps between plain progress lines (no terminal)")
     return p
@@ -588,12 +623,14 @@ def _settings(args: argparse.Namespace, previous: dict | None) -> RunSettings:
     """Settings from the command line, checked against a run being resumed."""
     given = {"variant": args.variant, "objects": args.objects, "steps": args.steps, "seed": args.seed,
              "curriculum": args.curriculum, "grasp_only": args.grasp_only,
-             "init_policy": None if args.init_policy is None else str(Path(args.init_policy).resolve())}
+             "init_policy": None if args.init_policy is None else str(Path(args.init_policy).resolve()),
+             "give_up_after": args.give_up_after}
     if previous:
         for key, value in given.items():
-            if key != "steps" and value is not None and value != previous.get(key):
+            before = previous.get(key, getattr(RunSettings(), key))  # a key newer than the run: its default
+            if key != "steps" and value is not None and value != before:
                 raise ValueError(f"--{key.replace('_', '-')}: got {value!r}, but the run in --out was started "
-                                 f"with {previous.get(key)!r}; use another --out for other settings")
+                                 f"with {before!r}; use another --out for other settings")
         merged = {**dataclasses.asdict(RunSettings()), **previous, **{k: v for k, v in given.items() if v is not None}}
         return RunSettings(**{f.name: merged[f.name] for f in dataclasses.fields(RunSettings)})
     defaults = RunSettings()
@@ -616,10 +653,11 @@ def main(argv: list[str]) -> int:
         return EXIT_USAGE
     try:
         settings = _settings(args, previous_info.get("settings") if previous_info else None)
-        for name in ("objects", "steps", "seed"):
+        for name in ("objects", "steps", "seed", "give_up_after"):
             v = getattr(settings, name)
             if v < 0 or (name == "objects" and not 1 <= v <= 60):
-                raise ValueError(f"--{name}: got {v!r}, expected " + ("1..60" if name == "objects" else ">= 0"))
+                raise ValueError(f"--{name.replace('_', '-')}: got {v!r}, expected "
+                                 + ("1..60" if name == "objects" else ">= 0"))
         if args.threads is not None and args.threads < 0:
             raise ValueError(f"--threads: got {args.threads!r}, expected >= 0")
         if settings.init_policy and not previous_info:
