@@ -333,3 +333,42 @@ def test_give_up_after_starts_a_new_scene_after_that_many_actions_without_a_gras
     assert train_main(["--out", str(out), "--steps", "10", "--threads", "1", "--give-up-after", "5"]) == 2
     assert "--give-up-after: got 5" in capsys.readouterr().err
     assert train_main(["--config", str(config), "--out", str(tmp_path / "neg"), "--give-up-after", "-1"]) == 2
+
+
+class ResetFailsOnce(FlakyCell):
+    """The flaky wrapper whose first scene reset fails as a simulator can (a fake of that failure only)."""
+
+    def __init__(self, inner: Cell):
+        super().__init__(inner, errors=[], faults=[])
+        self.resets = 0
+
+    def reset_scene(self):
+        self.resets += 1
+        if self.resets == 1:
+            raise RuntimeError("object 4 settles at 3.1 m/s (injected)")
+        self.inner.reset_scene()
+
+
+def test_a_give_up_whose_new_scene_fails_is_recovered_like_a_fault(tmp_path):
+    import dataclasses
+    import io
+
+    from flgd.training.run import RunSettings, TrainingRun, _Progress
+
+    config = dataclasses.replace(load_config(CONFIG), policy="")   # a fresh network: grasps fail
+    run = TrainingRun(tmp_path / "run", RunSettings(steps=4, seed=1, give_up_after=1), config,
+                      _Progress(io.StringIO(), False), threads=1)
+    try:
+        run.setup()
+        run.cell = ResetFailsOnce(run.cell)
+        run.runner.cell = run.cell
+        assert run.train() == 0 and run.runner.step == 4
+        assert run.cell.resets >= 2   # the failed reset, then the recovery's
+    finally:
+        run.close()
+    store = Store(tmp_path / "run")
+    try:
+        assert store.events("give-up")
+        assert any("object 4 settles" in e["message"] for e in store.events("fault"))
+    finally:
+        store.close()

@@ -519,11 +519,15 @@ class TrainingRun:
                 f"{self.cell.object_count} objects left: new scene")
         self.progress.message(f"flgd train: {what}")
         self.store.record_event("give-up", what)
-        self.cell.reset_scene()
-        self.runner.forget_state()
-        self.agent.reset_episode()
         self.scene_count += 1
         self.actions_without_grasp = 0
+        try:
+            self.cell.reset_scene()
+        except Exception as exc:  # the simulator failing to lay out the new scene: recover as from a fault
+            self._handle_fault(exc)
+            return
+        self.runner.forget_state()
+        self.agent.reset_episode()
 
     def _status(self, rate: float | None, eta: float | None) -> str:
         r50, r200 = rolling(self.grasps, 50), rolling(self.grasps, 200)
