@@ -15,7 +15,7 @@ from flgd.actions import Action
 from flgd.config import CellConfig
 from flgd.learning.agent import Agent, greedy_index, masked_maps
 from flgd.learning.learner import Learner
-from flgd.learning.networks import build_network, q_maps
+from flgd.learning.networks import build_network, q_maps, twin_grasp_maps
 from flgd.learning.replay import PrioritizedReplay, Transition, state_key
 from flgd.perception import Heightmaps
 
@@ -401,7 +401,6 @@ def test_twin_grasps_targets_take_a_prime_and_its_value_from_twin_means():
         online = q_maps(lrn.online, s2).numpy()
         target = q_maps(lrn.target, s2).numpy()
     lrn.online.train()
-    from flgd.learning.networks import twin_grasp_maps
     rot, ch, row, col = greedy_index(twin_grasp_maps(online), gmask, mmask, grasp_only=True)
     assert ch == 0
     expected = 0.25 + 0.5 * (target[rot, 0, row, col] + target[(rot + 8) % 16, 0, row, col]) / 2
