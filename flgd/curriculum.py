@@ -118,7 +118,7 @@ class CurriculumCell(Cell):
             n = self.curriculum.object_count(step)
             self.inner.set_object_count(n)
             self.inner.reset_scene()
-            self.scene_kind = f"random {n}"
+            self.scene_kind = getattr(self.inner, "scene_kind", f"random {n}")   # a packed scene says so
         self.scenes += 1
 
     @property

@@ -155,6 +155,9 @@ class SimCell(Cell):
         self._scene_rng = np.random.default_rng(seeds[0])
         self._noise_rng = np.random.default_rng(seeds[1])
         self._object_count = config.sim.objects
+        # What the current objects came from, for logs ("random 20", "packed 9", "scene pile"):
+        # a training log must tell a packed scene from a drop.
+        self.scene_kind = "none"
         self._object_groups = objects.resolve_object_groups(config.sim.object_set)
         self._natural_extents: dict[str, tuple[float, float, float]] = {}
         self._objects: dict[int, objects.SpawnedObject] = {}
@@ -336,6 +339,7 @@ class SimCell(Cell):
                 self._randomise_domain()
                 self._drop_random_objects(self._object_count)
                 self.stats["scenes"] += 1
+                self.scene_kind = f"random {self._object_count}"
 
     def recover(self) -> None:
         """Bring the arm home with the gripper open (a held object is carried out)."""
@@ -385,8 +389,10 @@ class SimCell(Cell):
                 self._settle(0.25)
             except (_Unstable, ValueError) as exc:
                 self._clear_objects()
+                self.scene_kind = "none"
                 raise scenes.SceneError(f"scene {scene.source or '<in memory>'}: {exc}") from None
             self.stats["scenes"] += 1
+            self.scene_kind = f"scene {Path(scene.source).stem if scene.source else '<in memory>'} ({len(self._objects)})"
             return len(self._objects)
 
     def save_scene(self, path: str | Path) -> None:
@@ -893,6 +899,7 @@ class SimCell(Cell):
             scene = packed.packed_scene(self._scene_rng, (ws.x[1] - ws.x[0]) / 2, (ws.y[1] - ws.y[0]) / 2,
                                         DROP_MARGIN - 0.02, self._block_spec, groups)
             origin = scenes.workspace_origin(ws)
+            kind = "packed"
             try:
                 for spec in scene.objects:
                     self._add(spec.moved(np.asarray(spec.position) + origin, spec.orientation))
@@ -900,8 +907,10 @@ class SimCell(Cell):
             except _Unstable:   # counted by _settle; a dropped scene instead, as reset_scene would
                 self._clear_objects()
                 self._drop_random_objects(self._object_count)
+                kind = "random"
             self._remove_outside()
             self.stats["scenes"] += 1
+            self.scene_kind = f"{kind} {len(self._objects)}" if kind == "packed" else f"random {self._object_count}"
             return len(self._objects)
 
     def make_clutter(self, n: int, spread: float | None = None) -> int:

@@ -93,14 +93,15 @@ def test_sim_packed_scenes_sets_the_share_of_new_scenes_that_are_packed(tmp_path
         counts = []
         for _ in range(3):
             c.reset_scene()
-            counts.append((c.object_count, _blobs(c)))
+            counts.append((c.object_count, _blobs(c), c.scene_kind))
     finally:
         c.close()
-    assert all(n >= 2 and 1 <= blobs <= 3 for n, blobs in counts)   # packed: one to three groups
+    assert all(n >= 2 and 1 <= blobs <= 3 for n, blobs, _ in counts)   # packed: one to three groups
+    assert [kind for _, _, kind in counts] == [f"packed {n}" for n, _, _ in counts]   # what a training log records
     c = SimCell(_cfg(packed_scenes=0.0, objects=20))
     try:
         c.reset_scene()
-        assert c.object_count == 20                          # a dropped scene of sim.objects
+        assert c.object_count == 20 and c.scene_kind == "random 20"   # a dropped scene of sim.objects
     finally:
         c.close()
     bad = tmp_path / "bad.yaml"

@@ -59,7 +59,7 @@ def test_save_and_load_round_trip_keeps_objects_and_poses(cell, tmp_path):
     cell.save_scene(path)
     scene = load_scene(path)
     assert len(scene.objects) == 6
-    assert cell.load_scene(path) == 6
+    assert cell.load_scene(path) == 6 and cell.scene_kind == "scene scene (6)"
     after = cell.object_states()
     assert [s.label for s in after] == [s.label for s in before]
     assert np.max(np.linalg.norm(np.array([s.position for s in after]) -

@@ -301,6 +301,23 @@ def test_a_run_can_start_from_a_policy_file_and_refuses_a_bad_one(tmp_path, caps
     assert not (tmp_path / "never" / "run.json").exists()
 
 
+def test_the_action_log_names_packed_scenes_as_packed(tmp_path):
+    """sim.packed_scenes mixes packed arrangements into training; the log must not call them random drops."""
+    cfg = yaml.safe_load(Path(CONFIG).read_text())
+    cfg["sim"]["packed_scenes"] = 1.0
+    cfg["policy"] = str(load_config(CONFIG).policy)   # sim.yaml's path is relative to it
+    cfg["state_dir"] = str(tmp_path / "state")
+    cfg["learning"].update({"init_trunk": "", "updates_per_action": 1})
+    config = tmp_path / "packed.yaml"
+    config.write_text(yaml.safe_dump(cfg))
+    out = tmp_path / "run"
+    assert train_main(["--config", str(config), "--out", str(out), "--threads", "1", "--steps", "2",
+                       "--seed", "2"]) == 0
+    rows = read_rows(out / "actions.csv")
+    first = int(rows[0]["objects_left"]) + (rows[0]["success"] == "1")   # objects before the first action
+    assert len(rows) == 2 and {r["scene_kind"] for r in rows} == {f"packed {first}"}
+
+
 def test_give_up_after_starts_a_new_scene_after_that_many_actions_without_a_grasp(tmp_path, capsys):
     out = tmp_path / "run"
     # a fresh network on 10 objects: long stretches without a successful grasp
