@@ -899,7 +899,7 @@ class SimCell(Cell):
             scene = packed.packed_scene(self._scene_rng, (ws.x[1] - ws.x[0]) / 2, (ws.y[1] - ws.y[0]) / 2,
                                         DROP_MARGIN - 0.02, self._block_spec, groups)
             origin = scenes.workspace_origin(ws)
-            kind = "packed"
+            packed_ok = True
             try:
                 for spec in scene.objects:
                     self._add(spec.moved(np.asarray(spec.position) + origin, spec.orientation))
@@ -907,10 +907,10 @@ class SimCell(Cell):
             except _Unstable:   # counted by _settle; a dropped scene instead, as reset_scene would
                 self._clear_objects()
                 self._drop_random_objects(self._object_count)
-                kind = "random"
+                packed_ok = False
             self._remove_outside()
             self.stats["scenes"] += 1
-            self.scene_kind = f"{kind} {len(self._objects)}" if kind == "packed" else f"random {self._object_count}"
+            self.scene_kind = f"packed {len(self._objects)}" if packed_ok else f"random {self._object_count}"
             return len(self._objects)
 
     def make_clutter(self, n: int, spread: float | None = None) -> int:

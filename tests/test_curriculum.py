@@ -111,6 +111,20 @@ def test_curriculum_cell_uses_the_step_for_count_and_presets_only_when_emptied()
     assert cell.scene_kind == "preset pile (22)" and cell.object_count == 22 and cell.scenes == 4
 
 
+def test_curriculum_cell_reports_the_inner_cells_own_scene_kind():
+    """A simulated cell with sim.packed_scenes may lay a packed scene where the curriculum asked for a reset."""
+    cfg = load_config(REPO / "cell_config" / "sim.yaml")
+
+    class PackingSimCell(FakeSimCell):
+        def reset_scene(self) -> None:
+            super().reset_scene()
+            self.scene_kind = "packed 7"
+
+    cell = CurriculumCell(PackingSimCell(cfg, 10), Curriculum(), lambda: 0, [], np.random.default_rng(0))
+    cell.reset_scene()
+    assert cell.scene_kind == "packed 7"
+
+
 def test_curriculum_cell_needs_a_simulated_cell():
     cfg = load_config(REPO / "cell_config" / "sim.yaml")
 
