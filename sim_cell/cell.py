@@ -335,11 +335,7 @@ class SimCell(Cell):
             elif self.config.sim.packed_scenes > 0 and self._scene_rng.random() < self.config.sim.packed_scenes:
                 self.make_packed()
             else:
-                self._clear_objects()
-                self._randomise_domain()
-                self._drop_random_objects(self._object_count)
-                self.stats["scenes"] += 1
-                self.scene_kind = f"random {self._object_count}"
+                self.make_clutter(self._object_count)
 
     def recover(self) -> None:
         """Bring the arm home with the gripper open (a held object is carried out)."""
@@ -922,6 +918,7 @@ class SimCell(Cell):
             self._randomise_domain()
             self._drop_random_objects(n, spread)
             self.stats["scenes"] += 1
+            self.scene_kind = f"random {n}"
             return len(self._objects)
 
     def _drop_random_objects(self, n: int, spread: float | None = None) -> None:

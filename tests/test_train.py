@@ -34,6 +34,20 @@ def _checkpoints(out: Path) -> list[Path]:
     return sorted((out / "checkpoints").glob("checkpoint-*.safetensors"))
 
 
+def _config_variant(tmp_path: Path, name: str, policy: str = "", **sections: dict) -> str:
+    """sim.yaml with some keys changed, written beside the test's state dir; its paths made absolute."""
+    cfg = yaml.safe_load(Path(CONFIG).read_text())
+    for section, values in sections.items():
+        cfg[section].update(values)
+    cfg["policy"] = policy
+    cfg["state_dir"] = str(tmp_path / "state")
+    if cfg["learning"].get("init_trunk"):   # sim.yaml's trunk path is relative to it
+        cfg["learning"]["init_trunk"] = load_config(CONFIG).learning.init_trunk
+    config = tmp_path / f"{name}.yaml"
+    config.write_text(yaml.safe_dump(cfg))
+    return str(config)
+
+
 def test_a_short_run_writes_log_checkpoint_and_curve_then_resumes(tmp_path):
     out = tmp_path / "run"
     assert _train(out, "--steps", "3", "--seed", "5") == 0
@@ -103,17 +117,10 @@ def test_a_short_run_writes_log_checkpoint_and_curve_then_resumes(tmp_path):
 
 def test_cached_next_argmax_and_several_updates_per_action_in_a_real_run(tmp_path):
     """The agent's decisions feed the learner's a' cache through the cycle; the run reports its use."""
-    import yaml
-
-    cfg = yaml.safe_load(Path(CONFIG).read_text())
-    cfg["learning"].update({"next_argmax_max_age": 100, "updates_per_action": 2, "batch_size": 2})
-    cfg["policy"] = ""  # train from scratch
-    cfg["state_dir"] = str(tmp_path / "state")
-    cfg["learning"]["init_trunk"] = load_config(CONFIG).learning.init_trunk  # sim.yaml's path is relative to it
-    config = tmp_path / "sim-cached.yaml"
-    config.write_text(yaml.safe_dump(cfg))
+    config = _config_variant(tmp_path, "sim-cached",   # from scratch, from sim.yaml's pre-trained trunk
+                             learning={"next_argmax_max_age": 100, "updates_per_action": 2, "batch_size": 2})
     out = tmp_path / "run"
-    assert train_main(["--config", str(config), "--out", str(out), "--threads", "1", "--steps", "4",
+    assert train_main(["--config", config, "--out", str(out), "--threads", "1", "--steps", "4",
                        "--seed", "3"]) == 0
     rows = read_rows(out / "actions.csv")
     assert [int(r["updates"]) for r in rows] == [2, 4, 6, 8]
@@ -303,15 +310,10 @@ def test_a_run_can_start_from_a_policy_file_and_refuses_a_bad_one(tmp_path, caps
 
 def test_the_action_log_names_packed_scenes_as_packed(tmp_path):
     """sim.packed_scenes mixes packed arrangements into training; the log must not call them random drops."""
-    cfg = yaml.safe_load(Path(CONFIG).read_text())
-    cfg["sim"]["packed_scenes"] = 1.0
-    cfg["policy"] = str(load_config(CONFIG).policy)   # sim.yaml's path is relative to it
-    cfg["state_dir"] = str(tmp_path / "state")
-    cfg["learning"].update({"init_trunk": "", "updates_per_action": 1})
-    config = tmp_path / "packed.yaml"
-    config.write_text(yaml.safe_dump(cfg))
+    config = _config_variant(tmp_path, "packed", policy=str(load_config(CONFIG).policy), sim={"packed_scenes": 1.0},
+                             learning={"init_trunk": "", "updates_per_action": 1})
     out = tmp_path / "run"
-    assert train_main(["--config", str(config), "--out", str(out), "--threads", "1", "--steps", "2",
+    assert train_main(["--config", config, "--out", str(out), "--threads", "1", "--steps", "2",
                        "--seed", "2"]) == 0
     rows = read_rows(out / "actions.csv")
     first = int(rows[0]["objects_left"]) + (rows[0]["success"] == "1")   # objects before the first action
@@ -321,13 +323,8 @@ def test_the_action_log_names_packed_scenes_as_packed(tmp_path):
 def test_give_up_after_starts_a_new_scene_after_that_many_actions_without_a_grasp(tmp_path, capsys):
     out = tmp_path / "run"
     # a fresh network on 10 objects: long stretches without a successful grasp
-    cfg = yaml.safe_load(Path(CONFIG).read_text())
-    cfg["policy"] = ""
-    cfg["state_dir"] = str(tmp_path / "state")
-    cfg["learning"].update({"init_trunk": "", "updates_per_action": 1})
-    config = tmp_path / "fresh.yaml"
-    config.write_text(yaml.safe_dump(cfg))
-    assert train_main(["--config", str(config), "--out", str(out), "--threads", "1", "--steps", "8", "--seed", "1",
+    config = _config_variant(tmp_path, "fresh", learning={"init_trunk": "", "updates_per_action": 1})
+    assert train_main(["--config", config, "--out", str(out), "--threads", "1", "--steps", "8", "--seed", "1",
                        "--give-up-after", "3"]) == 0
     rows = read_rows(out / "actions.csv")
     streak, expected_scene, give_ups = 0, int(rows[0]["scene"]), 0
