@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 import os
 import threading
+import time
 
 import numpy as np
 import pytest
@@ -13,7 +14,7 @@ import torch
 
 from flgd.actions import Action
 from flgd.config import CellConfig
-from flgd.learning.agent import Agent, greedy_index, masked_maps
+from flgd.learning.agent import Agent, WeightsMailbox, greedy_index, masked_maps
 from flgd.learning.learner import Learner
 from flgd.learning.networks import build_network, q_maps, twin_grasp_maps
 from flgd.learning.replay import PrioritizedReplay, Transition, state_key
@@ -225,6 +226,7 @@ def test_target_network_follows_its_schedule_and_checkpoints_are_called():
 
 def test_background_learner_publishes_weights_that_the_agent_picks_up():
     cfg = config(updates_per_action=2, checkpoint_every=1)
+    cfg = dataclasses.replace(cfg, gate=dataclasses.replace(cfg.gate, handover_every=3))
     replay = PrioritizedReplay.from_config(cfg.learning)
     agent = Agent(cfg, build_network("fast", 16, seed=0))
     niceness = []  # of the thread running the updates, seen from the checkpoint callback
@@ -247,7 +249,7 @@ def test_background_learner_publishes_weights_that_the_agent_picks_up():
         assert lrn.updates == 6 and lrn.failed_updates == 0
         main_nice = os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
         assert niceness == [min(19, main_nice + 5)] * 6  # training yields the CPU to decisions
-        assert agent.mailbox.posted >= 1
+        assert agent.mailbox.posted == 2 and lrn.handovers == 2  # after updates 3 and 6
         agent.decide(hm, 3)
         assert agent.weights_version == 6
         trained = lrn.snapshot().state_dict()
@@ -407,3 +409,71 @@ def test_twin_grasps_targets_take_a_prime_and_its_value_from_twin_means():
     assert lrn.targets([t])[0] == pytest.approx(expected, abs=1e-5)
     # and that is not what the plain rule gives (the twins' values differ)
     assert target[rot, 0, row, col] != pytest.approx(target[(rot + 8) % 16, 0, row, col], abs=1e-4)
+
+
+class _RecordingMailbox(WeightsMailbox):
+    """Notes the learner's backlog at each hand-over."""
+
+    def __init__(self, learner_ref: list) -> None:
+        super().__init__()
+        self.learner_ref = learner_ref
+        self.backlogs: list[int] = []
+
+    def post(self, state_dict, version=None) -> None:
+        self.backlogs.append(self.learner_ref[0].pending)
+        super().post(state_dict, version)
+
+
+def test_weights_are_handed_over_on_schedule_while_the_learner_has_a_backlog():
+    cfg = config(updates_per_action=3)
+    cfg = dataclasses.replace(cfg, gate=dataclasses.replace(cfg.gate, handover_every=2))
+    replay = PrioritizedReplay.from_config(cfg.learning)
+    ref: list = []
+    mailbox = _RecordingMailbox(ref)
+    lrn = Learner(cfg, build_network("fast", 16, seed=0), replay, mailbox=mailbox)
+    ref.append(lrn)
+    for k in range(4):  # 12 updates owed before the thread runs one: a cell that outruns its learner
+        replay.add(Transition(scene(k), Action("grasp", 5, 5, 0), 1.0, scene(k + 1), False))
+        lrn.notify_new_transition()
+    lrn.start()
+    try:
+        assert lrn.wait_idle(timeout=300)
+    finally:
+        lrn.stop(timeout=60)
+    assert lrn.updates == 12 and lrn.handovers == 6
+    assert mailbox.backlogs[:5] == [10, 8, 6, 4, 2]  # handed over with updates still owed
+    assert mailbox.take()[1] == 12
+
+
+def test_wait_idle_returns_when_the_thread_has_left_even_with_updates_scheduled_after():
+    cfg = config(updates_per_action=1)
+    replay = PrioritizedReplay.from_config(cfg.learning)
+    replay.add(Transition(scene(0), Action("grasp", 5, 5, 0), 1.0, scene(1), False))
+    lrn = Learner(cfg, build_network("fast", 16, seed=0), replay)
+    lrn.start()
+    lrn.stop(timeout=60, why="test")
+    lrn.notify_new_transition()  # a cycle that schedules an update after the stop
+    assert lrn.pending == 1 and not lrn.running and lrn.stopped_why == "test"
+    t0 = time.monotonic()
+    assert lrn.wait_idle(timeout=20)  # nothing would ever run it: waiting would hang the caller
+    assert time.monotonic() - t0 < 10
+
+
+def test_paused_holds_the_thread_between_updates_and_it_resumes_after():
+    cfg = config(updates_per_action=1)
+    replay = PrioritizedReplay.from_config(cfg.learning)
+    replay.add(Transition(scene(0), Action("grasp", 5, 5, 0), 1.0, scene(1), False))
+    lrn = Learner(cfg, build_network("fast", 16, seed=0), replay)
+    lrn.start()
+    try:
+        with lrn.paused(timeout=60):
+            lrn.notify_new_transition()
+            lrn.notify_new_transition()
+            time.sleep(0.5)
+            assert lrn.updates == 0  # held
+            assert lrn.drop_backlog() >= 1
+        lrn.notify_new_transition()
+        assert lrn.wait_idle(timeout=120)
+        assert lrn.running and lrn.updates >= 1  # the same thread carries on
+    finally:
+        lrn.stop(timeout=60)

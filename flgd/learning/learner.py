@@ -45,14 +45,20 @@ exact double-DQN target (recomputed at every sampling).
 ``flgd train`` uses the synchronous mode instead of the thread
 (``update_pending`` after each cycle, same updates), so that a training run is
 reproducible.  The learner trains its own copy of the network given to it, so the acting
-network is never touched mid-decision; after each run of updates it posts the
-new weights to the agent's ``WeightsMailbox``.  The background thread lowers
+network is never touched mid-decision.  The background thread hands its weights over
+(posts them to its ``WeightsMailbox``: the gate's, or with the gate off the agent's)
+after every ``gate.handover_every`` updates, whatever its backlog -- on a cell whose
+cycles outrun the learner the backlog never drains, and weights handed over only then
+would never reach anyone; the synchronous mode posts after each run of updates.
+``paused`` holds the thread between two updates (for a policy swap) without stopping it,
+so nothing a command does can leave the daemon without its learner.  The background thread lowers
 its own CPU priority (``thread_nice``, Linux per-thread nice) so that on a
 small cell PC a decision preempts training instead of sharing the cores.
 """
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import logging
 import math
@@ -60,7 +66,7 @@ import os
 import threading
 import time
 from dataclasses import dataclass
-from typing import Callable, Sequence
+from typing import Callable, Iterator, Sequence
 
 import numpy as np
 import torch
@@ -76,7 +82,7 @@ from flgd.learning.agent import Decision, WeightsMailbox, greedy_index
 from flgd.learning.networks import QMapNetwork, q_maps, rotated_inputs, twin_grasp_maps, unrotate_maps
 from flgd.learning.replay import PrioritizedReplay, Transition, state_key
 
-__all__ = ["Learner", "UpdateStats", "LossTerms", "resolve_device"]
+__all__ = ["Learner", "LearnerBusy", "UpdateStats", "LossTerms", "resolve_device"]
 
 log = logging.getLogger(__name__)
 
@@ -129,6 +135,10 @@ def resolve_device(device: str | torch.device | None, source: str = "<config>") 
     return device
 
 
+class LearnerBusy(RuntimeError):
+    """The learner's update in progress did not finish in time (the learner itself goes on)."""
+
+
 class Learner:
     def __init__(self, config: CellConfig, network: QMapNetwork, replay: PrioritizedReplay,
                  device: str | torch.device | None = None, mailbox: WeightsMailbox | None = None,
@@ -153,13 +163,16 @@ class Learner:
         self.checkpoint_callback = checkpoint_callback
         self.priority_sink = priority_sink
         self.thread_nice = thread_nice
+        self.handover_every = config.gate.handover_every
+        self.handovers = 0  # weight sets posted to the mailbox
+        self.stopped_why = "not started"
         self.updates = 0
         self.failed_updates = 0
         self.skipped_updates = 0  # updates not applied because the loss, TD errors or gradients were not finite
         self.dropped_updates = 0  # scheduled updates dropped because the backlog was full (max_backlog)
         self.last_error: str | None = None
         self.last_stats: UpdateStats | None = None
-        self._update_lock = threading.Lock()
+        self._update_lock = threading.RLock()  # re-entered by load_weights inside paused
         # next-state key -> (update count when a' was found, a' or None); and -> (a', Q_target(s', a'))
         self._argmax_lock = threading.Lock()
         self._next_argmax: dict[bytes, tuple[int, tuple[int, int, int, int] | None]] = {}
@@ -393,7 +406,30 @@ class Learner:
             return False
         with self._update_lock:
             self.mailbox.post(self.online.state_dict(), version=self.updates)
+            self.handovers += 1
         return True
+
+    @contextlib.contextmanager
+    def paused(self, timeout: float) -> Iterator[None]:
+        """Hold the learner between two updates while the body runs (the thread lives on and resumes after).
+
+        Raises ``LearnerBusy`` when the update in progress does not finish within ``timeout`` seconds; the
+        learner is then untouched and keeps running.
+        """
+        if not self._update_lock.acquire(timeout=timeout):
+            raise LearnerBusy(f"the learner did not finish its update in progress within {timeout:.0f} s")
+        try:
+            yield
+        finally:
+            self._update_lock.release()
+
+    def drop_backlog(self) -> int:
+        """Forget the scheduled updates (they were owed to weights just replaced); counted as dropped."""
+        with self._cond:
+            owed, self._pending = self._pending, 0
+            self.dropped_updates += owed
+            self._cond.notify_all()
+        return owed
 
     def snapshot(self) -> QMapNetwork:
         """A consistent copy of the online network (safe from any thread), e.g. to save a policy."""
@@ -401,15 +437,18 @@ class Learner:
             net = copy.deepcopy(self.online)
         return net.to("cpu").eval()
 
-    def load_weights(self, network: QMapNetwork) -> None:
-        """Replace online and target weights (a policy loaded at run time) and publish them."""
+    def load_weights(self, network: QMapNetwork, publish: bool = True) -> None:
+        """Replace online and target weights (a policy loaded at run time) and, by default, publish them.
+
+        Call it inside ``paused`` or with the thread stopped (the update lock is taken here too)."""
         with self._update_lock:
             self.online.load_state_dict(network.state_dict())
             self.target.load_state_dict(network.state_dict())
             with self._argmax_lock:
                 self._next_argmax.clear()
             self._next_value.clear()
-        self.publish()
+        if publish:
+            self.publish()
 
     def reset_trainer_state(self) -> None:
         """Target = online weights and fresh Adam moments: what a learner built on the network starts with."""
@@ -454,6 +493,7 @@ class Learner:
         """
         with self._cond:
             self._stop = False
+            self.stopped_why = ""
             old = self._thread
             if old is not None and old.is_alive() and not self._exited:
                 return
@@ -461,10 +501,11 @@ class Learner:
             self._thread = threading.Thread(target=self._run, name="flgd-learner", daemon=True)
             self._thread.start()
 
-    def stop(self, timeout: float | None = None) -> None:
+    def stop(self, timeout: float | None = None, why: str = "stopped") -> None:
         """Finish the update in progress, drop the pending ones and join the thread."""
         with self._cond:
             self._stop = True
+            self.stopped_why = why
             self._pending = 0
             self._cond.notify_all()
         if self._thread is not None:
@@ -499,10 +540,12 @@ class Learner:
         return self._thread is not None and self._thread.is_alive()
 
     def wait_idle(self, timeout: float | None = None) -> bool:
-        """Block until no update is pending or running; False on timeout."""
+        """Block until no update is pending or running; False on timeout.
+
+        Updates scheduled after the thread left its loop are not waited for: nothing would run them."""
         deadline = None if timeout is None else time.monotonic() + timeout
         with self._cond:
-            while self._pending > 0 or self._busy:
+            while self._busy or (self._pending > 0 and not self._exited):
                 remaining = None if deadline is None else deadline - time.monotonic()
                 if remaining is not None and remaining <= 0:
                     return False
@@ -530,15 +573,14 @@ class Learner:
                     return
                 self._pending -= 1
                 self._busy = True
+            stats = None
             try:
-                self.update()
+                stats = self.update()
             except Exception as exc:  # keep the daemon alive; the error is reported through status
                 self.failed_updates += 1
                 self.last_error = f"update {self.updates + 1}: {type(exc).__name__}: {exc}"
                 log.exception("learner update failed")
-            with self._cond:
-                run_finished = self._pending == 0
-            if run_finished:
+            if stats is not None and stats.update % self.handover_every == 0:
                 try:
                     self.publish()
                 except Exception as exc:
