@@ -6,7 +6,7 @@ import argparse
 import json
 import sys
 
-from flgd.config import ConfigError, config_to_dict, dump_config, load_config
+from flgd.config import ConfigError, config_to_dict, dump_config, fine_tunes, load_config
 
 
 def main(argv: list[str]) -> int:
@@ -25,5 +25,11 @@ def main(argv: list[str]) -> int:
         rows, cols = cfg.workspace.shape
         print(f"# {cfg.source}: OK ({cfg.backend} cell, heightmap {rows}x{cols} px at "
               f"{cfg.workspace.resolution} m/px)")
+        fine_tune, why = fine_tunes(cfg)
+        print(f"# learner settings that apply in flgd run and flgd eval --learn: "
+              f"{'finetune' if fine_tune else 'learning'} ({why}); flgd train uses learning")
+        gate = ("on: learned weights act only after the champion/challenger gate promotes them" if cfg.gate.enabled
+                else "OFF: the learner's weights act as soon as they are handed over, unvetted")
+        print(f"# gate {gate}")
         print(dump_config(cfg), end="")
     return 0

@@ -25,6 +25,8 @@ import yaml
 __all__ = [
     "ConfigError",
     "CellConfig",
+    "fine_tunes",
+    "learner_settings",
     "load_config",
     "config_from_dict",
     "config_to_dict",
@@ -198,7 +200,8 @@ class ExplorationConfig:
     epsilon_decay_steps: int = param(1000, ge=1)
     top_m: int = param(10, ge=1, help="anti-repeat: choose among the M best actions")
     failed_grasps_trigger: int = param(2, ge=1, help="consecutive failed grasps that force a move")
-    curriculum_steps: int = param(500, ge=0, help="steps with fewer moves at the start")
+    curriculum_steps: int = param(0, ge=0, help="steps with fewer moves at the start (set by `flgd train "
+                                                  "--curriculum`; 0 = none)")
     curriculum_move_probability: float = param(0.2, ge=0.0, le=1.0,
                                                help="chance a chosen move is kept during the curriculum")
     masks: bool = param(True, help="use the grasp/move masks (false = DPEN ablation)")
@@ -247,6 +250,47 @@ class LearningConfig:
 
 
 @dataclass(frozen=True)
+class FinetuneConfig:
+    """The learner and exploration settings used instead of ``learning``'s when a trained policy is given.
+
+    Why a section of its own: the settings that train a network from scratch (a high learning rate, several
+    updates per action, BatchNorm moving with every batch) degrade a trained policy within a few hundred
+    updates (BENCHMARKS.md, fine-tuning), so a daemon started from a policy must not inherit them.
+    """
+
+    learning_rate: float = param(1e-5, gt=0.0)
+    updates_per_action: int = param(1, ge=0)
+    batchnorm: Literal["batch", "frozen"] = param("frozen", help="see learning.batchnorm")
+    min_replay: int = param(100, ge=0, unit="transitions",
+                            help="warm-up: no update until the replay holds this many of this cell's transitions")
+    max_epsilon: float = param(0.05, ge=0.0, le=1.0,
+                               help="exploration continues from the policy's recorded training steps on the "
+                                    "exploration schedule, never above this")
+
+
+@dataclass(frozen=True)
+class GateConfig:
+    """The champion/challenger gate (flgd/learning/gate.py): learned weights act only once shown better."""
+
+    enabled: bool = param(True, help="false = the learner's weights act as soon as they are handed over, "
+                                     "unvetted (unsafe: a fine-tune that makes the policy worse keeps acting)")
+    handover_every: int = param(100, ge=1, unit="updates",
+                                help="the learner hands its weights over every N updates, whatever its backlog")
+    share: float = param(0.2, gt=0.0, lt=1.0, help="chance a greedy decision is made by the challenger")
+    min_attempts: int = param(60, ge=1, unit="actions", help="challenger actions before it may be promoted")
+    max_attempts: int = param(800, ge=1, unit="actions",
+                              help="a challenger not shown better within this many actions is dropped")
+    promote_confidence: float = param(0.98, gt=0.5, lt=1.0, help="P(challenger better) that promotes it")
+    drop_min_attempts: int = param(40, ge=1, unit="actions", help="challenger actions before an early drop")
+    drop_confidence: float = param(0.99, gt=0.5, lt=1.0, help="P(challenger worse) that drops it early")
+    rollback_min_attempts: int = param(60, ge=1, unit="actions",
+                                       help="a promoted champion's own actions before it may be rolled back")
+    rollback_confidence: float = param(0.99, gt=0.5, lt=1.0,
+                                       help="P(champion worse than its predecessor's record) that rolls it back")
+    keep_champions: int = param(5, ge=1, help="earlier champions whose files are kept for rollbacks")
+
+
+@dataclass(frozen=True)
 class SimConfig:
     """Used only by the simulated cell."""
 
@@ -275,11 +319,32 @@ class CellConfig:
     rewards: RewardConfig = param(default_factory=RewardConfig)
     exploration: ExplorationConfig = param(default_factory=ExplorationConfig)
     learning: LearningConfig = param(default_factory=LearningConfig)
+    finetune: FinetuneConfig = param(default_factory=FinetuneConfig)
+    gate: GateConfig = param(default_factory=GateConfig)
     sim: SimConfig = param(default_factory=SimConfig)
     policy: str = param("", help="policy file loaded at start (relative to the config file); "
                                    "empty = a fresh network")
     state_dir: str = param("/var/lib/flgd", help="replay store, logs and checkpoints")
     source: str = param("<defaults>", help="file this config came from (set by the loader)")
+
+
+def fine_tunes(cfg: CellConfig) -> tuple[bool, str]:
+    """(whether the daemon fine-tunes, why): it does when a policy is given, and trains from scratch when not."""
+    if cfg.policy:
+        return True, (f"policy {cfg.policy} is a trained policy: the learner fine-tunes it with the finetune "
+                      "settings, and exploration continues from the training steps the policy records")
+    return False, ("no policy is given: a fresh network learns from scratch with the learning settings "
+                   "(exploration from step 0)")
+
+
+def learner_settings(cfg: CellConfig, fine_tune: bool) -> CellConfig:
+    """``cfg`` with the finetune section's learner settings in ``learning`` when ``fine_tune``, else unchanged."""
+    if not fine_tune:
+        return cfg
+    ft = cfg.finetune
+    return dataclasses.replace(cfg, learning=dataclasses.replace(
+        cfg.learning, learning_rate=ft.learning_rate, updates_per_action=ft.updates_per_action,
+        batchnorm=ft.batchnorm, min_replay=ft.min_replay))
 
 
 # --------------------------------------------------------------------------- loading
@@ -394,6 +459,10 @@ def _build(cls: type, data: dict, prefix: str, problems: list[str], source: str)
 def _check_relations(cfg: CellConfig, problems: list[str]) -> None:
     """Constraints between keys, which single-field limits cannot express."""
     _check_backend(cfg, problems)
+    for key in ("min_attempts", "drop_min_attempts"):
+        if getattr(cfg.gate, key) > cfg.gate.max_attempts:
+            problems.append(f"gate.{key}: got {getattr(cfg.gate, key)}, expected <= gate.max_attempts "
+                            f"({cfg.gate.max_attempts})")
     _check_device(cfg, problems)
     ws, sf = cfg.workspace, cfg.safety
     for name in ("x", "y", "z"):
