@@ -1,0 +1,89 @@
+"""The champion/challenger gate's error rates, by simulation with Bernoulli outcomes (apart from any cell).
+
+Each trial plays the daemon's schedule: every action is the challenger's with probability ``share``, else
+the champion's; the outcome is a successful grasp with the policy's rate; the gate looks after every action.
+The rates are successful grasps per action around 0.75 (the shipped policy's level on the simulated cell,
+with its share of moves).  The numbers the README states come from these cases.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from flgd.config import CellConfig
+from flgd.gatekeeper import gate_settings
+from flgd.learning.gate import (GateSettings, Tally, challenger_decision, challenger_verdict, p_better,
+                                rollback_decision)
+
+TRIALS = 1000
+SETTINGS = gate_settings(CellConfig())  # the defaults a user gets
+
+
+def _challenger_trial(rng: np.random.Generator, p_champion: float, p_challenger: float,
+                      s: GateSettings) -> tuple[str, int]:
+    """(how the test of one challenger ended, its actions then)."""
+    champion, challenger = Tally(), Tally()
+    # at most max_attempts challenger actions, at the given share; drawn in blocks for speed
+    while True:
+        is_challenger = rng.random(512) < s.share
+        u = rng.random(512)
+        for k in range(512):
+            if is_challenger[k]:
+                challenger = challenger.add(u[k] < p_challenger, True)
+            else:
+                champion = champion.add(u[k] < p_champion, True)
+            kind, _ = challenger_decision(champion, challenger, s)
+            if kind != "testing":
+                return kind, challenger.actions
+
+
+def _rollback_trial(rng: np.random.Generator, predecessor: Tally, p_live: float, s: GateSettings,
+                    horizon: int) -> bool:
+    live = Tally()
+    for u in rng.random(horizon):
+        live = live.add(u < p_live, True)
+        if rollback_decision(live, predecessor, s)[0] == "rollback":
+            return True
+    return False
+
+
+def test_p_better_is_a_probability_that_follows_the_evidence():
+    even = p_better(Tally(100, 75, 100), Tally(100, 75, 100))
+    assert even == pytest.approx(0.5)
+    assert p_better(Tally(400, 320, 400), Tally(400, 280, 400)) > 0.99  # 0.80 vs 0.70 on 400 each
+    assert p_better(Tally(10, 8, 10), Tally(10, 7, 10)) < 0.8  # the same rates on 10 each: not convincing
+    assert p_better(Tally(400, 280, 400), Tally(400, 320, 400)) < 0.01
+
+
+def test_a_challenger_5_points_worse_is_promoted_in_at_most_5_percent_of_trials():
+    rng = np.random.default_rng(11)
+    ends = [_challenger_trial(rng, 0.75, 0.70, SETTINGS)[0] for _ in range(TRIALS)]
+    promoted = ends.count("promote") / TRIALS
+    assert promoted <= 0.05, promoted
+    assert ends.count("drop-worse") / TRIALS >= 0.5  # and most are dropped early, as clearly worse
+
+
+def test_a_challenger_5_points_better_is_promoted_in_at_least_80_percent_within_max_attempts():
+    rng = np.random.default_rng(12)
+    runs = [_challenger_trial(rng, 0.75, 0.80, SETTINGS) for _ in range(TRIALS)]
+    promoted = [n for kind, n in runs if kind == "promote"]
+    assert len(promoted) / TRIALS >= 0.80, len(promoted) / TRIALS
+    assert max(promoted) <= SETTINGS.max_attempts  # the stated number: gate.max_attempts challenger actions
+
+
+def test_a_champion_10_points_below_its_predecessors_record_is_rolled_back_in_90_percent():
+    rng = np.random.default_rng(13)
+    predecessor = Tally(500, 375, 500)  # the record of a champion that acted 500 times at 0.75
+    rolled = sum(_rollback_trial(rng, predecessor, 0.65, SETTINGS, horizon=600) for _ in range(TRIALS))
+    assert rolled / TRIALS >= 0.90, rolled / TRIALS
+    # ... while one as good as its predecessor is rarely rolled back over the same horizon
+    kept = sum(not _rollback_trial(rng, predecessor, 0.75, SETTINGS, horizon=600) for _ in range(300))
+    assert kept / 300 >= 0.95
+
+
+def test_the_verdict_names_its_evidence():
+    v = challenger_verdict(Tally(300, 210, 290), Tally(80, 40, 78), SETTINGS)
+    assert v.kind == "drop" and "40/80" in v.reason and "210/300" in v.reason
+    v = challenger_verdict(Tally(30, 20, 30), Tally(5, 4, 5), SETTINGS)
+    assert v.kind == "testing" and f"{SETTINGS.min_attempts - 5} more actions" in v.reason
