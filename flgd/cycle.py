@@ -78,6 +78,7 @@ class CycleRecord:
     timings: dict[str, float] = field(default_factory=dict)
     transition_id: int | None = None
     refill_needed: bool = False      # "empty" on a cell that cannot reset its own scene
+    policy: int | None = None        # the gate's id of the policy credited (None: epsilon-random, no gate)
 
     @property
     def primitive(self) -> str | None:
@@ -94,7 +95,7 @@ class CycleRecord:
             "mu": self.mu, "eta": self.eta, "rule": self.rule, "epsilon": self.epsilon,
             "q_value": self.q_value, "refused": self.refused, "failure": self.failure,
             "contact_stop_mm": self.contact_stop_mm,
-            "done": int(self.done), "duration": self.duration,
+            "done": int(self.done), "duration": self.duration, "policy": self.policy,
         }
         for phase, seconds in self.timings.items():
             if phase != "store":
@@ -275,13 +276,16 @@ class CycleRunner:
             return finish()
         self.last_decided = (state, decision, self.step)
         if self.learner is not None and hasattr(self.learner, "note_decision"):
-            self.learner.note_decision(state, decision, getattr(self.agent, "weights_version", -1))
+            version = getattr(decision, "weights_version", -1)
+            self.learner.note_decision(state, decision,
+                                       version if version >= 0 else getattr(self.agent, "weights_version", -1))
         action: Action = decision.action
         record.step = self.step
         record.action = action
         record.rule = str(getattr(decision, "rule", "") or "")
         record.epsilon = _float_or_none(getattr(decision, "epsilon", None))
         record.q_value = _float_or_none(getattr(decision, "q_value", None))
+        record.policy = getattr(decision, "policy_id", None)
         self.step += 1
 
         with timer.phase("plan"):

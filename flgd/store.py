@@ -8,7 +8,7 @@ returns (one fsync of the WAL per cycle, about 0.3 ms on the dev machine's
 disk), so a power cut loses at most the cycle in flight, as a killed process
 does; with NORMAL it could also lose the last few committed cycles.
 
-Schema (``SCHEMA_VERSION`` 2), file ``<state_dir>/flgd.sqlite``:
+Schema (``SCHEMA_VERSION`` 3), file ``<state_dir>/flgd.sqlite``:
 
 * ``states(id, rows, cols, color, height)`` -- one heightmap pair per row,
   zlib-compressed; colour HxWx3 uint8, height as uint16 in units of
@@ -19,15 +19,22 @@ Schema (``SCHEMA_VERSION`` 2), file ``<state_dir>/flgd.sqlite``:
 * ``actions(step PRIMARY KEY, time, backend, outcome, primitive, kind, row,
   col, rotation, reward, success, mu, eta, rule, epsilon, q_value, refused,
   failure, contact_stop_mm, done, duration, t_capture, t_perceive, t_decide, t_plan, t_execute,
-  t_judge, t_store, transition_id)`` -- one row per cycle, whatever happened.
+  t_judge, t_store, transition_id, policy)`` -- one row per cycle, whatever happened;
+  ``policy`` is the gate's id of the policy whose greedy decision it was (NULL for an
+  epsilon-random action or before the gate).
   ``t_store`` of a row is written with the next cycle's commit (a commit cannot
   time itself).
 * ``events(id, time, kind, message)`` -- state changes, faults, policy loads.
 * ``counters(name PRIMARY KEY, value)`` -- e.g. learner updates.
 * ``meta(key PRIMARY KEY, value)`` -- schema version.
+* ``policies(id, created, role, file, sha256, origin, predecessor, learner_updates,
+  training_steps, since_step, record)`` and ``gate_events(id, time, step, kind, policy,
+  other, who, message, evidence)`` -- the champion/challenger gate's policies (files in
+  ``<state_dir>/gate``) and every promotion, drop, rollback and manual override
+  (flgd/gatekeeper.py).
 
-A version-1 store (before ``contact_stop_mm``) is upgraded in place when it is
-opened: the column is added (empty for the old rows) and nothing else changes.
+A version-1 or -2 store is upgraded in place when it is opened: the missing columns
+(``contact_stop_mm``, ``policy``) are added (empty for the old rows) and nothing else changes.
 
 Retention: with ``keep_transitions`` (the daemon passes the replay capacity)
 only the newest transitions and their states are kept, so the file stops
@@ -70,7 +77,7 @@ __all__ = [
     "TIMING_PHASES",
 ]
 
-SCHEMA_VERSION = 2
+SCHEMA_VERSION = 3
 HEIGHT_QUANTUM = 1e-4  # metres per stored height unit
 DB_NAME = "flgd.sqlite"
 TIMING_PHASES = ("capture", "perceive", "decide", "plan", "execute", "judge", "store")
@@ -79,7 +86,7 @@ ACTION_COLUMNS = (
     "step", "time", "backend", "outcome", "primitive", "kind", "row", "col", "rotation", "reward",
     "success", "mu", "eta", "rule", "epsilon", "q_value", "refused", "failure", "contact_stop_mm", "done",
     "duration",
-    *(f"t_{p}" for p in TIMING_PHASES), "transition_id",
+    *(f"t_{p}" for p in TIMING_PHASES), "transition_id", "policy",
 )
 
 _SCHEMA = """
@@ -100,12 +107,21 @@ CREATE TABLE IF NOT EXISTS actions(
     success INTEGER, mu INTEGER, eta INTEGER, rule TEXT, epsilon REAL, q_value REAL,
     refused TEXT, failure TEXT, contact_stop_mm REAL, done INTEGER, duration REAL,
     t_capture REAL, t_perceive REAL, t_decide REAL, t_plan REAL, t_execute REAL,
-    t_judge REAL, t_store REAL, transition_id INTEGER REFERENCES transitions(id));
+    t_judge REAL, t_store REAL, transition_id INTEGER REFERENCES transitions(id), policy INTEGER);
 CREATE TABLE IF NOT EXISTS events(id INTEGER PRIMARY KEY, time REAL NOT NULL,
     kind TEXT NOT NULL, message TEXT NOT NULL);
 CREATE TABLE IF NOT EXISTS counters(name TEXT PRIMARY KEY, value INTEGER NOT NULL);
 CREATE INDEX IF NOT EXISTS actions_outcome ON actions(outcome, primitive);
+CREATE TABLE IF NOT EXISTS policies(id INTEGER PRIMARY KEY, created REAL NOT NULL, role TEXT NOT NULL,
+    file TEXT NOT NULL, sha256 TEXT NOT NULL, origin TEXT NOT NULL, predecessor INTEGER REFERENCES policies(id),
+    learner_updates INTEGER, training_steps INTEGER NOT NULL, since_step INTEGER NOT NULL,
+    record TEXT);
+CREATE TABLE IF NOT EXISTS gate_events(id INTEGER PRIMARY KEY, time REAL NOT NULL, step INTEGER,
+    kind TEXT NOT NULL, policy INTEGER, other INTEGER, who TEXT NOT NULL, message TEXT NOT NULL,
+    evidence TEXT NOT NULL);
 """
+# after any upgrade: the column it indexes is new in version 3
+_INDEXES = "CREATE INDEX IF NOT EXISTS actions_policy ON actions(policy, step);"
 
 
 class StoreError(RuntimeError):
@@ -223,25 +239,29 @@ class Store:
             if row is None:
                 self._db.execute("INSERT INTO meta(key, value) VALUES('schema_version', ?)",
                                  (str(SCHEMA_VERSION),))
-            elif row[0] == "1":
-                self._upgrade_from_1()
+            elif row[0] in ("1", "2"):
+                self._upgrade(int(row[0]))
             elif row[0] != str(SCHEMA_VERSION):
                 raise StoreError(f"store {self.path}: schema version {row[0]} is not the supported "
                                  f"version {SCHEMA_VERSION}; use a new state directory")
+            self._db.executescript(_INDEXES)
         except StoreError:
             raise
         except (sqlite3.Error, OSError) as exc:
             raise StoreError(_explain(exc, self.path)) from exc
 
     # ------------------------------------------------------------------ internals
-    def _upgrade_from_1(self) -> None:
-        """Version 1 -> 2: the action log gains ``contact_stop_mm``; one transaction, nothing else touched."""
+    def _upgrade(self, version: int) -> None:
+        """Version 1 -> 2: the action log gains ``contact_stop_mm``; 2 -> 3: it gains ``policy`` (the gate's
+        policy that acted; the gate's tables are created by the schema script).  One transaction, nothing else
+        touched."""
         db = self._db
         db.execute("BEGIN IMMEDIATE")
         try:
             columns = {r[1] for r in db.execute("PRAGMA table_info(actions)")}
-            if "contact_stop_mm" not in columns:
-                db.execute("ALTER TABLE actions ADD COLUMN contact_stop_mm REAL")
+            for name, kind in (("contact_stop_mm", "REAL"), ("policy", "INTEGER")):
+                if name not in columns:
+                    db.execute(f"ALTER TABLE actions ADD COLUMN {name} {kind}")
             db.execute("UPDATE meta SET value=? WHERE key='schema_version'", (str(SCHEMA_VERSION),))
             db.execute("COMMIT")
         except BaseException:
@@ -431,6 +451,10 @@ class Store:
     def query(self, sql: str, args: tuple = ()) -> list[tuple]:
         """Read-only SQL for metrics."""
         return self._read(sql, args)
+
+    def transaction(self, fn: Callable[[sqlite3.Connection], Any]) -> Any:
+        """Run ``fn(db)`` in one write transaction (for the gate's records); storage failures are StoreError."""
+        return self._write(fn)
 
     def integrity_check(self) -> str:
         return str(self._read("PRAGMA integrity_check")[0][0])

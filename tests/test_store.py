@@ -229,7 +229,7 @@ def test_a_version_1_store_is_upgraded_in_place_without_losing_anything(tmp_path
 
     store = Store(tmp_path)
     try:
-        assert store.query("SELECT value FROM meta WHERE key='schema_version'") == [("2",)]
+        assert store.query("SELECT value FROM meta WHERE key='schema_version'") == [("3",)]
         assert store.transition_count() == 1 and store.next_step() == 1
         assert store.query("SELECT step, success, contact_stop_mm FROM actions") == [(0, 1, None)]
         store.commit_cycle(_row(1, contact_stop_mm=7.5),

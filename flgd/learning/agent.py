@@ -26,10 +26,22 @@ can never win and keeps ties inside the mask.
 
 ``exploration.masks = False`` is the DPEN ablation: both masks are all ones.
 The returned ``Decision`` carries the masks that were applied.
+
+Champion and challenger (flgd/gatekeeper.py): ``network`` is the champion; with a
+``challenger`` set, each decision is made by the challenger with probability
+``challenger_share`` (its own random stream, so the other draws are those of an
+agent without one), and ``Decision.role`` / ``Decision.policy_id`` say which
+network decided.  An epsilon-random action is credited to neither
+(``policy_id`` None).
+
+Exploration of a trained policy continues where its training left it: epsilon is
+taken at ``step + exploration_offset`` (the policy's recorded training steps) and
+never above ``max_epsilon``.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import threading
 from dataclasses import dataclass
 
@@ -58,6 +70,9 @@ class Decision:
     rule: str
     epsilon: float
     greedy: tuple[int, int, int, int] | None = None  # (rotation, channel, row, col) of the masked argmax
+    role: str = "champion"  # which network's Q-maps these are: champion or challenger
+    policy_id: int | None = None  # the gate's id of the policy credited with the outcome; None for epsilon
+    weights_version: int = -1  # learner update count of the deciding network's weights (-1 unknown)
 
 
 class WeightsMailbox:
@@ -80,6 +95,12 @@ class WeightsMailbox:
             self._weights = weights
             self.posted += 1
             self._version = self.posted if version is None else version
+
+    @property
+    def waiting(self) -> bool:
+        """A posted set is waiting to be taken."""
+        with self._lock:
+            return self._weights is not None
 
     def take(self) -> tuple[dict[str, torch.Tensor], int] | None:
         """The newest unread set and its version, or None."""
@@ -135,6 +156,14 @@ class Agent:
         self.failed_grasps = 0
         self.previous: Action | None = None
         self.network.eval()
+        self.champion_id: int | None = None
+        self.challenger: QMapNetwork | None = None
+        self.challenger_id: int | None = None
+        self.challenger_version = -1
+        self.challenger_share = 0.0
+        self._assign_rng = np.random.default_rng([int(seed), 0x6761])
+        self.exploration_offset = 0
+        self.max_epsilon = 1.0
 
     # ------------------------------------------------------------------ weights
 
@@ -149,17 +178,30 @@ class Agent:
         self.weights_version = version
         return True
 
+    def set_challenger(self, network: QMapNetwork | None, policy_id: int | None = None, version: int = -1,
+                       share: float = 0.0) -> None:
+        """The network that makes a ``share`` of the greedy decisions (None: the champion makes them all)."""
+        if network is not None:
+            network.eval()
+        self.challenger, self.challenger_id = network, (policy_id if network is not None else None)
+        self.challenger_version = version if network is not None else -1
+        self.challenger_share = float(share) if network is not None else 0.0
+
+    def epsilon(self, step: int) -> float:
+        """Exploration rate at ``step``: the schedule at ``step + exploration_offset``, capped at ``max_epsilon``."""
+        return min(self.max_epsilon, epsilon_at(step + self.exploration_offset, self.config.exploration))
+
     # ------------------------------------------------------------------ deciding
 
     def masks(self, height: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(rho_g, rho_m) for ``height``; all ones for the DPEN ablation (object presence still checked)."""
         return action_masks(height, self.config.rewards, self.config.exploration.masks)
 
-    def q_maps(self, heightmaps: Heightmaps) -> np.ndarray:
-        """All-rotation Q-maps [R,2,H,W] float32 of the acting network (grasp twins averaged when
-        ``exploration.twin_grasps``)."""
+    def q_maps(self, heightmaps: Heightmaps, network: QMapNetwork | None = None) -> np.ndarray:
+        """All-rotation Q-maps [R,2,H,W] float32 of ``network`` (default: the champion; grasp twins averaged
+        when ``exploration.twin_grasps``)."""
         with torch.inference_mode():
-            q = q_maps(self.network, heightmaps, self.rotations)
+            q = q_maps(self.network if network is None else network, heightmaps, self.rotations)
         q = q.float().cpu().numpy()
         return twin_grasp_maps(q) if self.config.exploration.twin_grasps else q
 
@@ -169,7 +211,17 @@ class Agent:
         height = np.nan_to_num(np.asarray(heightmaps.height, dtype=np.float32), nan=0.0)
         if not grasp_mask(height, self.config.rewards).any():
             return None
-        return self.select(self.q_maps(heightmaps), height, step)
+        challenger = self.challenger
+        by_challenger = challenger is not None and self._assign_rng.random() < self.challenger_share
+        network = challenger if by_challenger else self.network
+        decision = self.select(self.q_maps(heightmaps, network), height, step)
+        if decision is None:
+            return None
+        role = "challenger" if by_challenger else "champion"
+        policy = self.challenger_id if by_challenger else self.champion_id
+        return dataclasses.replace(decision, role=role, policy_id=None if decision.rule == "epsilon" else policy,
+                                   weights_version=self.challenger_version if by_challenger
+                                   else self.weights_version)
 
     def select(self, q: np.ndarray, height: np.ndarray, step: int) -> Decision | None:
         """The decision rules on given Q-maps [R,2,H,W] (``decide`` without the network)."""
@@ -184,7 +236,7 @@ class Agent:
         masked = masked_maps(q, gmask, mmask)
         if ex.grasp_only:
             masked[:, 1] = -np.inf
-        eps = epsilon_at(step, ex)
+        eps = self.epsilon(step)
         greedy_choice = True
 
         if self.failed_grasps >= ex.failed_grasps_trigger and not ex.grasp_only:

@@ -1,0 +1,568 @@
+"""The champion/challenger gatekeeper: which policy acts, on what evidence, kept in the state directory.
+
+The statistics are in ``flgd.learning.gate`` (a pure function of counts); this
+module holds the state around them and keeps it across restarts:
+
+* every policy the gate knows is a policy file in ``<state_dir>/gate/`` (written
+  atomically) and a row of the store's ``policies`` table: the **champion** (the
+  one that acts), at most one **challenger** (the learner's weights of one
+  hand-over, acting on a share of decisions), **retired** champions (kept for
+  rollbacks, each with the record of its tenure), and dropped / rolled-back ones
+  (records only; their files are deleted);
+* every change of the acting policy -- the initial one, a promotion, a drop, a
+  rollback, a policy load, a manual override, a fall-back from an unusable file --
+  is a ``gate_events`` row with its evidence and who asked;
+* the tallies are not stored apart: each action-log row names the policy whose
+  greedy decision it was (``actions.policy``, written in the cycle's own
+  transaction), so after a ``kill -9`` or a power cut the tallies are recounted
+  from exactly the actions that were committed.
+
+A restart acts with the stored champion, never with a learner checkpoint.  A
+champion file that cannot be loaded is recorded as unusable (an event naming the
+file and why) and the gate falls back to its predecessor, then to the configured
+policy; if none is usable the daemon refuses to start rather than let a fresh
+network act.
+
+Only the daemon's run loop calls the methods that change state (they swap the
+agent's networks); ``status`` and ``history`` may be called from any thread.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import logging
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable
+
+from flgd.config import CellConfig
+from flgd.learning.agent import WeightsMailbox
+from flgd.learning.gate import GateSettings, Tally, Verdict, challenger_verdict, rollback_verdict
+from flgd.store import Store
+
+__all__ = ["Gatekeeper", "GateError", "PolicyRecord", "gate_settings", "CREDITED_OUTCOMES"]
+
+log = logging.getLogger("flgd")
+
+# Outcomes that are the deciding policy's doing: a refused plan is its failure too; an unstable simulation,
+# a stop or a cell fault is not.
+CREDITED_OUTCOMES = ("executed", "refused")
+GATE_DIR = "gate"
+# events that make a policy the champion, and whether a champion made so is rolled back automatically
+_CROWNING = {"initial": False, "promote": True, "manual-promote": True, "rollback": False,
+             "manual-rollback": False, "load": False, "fallback": False}
+
+
+class GateError(RuntimeError):
+    """No usable policy to act with (every champion file and the configured policy are unusable)."""
+
+
+def gate_settings(config: CellConfig) -> GateSettings:
+    g = config.gate
+    return GateSettings(share=g.share, min_attempts=g.min_attempts, max_attempts=g.max_attempts,
+                        promote_confidence=g.promote_confidence, drop_min_attempts=g.drop_min_attempts,
+                        drop_confidence=g.drop_confidence, rollback_min_attempts=g.rollback_min_attempts,
+                        rollback_confidence=g.rollback_confidence)
+
+
+@dataclass
+class PolicyRecord:
+    id: int
+    role: str
+    file: str  # relative to the state directory
+    sha256: str
+    origin: str
+    predecessor: int | None
+    learner_updates: int | None
+    training_steps: int
+    since_step: int
+    record: Tally | None  # a retired champion's tally over its tenure
+
+    def as_dict(self) -> dict:
+        return {"id": self.id, "role": self.role, "file": self.file, "origin": self.origin,
+                "predecessor": self.predecessor, "learner_updates": self.learner_updates,
+                "training_steps": self.training_steps, "since_step": self.since_step,
+                "record": None if self.record is None else self.record.as_dict()}
+
+
+_COLUMNS = ("id", "role", "file", "sha256", "origin", "predecessor", "learner_updates", "training_steps",
+            "since_step", "record")
+
+
+def _tally_json(t: Tally) -> str:
+    return json.dumps({"actions": t.actions, "successes": t.successes, "grasps": t.grasps})
+
+
+def _record_from_row(row: tuple) -> PolicyRecord:
+    d = dict(zip(_COLUMNS, row))
+    rec = None
+    if d["record"]:
+        r = json.loads(d["record"])
+        rec = Tally(int(r["actions"]), int(r["successes"]), int(r["grasps"]))
+    return PolicyRecord(id=int(d["id"]), role=d["role"], file=d["file"], sha256=d["sha256"], origin=d["origin"],
+                        predecessor=d["predecessor"], learner_updates=d["learner_updates"],
+                        training_steps=int(d["training_steps"]), since_step=int(d["since_step"]), record=rec)
+
+
+class Gatekeeper:
+    """The gate's state: champion, challenger, their tallies; the agent's networks follow it."""
+
+    def __init__(self, config: CellConfig, store: Store, agent: Any, state_dir: str | Path,
+                 keep_champions: int | None = None) -> None:
+        self.config = config
+        self.settings = gate_settings(config)
+        self.enabled = bool(config.gate.enabled)
+        self.keep_champions = config.gate.keep_champions if keep_champions is None else keep_champions
+        self.store = store
+        self.agent = agent
+        self.state_dir = Path(state_dir)
+        self.directory = self.state_dir / GATE_DIR
+        self.handovers = WeightsMailbox()  # the learner posts here when the gate is on
+        self.champion: PolicyRecord | None = None
+        self.challenger: PolicyRecord | None = None
+        self.champion_live = Tally()   # the champion's actions since it became champion
+        self.champion_during_test = Tally()  # ... since the challenger under test came
+        self.challenger_tally = Tally()
+        self.by_promotion = False  # the champion came in by a promotion: it is rolled back automatically
+        self.verdict: Verdict | None = None
+        self._lock = threading.RLock()
+
+    # ------------------------------------------------------------------ files and records
+    def _path(self, record: PolicyRecord) -> Path:
+        return self.state_dir / record.file
+
+    def _write_file(self, policy_id: int, network: Any, meta: dict) -> tuple[str, str]:
+        from flgd.learning.policy_file import read_metadata, save_policy
+
+        self.directory.mkdir(parents=True, exist_ok=True)
+        rel = f"{GATE_DIR}/policy-{policy_id:06d}.safetensors"
+        save_policy(self.state_dir / rel, network, meta)
+        return rel, str(read_metadata(self.state_dir / rel)["weights_sha256"])
+
+    def _next_id(self) -> int:
+        return int(self.store.query("SELECT COALESCE(MAX(id), 0) + 1 FROM policies")[0][0])
+
+    def _row(self, policy_id: int) -> PolicyRecord | None:
+        rows = self.store.query(f"SELECT {', '.join(_COLUMNS)} FROM policies WHERE id=?", (int(policy_id),))
+        return _record_from_row(rows[0]) if rows else None
+
+    def _by_role(self, role: str) -> PolicyRecord | None:
+        rows = self.store.query(f"SELECT {', '.join(_COLUMNS)} FROM policies WHERE role=? ORDER BY id DESC LIMIT 1",
+                                (role,))
+        return _record_from_row(rows[0]) if rows else None
+
+    def _load(self, record: PolicyRecord) -> Any:
+        """The record's network; PolicyFileError (naming the file) when it cannot be used."""
+        from flgd.learning.policy_file import PolicyFileError, load_policy
+
+        loaded = load_policy(self._path(record), expected_variant=self.config.learning.network)
+        if loaded.metadata.get("weights_sha256") != record.sha256:
+            raise PolicyFileError(self._path(record), "weights differ from the ones the gate recorded for it")
+        return loaded.network
+
+    def _tally(self, policy_id: int, since_step: int) -> Tally:
+        rows = self.store.query(
+            "SELECT COUNT(*), COALESCE(SUM(success = 1), 0), COALESCE(SUM(primitive = 'grasp'), 0) FROM actions "
+            f"WHERE policy=? AND step>=? AND outcome IN ({', '.join('?' * len(CREDITED_OUTCOMES))})",
+            (int(policy_id), int(since_step), *CREDITED_OUTCOMES))
+        n, s, g = rows[0]
+        return Tally(int(n), int(s), int(g))
+
+    def _event(self, db: Any, kind: str, step: int, policy: int | None, other: int | None, who: str,
+               message: str, evidence: dict) -> None:
+        db.execute("INSERT INTO gate_events(time, step, kind, policy, other, who, message, evidence) "
+                   "VALUES(?,?,?,?,?,?,?,?)", (time.time(), int(step), kind, policy, other, who, message,
+                                               json.dumps(evidence, sort_keys=True, default=str)))
+
+    def _remove_file(self, record: PolicyRecord) -> None:
+        try:
+            self._path(record).unlink(missing_ok=True)
+        except OSError as exc:
+            log.warning("gate: cannot remove %s: %s", self._path(record), exc)
+
+    def _prune_retired(self) -> None:
+        """Keep the files of the champion's last ``keep_champions`` predecessors; older ones are deleted."""
+        chain, cur = [], self.champion
+        while cur is not None and cur.predecessor is not None:
+            cur = self._row(cur.predecessor)
+            if cur is not None:
+                chain.append(cur)
+        for old in chain[self.keep_champions:]:
+            if self._path(old).exists():
+                self._remove_file(old)
+
+    def _remove_strays(self) -> None:
+        """Files in the gate directory no record points to (a kill between writing a file and its row)."""
+        if not self.directory.is_dir():
+            return
+        known = {r[0] for r in self.store.query("SELECT file FROM policies")}
+        for path in self.directory.iterdir():
+            if f"{GATE_DIR}/{path.name}" not in known:
+                try:
+                    path.unlink()
+                    log.info("gate: removed %s (no record: written just before an interruption)", path)
+                except OSError as exc:
+                    log.warning("gate: cannot remove %s: %s", path, exc)
+
+    # ------------------------------------------------------------------ start-up
+    def restore(self, step: int, configured: Callable[[], tuple[Any, dict, str] | None],
+                fresh: Callable[[], tuple[Any, dict, str]]) -> str:
+        """Make the agent act with the stored champion (and test the stored challenger); returns a summary.
+
+        ``configured`` gives (network, metadata, origin) of the configured policy, or None when there is
+        none; it is called only when no stored champion is usable (first start, or every file unusable).
+        ``fresh`` gives the network a daemon without any policy starts from; it is used only on a first
+        start without a configured policy (training from scratch), never as a fall-back.
+        """
+        with self._lock:
+            self._remove_strays()
+            note = ""
+            champion = self._by_role("champion")
+            network = None
+            tried: list[str] = []
+            cur = champion
+            while cur is not None:
+                try:
+                    network = self._load(cur)
+                    break
+                except Exception as exc:  # PolicyFileError, OSError: the file named, the next one tried
+                    tried.append(f"{self._path(cur)}: {exc}")
+                    self._mark_unusable(cur, step, str(exc))
+                    cur = self._row(cur.predecessor) if cur.predecessor is not None else None
+            if network is not None and cur is not None and champion is not None and cur.id != champion.id:
+                self._crown(cur, step, "fallback", "flgd", f"champion #{champion.id} unusable; policy #{cur.id} "
+                                                           f"acts again", {"unusable": tried})
+                note = f"fell back to policy #{cur.id} ({'; '.join(tried)})"
+            if network is None:
+                got = configured()
+                if got is None and champion is None:
+                    got = fresh()
+                if got is None:
+                    raise GateError("no usable champion and no configured policy: " + "; ".join(tried) +
+                                    " (set `policy:` in the config, or flgctl policy load after a restart)")
+                net, meta, origin = got
+                kind = "initial" if champion is None else "fallback"
+                cur = self._register_champion(net, meta, origin, step, kind, "flgd",
+                                              {"unusable": tried} if tried else {})
+                network = net
+                if tried:
+                    note = f"fell back to the configured policy ({'; '.join(tried)})"
+            self._act_with_champion(cur, network)
+            self._restore_challenger(step)
+            self._recount()
+            return note or f"champion #{cur.id} ({cur.origin})"
+
+    def _mark_unusable(self, record: PolicyRecord, step: int, why: str) -> None:
+        def write(db: Any) -> None:
+            db.execute("UPDATE policies SET role='unusable' WHERE id=?", (record.id,))
+            self._event(db, "unusable", step, record.id, None, "flgd",
+                        f"policy #{record.id} file {self._path(record)} cannot be used: {why}", {"error": why})
+        self.store.transaction(write)
+        log.error("gate: policy #%d file %s cannot be used: %s", record.id, self._path(record), why)
+
+    def _restore_challenger(self, step: int) -> None:
+        rec = self._by_role("challenger")
+        if rec is None:
+            self.agent.set_challenger(None)
+            return
+        try:
+            net = self._load(rec)
+        except Exception as exc:
+            self.challenger = rec
+            self._drop(step, "flgd", f"its file cannot be used: {exc}", {"error": str(exc)}, kind="drop")
+            return
+        self.challenger = rec
+        self.agent.set_challenger(net, rec.id, -1, self.settings.share if self.enabled else 0.0)
+
+    def _recount(self) -> None:
+        ch = self.champion
+        assert ch is not None
+        self.champion_live = self._tally(ch.id, ch.since_step)
+        if self.challenger is not None:
+            self.challenger_tally = self._tally(self.challenger.id, self.challenger.since_step)
+            self.champion_during_test = self._tally(ch.id, self.challenger.since_step)
+        else:
+            self.challenger_tally = Tally()
+            self.champion_during_test = Tally()
+        rows = self.store.query("SELECT kind FROM gate_events WHERE policy=? AND kind IN (%s) ORDER BY id DESC "
+                                "LIMIT 1" % ", ".join("?" * len(_CROWNING)), (ch.id, *_CROWNING))
+        self.by_promotion = bool(rows) and _CROWNING.get(rows[0][0], False)
+        self._evaluate_only()
+
+    # ------------------------------------------------------------------ changes of the acting policy
+    def _act_with_champion(self, record: PolicyRecord, network: Any) -> None:
+        self.champion = record
+        self.agent.network.load_state_dict(network.state_dict())
+        self.agent.network.eval()
+        self.agent.champion_id = record.id if self.enabled else None
+        # a learner update count for the cached double-DQN argmax; only the learner's own weights have one
+        self.agent.weights_version = record.learner_updates if record.learner_updates is not None else -1
+
+    def _register_champion(self, network: Any, meta: dict, origin: str, step: int, kind: str, who: str,
+                           evidence: dict) -> PolicyRecord:
+        pid = self._next_id()
+        steps = int(meta.get("training_steps", 0) or 0)
+        rel, sha = self._write_file(pid, network, {"training_steps": steps, "cell": self.config.name or
+                                                   self.config.backend, "source": origin, "gate_policy": pid})
+        old = self.champion
+        record = PolicyRecord(pid, "champion", rel, sha, origin, None if old is None else old.id, None, steps,
+                              int(step), None)
+
+        def write(db: Any) -> None:
+            if old is not None:
+                db.execute("UPDATE policies SET role='retired', record=? WHERE id=?",
+                           (_tally_json(self.champion_live), old.id))
+            db.execute("INSERT INTO policies(id, created, role, file, sha256, origin, predecessor, learner_updates, "
+                       "training_steps, since_step, record) VALUES(?,?,?,?,?,?,?,?,?,?,NULL)",
+                       (pid, time.time(), "champion", rel, sha, origin, record.predecessor, record.learner_updates,
+                        steps, int(step)))
+            self._event(db, kind, step, pid, record.predecessor, who, f"policy #{pid} is the champion: {origin}",
+                        evidence)
+        self.store.transaction(write)
+        log.info("gate: policy #%d is the champion (%s: %s)", pid, kind, origin)
+        self.by_promotion = False
+        return record
+
+    def _crown(self, record: PolicyRecord, step: int, kind: str, who: str, message: str, evidence: dict,
+               retire_as: str = "retired") -> None:
+        """``record`` (a stored policy) becomes the champion; the current one is retired (or rolled back)."""
+        old = self.champion
+
+        def write(db: Any) -> None:
+            if old is not None and old.id != record.id:
+                db.execute("UPDATE policies SET role=?, record=? WHERE id=?",
+                           (retire_as, _tally_json(self.champion_live), old.id))
+            if kind in ("promote", "manual-promote"):
+                db.execute("UPDATE policies SET role='champion', predecessor=?, since_step=? WHERE id=?",
+                           (None if old is None else old.id, int(step), record.id))
+            else:
+                db.execute("UPDATE policies SET role='champion', since_step=? WHERE id=?", (int(step), record.id))
+            self._event(db, kind, step, record.id, None if old is None else old.id, who, message, evidence)
+        self.store.transaction(write)
+        refreshed = self._row(record.id)
+        assert refreshed is not None
+        self.champion = refreshed
+        self.by_promotion = _CROWNING[kind]
+        log.info("gate: %s", message)
+
+    def _drop(self, step: int, who: str, why: str, evidence: dict, kind: str = "drop") -> None:
+        ch = self.challenger
+        if ch is None:
+            return
+
+        def write(db: Any) -> None:
+            db.execute("UPDATE policies SET role='dropped', record=? WHERE id=?",
+                       (_tally_json(self.challenger_tally), ch.id))
+            self._event(db, kind, step, ch.id, None if self.champion is None else self.champion.id, who,
+                        f"challenger #{ch.id} dropped: {why}", evidence)
+        self.store.transaction(write)
+        self._remove_file(ch)
+        log.info("gate: challenger #%d dropped: %s", ch.id, why)
+        self.challenger = None
+        self.challenger_tally = Tally()
+        self.champion_during_test = Tally()
+        self.agent.set_challenger(None)
+
+    def _evidence(self) -> dict:
+        return {"champion": None if self.champion is None else self.champion.id,
+                "challenger": None if self.challenger is None else self.challenger.id,
+                "champion_during_test": self.champion_during_test.as_dict(),
+                "challenger_tally": self.challenger_tally.as_dict(),
+                "champion_live": self.champion_live.as_dict(),
+                "p_better": None if self.verdict is None else self.verdict.p_better,
+                "settings": self.settings.__dict__}
+
+    def promote(self, step: int, who: str, reason: str) -> dict:
+        with self._lock:
+            ch = self.challenger
+            if ch is None:
+                raise GateError("no challenger to promote")
+            network = copy.deepcopy(self.agent.challenger)
+            kind = "promote" if who == "gate" else "manual-promote"
+            evidence = self._evidence()
+            self._crown(ch, step, kind, who, f"challenger #{ch.id} promoted: {reason}", evidence)
+            self.challenger = None
+            self.agent.set_challenger(None)
+            self._act_with_champion(self.champion, network)
+            self.champion_live, self.challenger_tally, self.champion_during_test = Tally(), Tally(), Tally()
+            self._prune_retired()
+            self.verdict = None
+            return {"champion": self.champion.id, "reason": reason}
+
+    def reject(self, step: int, who: str) -> dict:
+        with self._lock:
+            if self.challenger is None:
+                raise GateError("no challenger to reject")
+            pid = self.challenger.id
+            self._drop(step, who, f"rejected by {who}", self._evidence(), kind="reject")
+            self.verdict = None
+            return {"rejected": pid}
+
+    def rollback(self, step: int, who: str, reason: str) -> dict:
+        """The champion's predecessor acts again; the champion and any challenger are dropped."""
+        with self._lock:
+            ch = self.champion
+            if ch is None or ch.predecessor is None:
+                raise GateError("the champion has no predecessor to roll back to")
+            pred = self._row(ch.predecessor)
+            if pred is None:
+                raise GateError(f"predecessor #{ch.predecessor} is not in the store")
+            try:
+                network = self._load(pred)
+            except Exception as exc:
+                raise GateError(f"predecessor #{pred.id} cannot be used: {exc}") from None
+            if self.challenger is not None:
+                self._drop(step, who, f"its champion #{ch.id} was rolled back", self._evidence())
+            kind = "rollback" if who == "gate" else "manual-rollback"
+            evidence = self._evidence()
+            evidence["predecessor_record"] = None if pred.record is None else pred.record.as_dict()
+            self._crown(pred, step, kind, who, f"champion #{ch.id} rolled back to #{pred.id}: {reason}", evidence,
+                        retire_as="rolled_back")
+            self._remove_file(ch)
+            self._act_with_champion(self.champion, network)
+            self.champion_live = Tally()
+            self.verdict = None
+            return {"champion": pred.id, "rolled_back": ch.id, "reason": reason}
+
+    def load_champion(self, network: Any, meta: dict, origin: str, step: int, who: str) -> dict:
+        """A policy file loaded by the operator becomes the champion (any challenger is dropped)."""
+        with self._lock:
+            if self.challenger is not None:
+                self._drop(step, who, "a policy was loaded", self._evidence())
+            rec = self._register_champion(network, meta, origin, step, "load", who, {"metadata": {
+                k: v for k, v in meta.items() if isinstance(v, (str, int, float, bool, type(None)))}})
+            self._act_with_champion(rec, network)
+            self.champion_live = Tally()
+            self._prune_retired()
+            self.verdict = None
+            return {"champion": rec.id}
+
+    # ------------------------------------------------------------------ the cycle's side
+    def take_handover(self, step: int) -> bool:
+        """With no challenger under test, the learner's newest handed-over weights become the challenger."""
+        if not self.enabled:
+            return False
+        with self._lock:
+            if self.challenger is not None:
+                return False
+            posted = self.handovers.take()
+            if posted is None:
+                return False
+            weights, version = posted
+            network = copy.deepcopy(self.agent.network)
+            network.load_state_dict(weights)
+            network.eval()
+            pid = self._next_id()
+            origin = f"learner update {version}"
+            rel, sha = self._write_file(pid, network, {"training_steps": int(step), "cell": self.config.name or
+                                                       self.config.backend, "source": origin,
+                                                       "learner_updates": int(version), "gate_policy": pid})
+            rec = PolicyRecord(pid, "challenger", rel, sha, origin, None, int(version),
+                               int(step), int(step), None)
+            champion = self.champion
+
+            def write(db: Any) -> None:
+                db.execute("INSERT INTO policies(id, created, role, file, sha256, origin, predecessor, "
+                           "learner_updates, training_steps, since_step, record) VALUES(?,?,?,?,?,?,?,?,?,?,NULL)",
+                           (pid, time.time(), "challenger", rel, sha, origin, None, int(version), int(step),
+                            int(step)))
+                self._event(db, "challenger", step, pid, None if champion is None else champion.id, "gate",
+                            f"policy #{pid} ({origin}) is the challenger", {"share": self.settings.share})
+            self.store.transaction(write)
+            self.challenger = rec
+            self.challenger_tally, self.champion_during_test = Tally(), Tally()
+            self.agent.set_challenger(network, pid, int(version), self.settings.share)
+            log.info("gate: policy #%d (%s) is the challenger", pid, origin)
+            self.verdict = None
+            return True
+
+    def after_cycle(self, record: Any) -> Verdict | None:
+        """Credit the cycle's outcome to the policy that decided it, apply the gate's verdict, take a hand-over.
+
+        Returns the verdict that changed something (promote, drop, rollback), else None.
+        """
+        if not self.enabled:
+            return None
+        step = int(record.step) + 1 if getattr(record, "step", None) is not None else self._step_now()
+        with self._lock:
+            pid = getattr(record, "policy", None)
+            if pid is not None and record.outcome in CREDITED_OUTCOMES:
+                success = bool(record.success) if record.primitive == "grasp" else False
+                grasp = record.primitive == "grasp"
+                if self.champion is not None and pid == self.champion.id:
+                    self.champion_live = self.champion_live.add(success, grasp)
+                    if self.challenger is not None:
+                        self.champion_during_test = self.champion_during_test.add(success, grasp)
+                elif self.challenger is not None and pid == self.challenger.id:
+                    self.challenger_tally = self.challenger_tally.add(success, grasp)
+            acted = self._apply_verdict(step)
+            self.take_handover(step)
+            return acted
+
+    def _step_now(self) -> int:
+        return int(self.store.next_step())
+
+    def _evaluate_only(self) -> Verdict | None:
+        if self.challenger is not None:
+            self.verdict = challenger_verdict(self.champion_during_test, self.challenger_tally, self.settings)
+        elif self.by_promotion and self.champion is not None and self.champion.predecessor is not None:
+            pred = self._row(self.champion.predecessor)
+            if pred is not None and pred.record is not None and pred.record.actions > 0:
+                self.verdict = rollback_verdict(self.champion_live, pred.record, self.settings)
+            else:
+                self.verdict = None
+        else:
+            self.verdict = None
+        return self.verdict
+
+    def _apply_verdict(self, step: int) -> Verdict | None:
+        v = self._evaluate_only()
+        if v is None:
+            return None
+        if v.kind == "promote":
+            self.promote(step, "gate", v.reason)
+            return v
+        if v.kind == "drop":
+            self._drop(step, "gate", v.reason, self._evidence())
+            self.verdict = None
+            return v
+        if v.kind == "rollback":
+            try:
+                self.rollback(step, "gate", v.reason)
+            except GateError as exc:
+                log.error("gate: rollback not possible: %s", exc)
+                self.by_promotion = False  # do not retry every cycle; the operator sees the event
+                self.store.transaction(lambda db: self._event(
+                    db, "rollback-failed", step, self.champion.id, None, "gate", f"rollback not possible: {exc}",
+                    {"verdict": v.reason}))
+                return None
+            return v
+        return None
+
+    # ------------------------------------------------------------------ reading
+    def status(self) -> dict:
+        with self._lock:
+            ch, cl, v = self.champion, self.challenger, self.verdict
+            out: dict[str, Any] = {"enabled": self.enabled, "share": self.settings.share if self.enabled else 0.0}
+            out["champion"] = None if ch is None else {
+                **ch.as_dict(), "live": self.champion_live.as_dict(), "file": str(self._path(ch)),
+                "rolled_back_automatically": self.by_promotion}
+            out["challenger"] = None if cl is None else {
+                **cl.as_dict(), "tally": self.challenger_tally.as_dict(), "file": str(self._path(cl)),
+                "champion_during_test": self.champion_during_test.as_dict()}
+            out["verdict"] = None if v is None else {"kind": v.kind, "p_better": v.p_better, "reason": v.reason}
+            out["handover_waiting"] = self.handovers.waiting
+            return out
+
+    def history(self, limit: int = 50) -> list[dict]:
+        rows = self.store.query("SELECT id, time, step, kind, policy, other, who, message, evidence FROM gate_events "
+                                "ORDER BY id DESC LIMIT ?", (int(limit),))
+        out = []
+        for r in reversed(rows):
+            d = dict(zip(("id", "time", "step", "kind", "policy", "other", "who", "message", "evidence"), r))
+            d["evidence"] = json.loads(d["evidence"])
+            out.append(d)
+        return out

@@ -1,0 +1,262 @@
+"""The gatekeeper: champion and challenger on a real store and real policy files, outcomes fed as cycle records.
+
+The cell is left out here (the daemon tests run the gate with the simulated cell): what is checked is which
+network the agent acts with after each verdict, what the store records, and what a restart restores.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from flgd.config import CellConfig
+from flgd.cycle import CycleRecord
+from flgd.gatekeeper import GateError, Gatekeeper
+from flgd.learning.agent import Agent
+from flgd.learning.networks import build_network
+from flgd.perception import Heightmaps
+from flgd.store import Store
+
+N = 32
+
+
+def _config(**gate) -> CellConfig:
+    cfg = CellConfig()
+    base = dict(share=0.5, min_attempts=10, drop_min_attempts=10, max_attempts=200, rollback_min_attempts=10,
+                promote_confidence=0.95, drop_confidence=0.95, rollback_confidence=0.95)
+    base.update(gate)
+    return dataclasses.replace(cfg, gate=dataclasses.replace(cfg.gate, **base),
+                               learning=dataclasses.replace(cfg.learning, device="cpu"))
+
+
+def _net(seed: int):
+    return build_network("fast", rotations=16, seed=seed)
+
+
+def _same(a, b) -> bool:
+    sa, sb = a.state_dict(), b.state_dict()
+    return all(torch.equal(sa[k], sb[k]) for k in sa)
+
+
+class Cell:
+    """A gate on a store in ``tmp``, as the daemon builds it; ``reopen`` is a restart."""
+
+    def __init__(self, tmp: Path, config: CellConfig, configured=None):
+        self.tmp, self.config = tmp, config
+        self.configured = configured if configured is not None else _net(1)
+        self.step = 0
+        self.open()
+
+    def open(self) -> None:
+        self.store = Store(self.tmp)
+        self.agent = Agent(self.config, _net(99), seed=0)
+        self.gate = Gatekeeper(self.config, self.store, self.agent, self.tmp)
+        self.note = self.gate.restore(self.step, self._configured, self._fresh)
+
+    def _configured(self):
+        return None if self.configured is False else (self.configured, {"training_steps": 4000}, "policy P")
+
+    def _fresh(self):
+        return _net(7), {"training_steps": 0}, "fresh network"
+
+    def reopen(self) -> None:
+        self.store.close()
+        self.open()
+
+    def hand_over(self, network) -> None:
+        self.gate.handovers.post(network.state_dict(), version=100 + self.step)
+        assert self.gate.take_handover(self.step)
+
+    def act(self, policy: int | None, success: bool, primitive: str = "grasp", outcome: str = "executed"):
+        """One cycle credited to ``policy``: committed to the store, then shown to the gate (as the daemon does)."""
+        rec = CycleRecord(outcome=outcome, step=self.step, time=time.time(), backend="sim", kind=primitive,
+                          success=success if primitive == "grasp" else None, reward=float(success),
+                          policy=policy, rule="greedy")
+        rec.action = type("A", (), {"primitive": primitive, "row": 1, "col": 1, "rotation": 0})()
+        self.store.commit_cycle(rec.row(), None)
+        self.step += 1
+        return self.gate.after_cycle(rec)
+
+
+def _scene(seed: int) -> Heightmaps:
+    rng = np.random.default_rng(seed)
+    h = np.zeros((N, N), np.float32)
+    h[8:16, 8:16] = 0.03
+    h[20:26, 18:28] = 0.04
+    return Heightmaps(color=rng.integers(0, 255, (N, N, 3), dtype=np.uint8), height=h)
+
+
+def test_first_start_makes_the_configured_policy_the_champion_file(tmp_path):
+    c = Cell(tmp_path, _config())
+    ch = c.gate.champion
+    assert ch.id == 1 and ch.origin == "policy P" and (tmp_path / ch.file).is_file()
+    assert _same(c.agent.network, c.configured)
+    assert [e["kind"] for e in c.gate.history()] == ["initial"]
+    assert c.agent.champion_id == 1 and c.agent.challenger is None
+
+
+def test_a_better_challenger_is_promoted_and_acts(tmp_path):
+    c = Cell(tmp_path, _config())
+    better = _net(2)
+    c.hand_over(better)
+    assert c.gate.challenger.id == 2 and _same(c.agent.challenger, better)
+    verdict = None
+    for k in range(400):
+        verdict = c.act(2, True) if k % 2 else c.act(1, k % 4 == 0)  # 100 % against 50 %
+        if verdict is not None:
+            break
+    assert verdict is not None and verdict.kind == "promote"
+    assert c.gate.champion.id == 2 and c.gate.champion.predecessor == 1 and c.gate.challenger is None
+    assert _same(c.agent.network, better) and c.agent.challenger is None and c.agent.champion_id == 2
+    promote = c.gate.history()[-1]
+    assert promote["kind"] == "promote" and promote["who"] == "gate"
+    assert promote["evidence"]["challenger_tally"]["successes"] >= 10
+    # the retired champion keeps the record of its tenure, for a rollback
+    assert c.store.query("SELECT role, record FROM policies WHERE id=1")[0][0] == "retired"
+
+
+def test_a_worse_challenger_is_dropped_and_never_acts_again(tmp_path):
+    c = Cell(tmp_path, _config())
+    c.hand_over(_net(3))
+    file = tmp_path / c.gate.challenger.file
+    verdict = None
+    for k in range(400):
+        verdict = c.act(2, False) if k % 2 else c.act(1, True)
+        if verdict is not None:
+            break
+    assert verdict is not None and verdict.kind == "drop"
+    assert c.gate.challenger is None and c.agent.challenger is None and not file.exists()
+    roles = {c.agent.decide(_scene(s), 10_000).role for s in range(30)}
+    assert roles == {"champion"}
+    assert _same(c.agent.network, c.configured)
+
+
+def test_with_a_challenger_the_share_of_decisions_is_its_own_and_epsilon_is_credited_to_neither(tmp_path):
+    cfg = _config(share=0.5)
+    cfg = dataclasses.replace(cfg, exploration=dataclasses.replace(cfg.exploration, epsilon_start=0.3,
+                                                                   epsilon_end=0.3))
+    c = Cell(tmp_path, cfg)
+    c.hand_over(_net(4))
+    decisions = [c.agent.decide(_scene(s), 0) for s in range(80)]
+    by = {(d.role, d.policy_id) for d in decisions if d.rule != "epsilon"}
+    assert by == {("champion", 1), ("challenger", 2)}
+    assert {d.policy_id for d in decisions if d.rule == "epsilon"} == {None}
+    assert 20 <= sum(d.role == "challenger" for d in decisions) <= 60
+
+
+def test_a_promoted_champion_that_falls_below_its_predecessors_record_is_rolled_back(tmp_path):
+    c = Cell(tmp_path, _config())
+    for k in range(40):
+        c.act(1, k % 5 != 0)  # the first champion's tenure: 80 %
+    c.hand_over(_net(5))
+    for k in range(400):
+        if c.act(2, True) if k % 2 else c.act(1, k % 5 != 0):
+            break
+    assert c.gate.champion.id == 2
+    verdict = None
+    for k in range(400):
+        verdict = c.act(2, k % 5 == 0)  # now 20 %
+        if verdict is not None:
+            break
+    assert verdict is not None and verdict.kind == "rollback"
+    assert c.gate.champion.id == 1 and _same(c.agent.network, c.configured)
+    assert c.store.query("SELECT role FROM policies WHERE id=2") == [("rolled_back",)]
+    assert c.gate.history()[-1]["evidence"]["predecessor_record"]["actions"] >= 40
+
+
+def test_a_restart_acts_with_the_champion_and_keeps_the_tallies(tmp_path):
+    c = Cell(tmp_path, _config(min_attempts=150, max_attempts=200))
+    challenger = _net(6)
+    c.hand_over(challenger)
+    for k in range(30):
+        c.act(2 if k % 3 == 0 else 1, k % 2 == 0)
+    c.act(None, True)  # epsilon: credited to neither
+    c.act(1, True, outcome="discarded")  # the simulator gave up: not the policy's doing
+    before = c.gate.status()
+    c.reopen()  # a restart (the same store and files; nothing else kept)
+    after = c.gate.status()
+    assert after["champion"]["id"] == 1 and after["challenger"]["id"] == 2
+    assert after["challenger"]["tally"] == before["challenger"]["tally"]
+    assert after["challenger"]["champion_during_test"] == before["challenger"]["champion_during_test"]
+    assert after["challenger"]["tally"]["actions"] == 10 and after["champion"]["live"]["actions"] == 20
+    assert _same(c.agent.network, c.configured) and _same(c.agent.challenger, challenger)
+
+
+def test_a_corrupt_champion_file_falls_back_to_its_predecessor_with_an_event(tmp_path):
+    c = Cell(tmp_path, _config())
+    c.hand_over(_net(8))
+    c.gate.promote(c.step, "uid 0 pid 1", "by hand")
+    file = tmp_path / c.gate.champion.file
+    blob = bytearray(file.read_bytes())
+    blob[-10] ^= 0xFF
+    file.write_bytes(bytes(blob))
+    c.reopen()
+    assert c.gate.champion.id == 1 and _same(c.agent.network, c.configured)
+    kinds = [(e["kind"], e["policy"]) for e in c.gate.history()]
+    assert ("unusable", 2) in kinds and kinds[-1] == ("fallback", 1)
+    unusable = [e for e in c.gate.history() if e["kind"] == "unusable"][0]
+    assert str(file) in unusable["message"]
+
+
+def test_a_missing_champion_without_predecessor_falls_back_to_the_configured_policy(tmp_path):
+    c = Cell(tmp_path, _config())
+    (tmp_path / c.gate.champion.file).unlink()
+    c.configured = _net(9)
+    c.reopen()
+    assert c.gate.champion.id == 2 and c.gate.champion.origin == "policy P" and _same(c.agent.network, c.configured)
+    assert [e["kind"] for e in c.gate.history()][-2:] == ["unusable", "fallback"]
+
+
+def test_no_usable_champion_and_no_configured_policy_refuses_rather_than_act_fresh(tmp_path):
+    c = Cell(tmp_path, _config())
+    (tmp_path / c.gate.champion.file).unlink()
+    c.configured = False
+    with pytest.raises(GateError, match="no usable champion"):
+        c.reopen()
+
+
+def test_without_any_policy_the_fresh_network_is_the_first_champion(tmp_path):
+    c = Cell(tmp_path, _config(), configured=False)
+    assert c.gate.champion.origin == "fresh network" and c.gate.champion.training_steps == 0
+
+
+def test_manual_overrides_are_recorded_with_who_asked(tmp_path):
+    c = Cell(tmp_path, _config())
+    c.hand_over(_net(10))
+    c.gate.reject(c.step, "uid 1000 pid 42")
+    assert c.gate.challenger is None
+    c.hand_over(_net(11))
+    c.gate.promote(c.step, "uid 1000 pid 43", "by hand")
+    c.gate.rollback(c.step, "uid 1000 pid 44", "by hand")
+    events = [(e["kind"], e["who"]) for e in c.gate.history()]
+    assert events[-4:] == [("reject", "uid 1000 pid 42"), ("challenger", "gate"),
+                           ("manual-promote", "uid 1000 pid 43"), ("manual-rollback", "uid 1000 pid 44")]
+    with pytest.raises(GateError, match="no challenger"):
+        c.gate.promote(c.step, "x", "y")
+    with pytest.raises(GateError, match="no predecessor"):
+        c.gate.rollback(c.step, "x", "y")
+
+
+def test_a_challenger_under_test_is_not_replaced_by_newer_hand_overs(tmp_path):
+    c = Cell(tmp_path, _config())
+    c.hand_over(_net(12))
+    newer = _net(13)
+    c.gate.handovers.post(newer.state_dict(), version=999)
+    assert not c.gate.take_handover(c.step)
+    assert c.gate.challenger.id == 2
+    c.gate.reject(c.step, "me")
+    assert c.gate.take_handover(c.step) and c.gate.challenger.learner_updates == 999
+
+
+def test_the_gate_off_never_takes_hand_overs_or_credits(tmp_path):
+    c = Cell(tmp_path, _config(enabled=False))
+    c.gate.handovers.post(_net(14).state_dict(), version=5)
+    assert not c.gate.take_handover(0) and c.agent.champion_id is None
+    assert c.act(None, True) is None
+    assert json.dumps(c.gate.status())  # status is plain JSON
