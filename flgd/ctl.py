@@ -141,12 +141,20 @@ def _parser() -> argparse.ArgumentParser:
                         ("stop", "halt the motion in flight and stop the daemon"),
                         ("ping", "check that the daemon answers")):
         sub.add_parser(name, parents=[common], help=help_)
-    pol = sub.add_parser("policy", parents=[common], help="load or save the acting policy")
-    polsub = pol.add_subparsers(dest="policy_command", required=True, metavar="load|save")
-    load = polsub.add_parser("load", parents=[common], help="validate a policy file, then use it")
+    pol = sub.add_parser("policy", parents=[common], help="the acting policy and the champion/challenger gate")
+    polsub = pol.add_subparsers(dest="policy_command", required=True,
+                                metavar="load|save|history|promote|reject|rollback")
+    load = polsub.add_parser("load", parents=[common], help="validate a policy file, then make it the champion")
     load.add_argument("file")
-    save = polsub.add_parser("save", parents=[common], help="write the current policy (default: state dir)")
+    save = polsub.add_parser("save", parents=[common], help="write the learner's current weights (default: state dir)")
     save.add_argument("file", nargs="?")
+    hist = polsub.add_parser("history", parents=[common],
+                             help="every promotion, drop, rollback, load and override, with its evidence")
+    hist.add_argument("--limit", type=int, default=50, help="newest N events (default 50)")
+    for name, help_ in (("promote", "make the challenger the champion now (logged with who asked)"),
+                        ("reject", "drop the challenger now (logged with who asked)"),
+                        ("rollback", "let the champion's predecessor act again (logged with who asked)")):
+        polsub.add_parser(name, parents=[common], help=help_)
     be = sub.add_parser("backend", parents=[common], help="swap the cell between cycles (sim, ur5e, ...)")
     be.add_argument("name")
     snap = sub.add_parser("snapshot", parents=[common], help="PNG of the heightmap, Q-maps and chosen action")
@@ -173,6 +181,11 @@ def _human(command: str, reply: dict, extra: dict) -> str:
                  f"(stored {r['stored_transitions']}), last checkpoint {r['last_checkpoint'] or '-'}, "
                  f"optimizer {r.get('trainer_state', '-')}",
                  f"state dir     {r['state_dir']}   pid {r['pid']}"]
+        if not r.get("learner_running", True):
+            lines.append(f"learner       NOT RUNNING ({r.get('learner_stopped_why') or 'reason unknown'})")
+        if r.get("learning"):
+            lines.append(f"learning      {r['learning']} settings: {r.get('learning_why', '')}")
+        lines += _gate_lines(r.get("gate"))
         if r.get("learner_error"):
             lines.append(f"learner error {r['learner_error']}")
         if r.get("store_problem"):
@@ -191,7 +204,14 @@ def _human(command: str, reply: dict, extra: dict) -> str:
             f"{act['primitive']} at row {act['row']} col {act['col']} rotation {act['rotation']}"
         return f"wrote {extra['file']} ({r.get('source')}: {what})"
     if command == "policy load":
-        return f"policy loaded: {r['loaded']}"
+        champion = f" (champion #{r['champion']})" if r.get("champion") is not None else ""
+        return f"policy loaded: {r['loaded']}{champion}"
+    if command == "policy history":
+        return _history_lines(r.get("events", []))
+    if command in ("policy promote", "policy rollback"):
+        return f"{command}: champion is now #{r['champion']} ({r.get('reason', '')})"
+    if command == "policy reject":
+        return f"policy reject: challenger #{r['rejected']} dropped"
     if command == "policy save":
         where = f"{r['copied_to']} (copy of {r['saved']})" if r.get("copied_to") else r["saved"]
         return f"policy saved: {where} ({r['learner_updates']} learner updates)"
@@ -204,6 +224,47 @@ def _human(command: str, reply: dict, extra: dict) -> str:
     if command == "ping":
         return f"flgd answers (pid {r['pid']}, {reply['state']})"
     return f"{command}: ok, state {reply['state']}"
+
+
+def _tally_text(t: dict | None) -> str:
+    if not t:
+        return "-"
+    rate = "-" if t.get("per_action") is None else f"{t['per_action']:.3f}"
+    return (f"{t['successes']}/{t['actions']} actions = {rate} picks/action, grasp success "
+            f"{_pct(t.get('grasp_success'))}")
+
+
+def _gate_lines(g: dict | None) -> list[str]:
+    if not g:
+        return []
+    lines = []
+    ch = g.get("champion")
+    if ch:
+        lines.append(f"champion      #{ch['id']} {ch['origin']} (since step {ch['since_step']}): "
+                     f"{_tally_text(ch.get('live'))}")
+    if not g.get("enabled"):
+        lines.append("gate          OFF: the learner's weights act as soon as they are handed over (unvetted)")
+        return lines
+    cl = g.get("challenger")
+    if cl:
+        lines.append(f"challenger    #{cl['id']} {cl['origin']} acting on {100 * g['share']:.0f}% of decisions: "
+                     f"{_tally_text(cl.get('tally'))}; champion meanwhile {_tally_text(cl.get('champion_during_test'))}")
+    else:
+        lines.append("challenger    none (the learner's next hand-over becomes one)")
+    v = g.get("verdict")
+    if v:
+        lines.append(f"gate          {v['kind']}: {v['reason']}")
+    return lines
+
+
+def _history_lines(events: list[dict]) -> str:
+    if not events:
+        return "no gate events yet"
+    out = []
+    for e in events:
+        when = _dt.datetime.fromtimestamp(e["time"]).strftime("%Y-%m-%d %H:%M:%S")
+        out.append(f"{when}  step {e['step']:>6}  {e['kind']:<15} #{e['policy']}  {e['message']}  [{e['who']}]")
+    return "\n".join(out)
 
 
 def _local_failure(as_json: bool, reply: dict, message: str) -> int:
@@ -237,6 +298,8 @@ def main(argv: list[str] | None = None) -> int:
         cmd = f"policy_{args.policy_command}"
         if args.policy_command == "load":
             call_args["path"] = os.path.abspath(args.file)
+        elif args.policy_command == "history":
+            call_args["limit"] = args.limit
     elif command == "backend":
         call_args["name"] = args.name
     elif command == "snapshot":

@@ -17,7 +17,8 @@ from typing import Any, Callable
 from flgd.config import CellConfig
 from flgd.store import CheckpointDir, Store, StoreError
 
-__all__ = ["StartingNetwork", "starting_network", "fresh_network", "rebuild_replay", "build_agent_and_learner"]
+__all__ = ["StartingNetwork", "starting_network", "fresh_network", "rebuild_replay", "build_agent_and_learner",
+           "attach_gate"]
 
 log = logging.getLogger("flgd")
 
@@ -97,10 +98,13 @@ def rebuild_replay(config: CellConfig, store: Store | None, seed: int | None = N
 
 def build_agent_and_learner(config: CellConfig, network: Any, replay: Any, *,
                             checkpoint_callback: Callable[[Any, int], None] | None, updates: int = 0,
-                            agent_seed: int | None = None, store: Store | None = None) -> tuple[Any, Any]:
+                            agent_seed: int | None = None, store: Store | None = None,
+                            fine_tune: bool = False) -> tuple[Any, Any]:
     """The acting agent and its learner (which trains a copy of ``network`` and posts to the agent).
 
-    With ``store`` the learner writes the replay priorities it sets back to it.
+    With ``store`` the learner writes the replay priorities it sets back to it.  ``config`` is the one the
+    learner runs with (``config.learner_settings`` applied); with ``fine_tune`` the agent explores at most
+    ``finetune.max_epsilon``, and with no updates per action it does not explore at all.
     """
     from flgd.learning.agent import Agent
     from flgd.learning.learner import Learner
@@ -110,4 +114,31 @@ def build_agent_and_learner(config: CellConfig, network: Any, replay: Any, *,
                       priority_sink=None if store is None else store.save_priorities)
     learner.updates = int(updates)
     replay.resume_annealing(int(updates))  # one batch per update: beta goes on where the run left it
+    if fine_tune:
+        agent.max_epsilon = config.finetune.max_epsilon
+    if config.learning.updates_per_action == 0:
+        agent.max_epsilon = 0.0  # learning is off: exploring would only cost picks
     return agent, learner
+
+
+def attach_gate(config: CellConfig, store: Store, agent: Any, learner: Any, state_dir: str | Path, step: int, *,
+                fine_tune: bool, configured: Callable[[], tuple[Any, dict, str] | None],
+                fresh: Callable[[], tuple[Any, dict, str]]) -> tuple[Any, str]:
+    """(gatekeeper, note): the agent acts with the stored champion (on a first start the configured policy, or
+    without one ``fresh``), exploration continues from the policy's recorded training steps when fine-tuning,
+    and the learner hands its weights to the gate -- or, with ``gate.enabled`` false, straight to the agent.
+
+    The daemon and ``flgd eval --learn`` both call this, so that what the evaluation measures is what the
+    daemon does.  Raises GateError / PolicyFileError when there is no usable policy, StoreError on storage.
+    """
+    from flgd.gatekeeper import Gatekeeper
+
+    gate = Gatekeeper(config, store, agent, state_dir)
+    note = gate.restore(step, configured, fresh)
+    offset = store.counter("exploration_offset", -1)
+    if offset < 0:  # first start: exploration continues from the policy's recorded training steps
+        offset = gate.champion.training_steps - step if fine_tune else 0
+        store.set_counter("exploration_offset", offset)
+    agent.exploration_offset = offset
+    learner.mailbox = gate.handovers if gate.enabled else agent.mailbox
+    return gate, note

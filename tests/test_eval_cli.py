@@ -5,6 +5,7 @@ VPG's test cases are read from <repo>/../shared/external/vpg (never copied into 
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import subprocess
 import sys
@@ -211,11 +212,14 @@ def test_learn_feeds_the_replay_and_no_learn_keeps_the_weights(config, tmp_path)
     assert all(torch.equal(before[k], v) for k, v in net.state_dict().items())
     assert all(a.kind == "grasp" or a.kind in ("push", "shift") for a in frozen.actions)
 
-    with Evaluator(config, build_network("fast", rotations=16, seed=0), EvalOptions(runs=1, max_actions=2, learn=True),
-                   training_steps=40) as ev:
+    learning = dataclasses.replace(config, finetune=dataclasses.replace(config.finetune, min_replay=0))
+    with Evaluator(learning, build_network("fast", rotations=16, seed=0),
+                   EvalOptions(runs=1, max_actions=2, learn=True), training_steps=40) as ev:
         log = ev.run(spec, 1)
         assert len(ev.replay) == len(log.actions) >= 1
-        assert ev.runner.step == 40 + len(log.actions)   # epsilon continues from the policy's steps
+        assert ev.agent.exploration_offset == 40   # epsilon continues from the policy's steps
+        assert ev.config.learning.learning_rate == config.finetune.learning_rate  # the daemon's fine-tuning
+        assert ev.gate is not None and ev.gate.champion.origin == "the evaluated policy"
         assert ev.learner.wait_idle(timeout=60)
         assert ev.learner.updates + ev.learner.failed_updates >= 1
 

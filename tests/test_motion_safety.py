@@ -395,10 +395,15 @@ def test_a_loaded_policy_is_checkpointed_at_once_and_a_restart_resumes_it(daemon
     net = build_network(c.config.learning.network, rotations=c.config.learning.rotations, seed=1234)
     path = tmp_path / "other.safetensors"
     save_policy(path, net, {"training_steps": 10, "cell": "elsewhere"})
+    stop = threading.Event()
+    loop = threading.Thread(target=c.run_loop, args=(stop.is_set,), daemon=True)  # a load is done between cycles
+    loop.start()
     reply = c.handle(Request("policy_load", {"path": str(path)}))
     assert reply["loaded"] == str(path)
     assert not lr.optimizer.state, "Adam moments of the old weights are gone"
     assert lr.running, "the learner runs on"
+    stop.set()
+    loop.join(60)
     c.shutdown()
     assert Path(reply["checkpoint"]) == c.checkpoints.checkpoints()[0], "the newest checkpoint"
 
@@ -410,6 +415,8 @@ def test_a_loaded_policy_is_checkpointed_at_once_and_a_restart_resumes_it(daemon
         assert torch.equal(got[k].cpu(), want[k]), k
     assert again.policy_source.startswith("checkpoint ")
     assert not again.learner.optimizer.state, "the restart does not bring back the old Adam moments"
+    acting = again.agent.network.state_dict()
+    assert all(torch.equal(acting[k], want[k]) for k in want), "the loaded policy is the champion that acts"
 
 
 # --------------------------------------------------------------------------- the sim cell is unchanged

@@ -1,10 +1,18 @@
 """The daemon's orchestration: cell, agent, learner, store and state machine around the one cycle.
 
 Threads: the run loop (the caller's thread, normally the main thread) is the
-only one that touches the cell, so commands that need the cell (reset,
-backend, a first snapshot) are queued to it and executed between cycles.  The
-learner trains in its own thread and posts weights to the agent's mailbox; a
-decision never waits for it.  Control connections have their own threads and
+only one that touches the cell and the acting networks, so commands that need
+them (reset, backend, a first snapshot, a policy load, the gate's overrides)
+are queued to it and executed between cycles.  The learner trains in its own
+thread and hands its weights over on a schedule: to the champion/challenger
+gate (flgd/gatekeeper.py), which decides between cycles whether they act, or,
+with the gate off, straight to the agent's mailbox; a decision never waits for it.
+
+Learner settings: with a policy given the daemon fine-tunes it (the config's
+``finetune`` section replaces ``learning``'s learning rate, updates per action,
+BatchNorm mode and warm-up; exploration continues from the policy's recorded
+training steps, capped at ``finetune.max_epsilon``); without one it trains a fresh
+network from scratch with ``learning`` as written.  Control connections have their own threads and
 only read state, validate input and queue work.
 """
 
@@ -23,7 +31,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 from flgd.cell import Cell, CellFault, StopPending, make_cell
-from flgd.config import CellConfig
+from flgd.config import CellConfig, fine_tunes, learner_settings
 from flgd.cycle import CycleRecord, CycleRunner
 from flgd.daemon.metrics import compute_stats, status_summary
 from flgd.daemon.notify import Notifier
@@ -58,6 +66,8 @@ class Controller:
                  notifier: Notifier | None = None, checkpoint_keep: int = 3):
         self.config = config
         self.policy_arg = policy_path if policy_path is not None else (config.policy or None)
+        self.fine_tune, self.learning_why = fine_tunes(dataclasses.replace(config, policy=self.policy_arg or ""))
+        self.learn_config = learner_settings(config, self.fine_tune)  # what the agent and learner run with
         self.autostart = autostart
         self.notifier = notifier or Notifier({})
         self.state = StateMachine(State.IDLE)
@@ -70,6 +80,9 @@ class Controller:
         self.backend = config.backend
         self.agent: Any = None
         self.learner: Any = None
+        self.gate: Any = None  # the Gatekeeper (None while the store is unusable)
+        self.gate_note = ""
+        self._start_network: Any = None
         self.replay: Any = None
         self.runner: CycleRunner | None = None
         self.policy_source = ""
@@ -97,8 +110,10 @@ class Controller:
         except OSError as exc:
             log.warning("cannot clean %s: %s", self.checkpoints.directory, exc)
         network = self._initial_network()
+        self._start_network = network
         self._build_learning(network)
         self._restore_trainer_state()
+        self._build_gate()
         try:
             self.cell = make_cell(self.config)
         except CellFault as exc:
@@ -156,12 +171,43 @@ class Controller:
     def _build_learning(self, network: Any) -> None:
         from flgd.wiring import build_agent_and_learner, rebuild_replay
 
-        self.replay, problem = rebuild_replay(self.config, self.store)
+        self.replay, problem = rebuild_replay(self.learn_config, self.store)
         if problem:
             self.store_problem = problem
         self.agent, self.learner = build_agent_and_learner(
-            self.config, network, self.replay, checkpoint_callback=self._write_checkpoint,
-            updates=self.resumed_from_updates, store=self.store)
+            self.learn_config, network, self.replay, checkpoint_callback=self._write_checkpoint,
+            updates=self.resumed_from_updates, store=self.store, fine_tune=self.fine_tune)
+
+    def _build_gate(self) -> None:
+        """The gatekeeper on the store: the agent acts with the stored champion (or the configured policy on a
+        first start), and the learner hands its weights to the gate -- or, with the gate off, to the agent."""
+        from flgd.gatekeeper import GateError
+        from flgd.learning.policy_file import PolicyFileError
+        from flgd.wiring import attach_gate
+
+        if self.store is None:
+            self.gate = None
+            return
+        try:
+            self.gate, self.gate_note = attach_gate(
+                self.learn_config, self.store, self.agent, self.learner, self.state_dir, self._next_step(),
+                fine_tune=self.fine_tune, configured=self._configured_policy, fresh=self._fresh_policy)
+        except (GateError, PolicyFileError) as exc:
+            raise StartupError(f"no policy to act with: {exc}") from exc
+        except (StoreError, OSError) as exc:
+            raise StartupError(f"the gate's records in {self.state_dir} cannot be used: {exc}") from exc
+        log.info("acting policy: %s; gate %s", self.gate_note, "on" if self.gate.enabled else "OFF")
+
+    def _configured_policy(self) -> tuple[Any, dict, str] | None:
+        from flgd.learning.policy_file import load_policy
+
+        if not self.policy_arg:
+            return None
+        loaded = load_policy(self.policy_arg, expected_variant=self.config.learning.network)
+        return loaded.network, loaded.metadata, f"policy {self.policy_arg}"
+
+    def _fresh_policy(self) -> tuple[Any, dict, str]:
+        return self._start_network, {"training_steps": 0}, self.policy_source
 
     def _restore_trainer_state(self) -> None:
         """Give a resumed learner back its target network and Adam moments, saved with its checkpoint.
@@ -250,11 +296,25 @@ class Controller:
             st = self.state.state
             if st is State.STOPPING:
                 return
+            self._keep_learner_alive()
             if st is State.RUNNING:
                 self._one_cycle()
             else:
                 self._wake.wait(0.5)
                 self._wake.clear()
+
+    def _keep_learner_alive(self) -> None:
+        """A learner thread that left its loop (it never should) is started again, with an event saying so."""
+        lr = self.learner
+        if lr is None or getattr(lr, "running", True) or self.store is None:
+            return
+        why = getattr(lr, "stopped_why", "") or "unknown"
+        with self._learning_lock:
+            if lr.running:
+                return
+            lr.start()
+        log.warning("the learner thread was not running (%s): started again", why)
+        self._event("learner", f"learner was not running ({why}): started again")
 
     def _one_cycle(self) -> None:
         assert self.runner is not None
@@ -274,6 +334,13 @@ class Controller:
         finally:
             self.cycle_in_flight = False
         self.last_record = record
+        if self.gate is not None:
+            from flgd.learning.policy_file import PolicyFileError
+            try:
+                self.gate.after_cycle(record)
+            except (StoreError, OSError, PolicyFileError) as exc:
+                self._fault(f"the gate could not record its decision: {exc}")
+                return
         if record.outcome == "empty" and record.refill_needed:
             self._wait_for_refill()
         elif record.outcome == "empty":
@@ -363,7 +430,7 @@ class Controller:
     def shutdown(self) -> None:
         """After the loop: stop learning, save a final checkpoint, flush the store, release the cell."""
         if self.learner is not None:
-            self.learner.stop(timeout=30.0)
+            self.learner.stop(timeout=30.0, why="the daemon is stopping")
             last = CheckpointDir.updates_of(Path(self.last_checkpoint)) if self.last_checkpoint else -1
             if self.learner.updates > last and self.learner.updates > 0 and self.store is not None:
                 try:
@@ -401,6 +468,10 @@ class Controller:
                 f" (last 50) | picks/h {pph}")
         if self.state.state in (State.FAULT, State.PAUSED):
             text += f" | {self.state.cause}"
+        if self.gate is not None and self.gate.champion is not None:
+            text += f" | champion #{self.gate.champion.id}"
+            if self.gate.challenger is not None:
+                text += f", challenger #{self.gate.challenger.id} testing"
         return text
 
     def status(self) -> dict[str, Any]:
@@ -433,6 +504,11 @@ class Controller:
             "stored_transitions": stored,
             "learner_updates": lr.updates if lr is not None else 0,
             "learner_running": bool(lr is not None and lr.running),
+            "learner_stopped_why": "" if lr is None or lr.running else getattr(lr, "stopped_why", ""),
+            "learner_handovers": getattr(lr, "handovers", 0) if lr is not None else 0,
+            "learning": "finetune" if self.fine_tune else "learning",
+            "learning_why": self.learning_why,
+            "gate": None if self.gate is None else self.gate.status(),
             "learner_backlog": lr.pending if lr is not None else 0,  # scheduled updates not run yet
             "learner_dropped": getattr(lr, "dropped_updates", 0) if lr is not None else 0,  # backlog was full
             "learner_error": getattr(lr, "last_error", None) if lr is not None else None,
@@ -452,6 +528,16 @@ class Controller:
             return {"pong": True, "pid": os.getpid()}
         if req.cmd == "status":
             return self.status()
+        if req.cmd == "policy_history":
+            limit = req.args.get("limit", 50)
+            if isinstance(limit, bool) or not 1 <= limit <= 10000:
+                raise ProtocolError("bad_request", f"policy_history: limit must be 1..10000, got {limit!r}")
+            if self.gate is None:
+                raise ProtocolError("failed", f"no policy history: {self.store_problem or 'no store'}")
+            try:
+                return {"events": self.gate.history(limit)}
+            except StoreError as exc:
+                raise ProtocolError("failed", str(exc)) from None
         if req.cmd == "stats":
             if self.store is None:
                 raise ProtocolError("failed", f"no statistics: {self.store_problem}")
@@ -475,7 +561,9 @@ class Controller:
                 raise ProtocolError("wrong_state", f"reset: not allowed while {st.value}; pause first")
             return self._in_loop(self._reset)
         if req.cmd == "policy_load":
-            return self._policy_load(req.args["path"])
+            return self._policy_load(req.args["path"], req.peer)
+        if req.cmd in ("policy_promote", "policy_reject", "policy_rollback"):
+            return self._in_loop(lambda: self._gate_command(req.cmd, req.peer or "operator"))
         if req.cmd == "policy_save":
             return self._policy_save(req.args.get("path"))
         if req.cmd == "backend":
@@ -540,14 +628,19 @@ class Controller:
                 self._fault(self.store_problem)
                 raise ProtocolError("failed", f"reset: {self.store_problem}")
             with self._learning_lock:
-                self.learner.stop(timeout=30.0)
+                self.learner.stop(timeout=30.0, why="rebuilt after the store was reopened")
                 updates = self.learner.updates
-                self._build_learning(self.agent.network)
+                self._build_learning(self.learner.snapshot())
                 self.learner.updates = updates  # checkpoints keep counting on
                 self.runner.store, self.runner.replay, self.runner.learner = self.store, self.replay, self.learner
                 self.runner.agent = self.agent
                 self.runner.step = self._next_step()
                 self.learner.start()
+                try:
+                    self._build_gate()
+                except StartupError as exc:
+                    self._fault(str(exc))
+                    raise ProtocolError("failed", f"reset: {exc}") from None
         try:
             self.store.record_event("reset", f"reset requested in {st.value}")
         except StoreError as exc:
@@ -582,15 +675,8 @@ class Controller:
             raise
         return {"state": State.IDLE.value}
 
-    def _policy_load(self, path: str) -> dict:
-        """Swap the acting and learning weights, and checkpoint them at once so a restart resumes from them.
-
-        Why a checkpoint: a restart resumes from the newest checkpoint, which would
-        otherwise still hold the weights from before the load.  The learner is
-        stopped meanwhile (its owed updates are dropped and counted), so the
-        checkpoint and the trainer state beside it are of one consistent moment;
-        its Adam moments belong to the old weights and are reset.
-        """
+    def _policy_load(self, path: str, who: str = "") -> dict:
+        """Validate the file here, then make it the champion between cycles (see ``_swap_in_policy``)."""
         from flgd.learning.policy_file import PolicyFileError, load_policy
 
         if not os.path.isabs(path):
@@ -599,43 +685,88 @@ class Controller:
             loaded = load_policy(path, expected_variant=self.config.learning.network)
         except PolicyFileError as exc:
             raise ProtocolError("failed", f"policy not loaded, the running policy stays: {exc}") from None
+        return self._in_loop(lambda: self._swap_in_policy(path, loaded, who or "operator"))
+
+    def _swap_in_policy(self, path: str, loaded: Any, who: str) -> dict:
+        """Run loop: the loaded policy becomes the champion and the learner's weights, checkpointed at once.
+
+        Why a checkpoint: a restart resumes learning from the newest checkpoint, which would otherwise
+        still hold the weights from before the load.  The learner is held between two updates meanwhile
+        (``Learner.paused``: its thread lives on), its owed updates are dropped and counted, and its Adam
+        moments, which belong to the old weights, are reset.
+        """
+        from flgd.learning.learner import LearnerBusy
+        from flgd.learning.policy_file import PolicyFileError
+
+        lr = self.learner
+        step = self.runner.step if self.runner else 0
+        checkpoint_error = ""
         with self._learning_lock:
-            lr = self.learner
-            was_running = lr.running
-            owed = lr.pending
-            lr.stop(timeout=LEARNER_QUIET_TIMEOUT)
-            if not lr.wait_idle(LEARNER_QUIET_TIMEOUT):
-                raise ProtocolError("busy", f"policy not loaded, the running policy stays: the learner did not "
-                                            f"finish its update within {LEARNER_QUIET_TIMEOUT:.0f} s and is stopped; "
-                                            f"restart flgd (systemctl restart flgd)")
-            checkpoint_error = ""
             try:
-                try:
-                    lr.load_weights(loaded.network)
-                except (RuntimeError, ValueError) as exc:
-                    raise ProtocolError("failed", f"policy not loaded, the running policy stays: {path}: "
-                                                  f"weights do not fit the running network: {exc}") from None
-                lr.reset_trainer_state()  # load_weights keeps the Adam moments of the old weights
-                if owed:
-                    lr.dropped_updates += owed
-                    log.info("policy load: %d owed learner updates dropped", owed)
-                self.policy_source = f"policy {path} (loaded at step {self.runner.step if self.runner else 0})"
-                try:
-                    self._write_checkpoint(lr.snapshot(), lr.updates)
-                except (StoreError, OSError, PolicyFileError) as exc:  # storage errors also mean FAULT
-                    checkpoint_error = str(exc)
-            finally:
-                if was_running:
-                    lr.start()
-        self._event("policy", f"loaded {path}")
+                with lr.paused(LEARNER_QUIET_TIMEOUT):
+                    try:
+                        lr.online.load_state_dict(loaded.network.state_dict())  # fits the running network?
+                    except (RuntimeError, ValueError) as exc:
+                        raise ProtocolError("failed", f"policy not loaded, the running policy stays: {path}: "
+                                                      f"weights do not fit the running network: {exc}") from None
+                    if self.gate is not None:
+                        try:
+                            self.gate.load_champion(loaded.network, loaded.metadata, f"policy {path}", step, who)
+                        except (StoreError, OSError, PolicyFileError) as exc:
+                            lr.online.load_state_dict(lr.target.state_dict())
+                            raise ProtocolError("failed", f"policy not loaded, the running policy stays: the "
+                                                          f"gate could not record it: {exc}") from None
+                    else:
+                        self.agent.network.load_state_dict(loaded.network.state_dict())
+                    lr.load_weights(loaded.network, publish=False)
+                    lr.reset_trainer_state()
+                    owed = lr.drop_backlog()
+                    if owed:
+                        log.info("policy load: %d owed learner updates dropped", owed)
+                    offset = int(loaded.metadata.get("training_steps", 0)) - step if self.fine_tune else 0
+                    self.agent.exploration_offset = offset
+                    self.policy_source = f"policy {path} (loaded at step {step} by {who})"
+                    try:
+                        if self.store is not None:
+                            self.store.set_counter("exploration_offset", offset)
+                        self._write_checkpoint(lr.snapshot(), lr.updates)
+                    except (StoreError, OSError, PolicyFileError) as exc:  # storage errors also mean FAULT
+                        checkpoint_error = str(exc)
+            except LearnerBusy as exc:
+                raise ProtocolError("busy", f"policy not loaded, the running policy stays: {exc} (the learner "
+                                            f"keeps running; try again)") from None
+        self._event("policy", f"loaded {path} by {who}")
         if checkpoint_error:
             raise ProtocolError("failed", f"policy {path} is loaded and acting, but its checkpoint could not be "
-                                          f"written ({checkpoint_error}), so a restart would resume the previous "
-                                          f"one; fix the state directory {self.state_dir}, flgctl reset, then load "
-                                          f"the policy again")
+                                          f"written ({checkpoint_error}), so a restart would resume learning from "
+                                          f"the previous one; fix the state directory {self.state_dir}, flgctl "
+                                          f"reset, then load the policy again")
         return {"loaded": path, "checkpoint": self.last_checkpoint, "dropped_updates": owed,
+                "champion": None if self.gate is None else self.gate.champion.id,
                 "metadata": {k: v for k, v in loaded.metadata.items()
                              if isinstance(v, (str, int, float, bool, type(None)))}}
+
+    def _gate_command(self, cmd: str, who: str) -> dict:
+        """Run loop: a manual promote, reject or rollback, recorded with who asked."""
+        from flgd.gatekeeper import GateError
+        from flgd.learning.policy_file import PolicyFileError
+
+        if self.gate is None:
+            raise ProtocolError("failed", f"{cmd}: the gate is not available ({self.store_problem or 'no store'})")
+        step = self.runner.step if self.runner else 0
+        try:
+            if cmd == "policy_promote":
+                out = self.gate.promote(step, who, f"promoted by {who}")
+            elif cmd == "policy_reject":
+                out = self.gate.reject(step, who)
+            else:
+                out = self.gate.rollback(step, who, f"rolled back by {who}")
+        except GateError as exc:
+            raise ProtocolError("failed", f"{cmd.replace('_', ' ')}: {exc}") from None
+        except (StoreError, OSError, PolicyFileError) as exc:
+            raise ProtocolError("failed", f"{cmd.replace('_', ' ')}: the gate could not record it: {exc}") from None
+        self._event("policy", f"{cmd.replace('_', ' ')} by {who}: {out}")
+        return out
 
     def _policy_save(self, path: str | None) -> dict:
         from flgd.learning.policy_file import PolicyFileError, save_policy

@@ -48,6 +48,11 @@ policy_load    path: str              any state but STOPPING: validate the polic
 policy_save    path: str (optional)   any state but STOPPING: write the acting policy (the
                                       path must lie inside the state directory; default
                                       <state_dir>/policies/policy-<time>-u<updates>.safetensors)
+policy_history limit: int (optional)  any state; the gate's events (promotions, drops, rollbacks,
+                                      loads, overrides) with their evidence, newest last
+policy_promote --                     any state but STOPPING: the challenger becomes the champion now
+policy_reject  --                     any state but STOPPING: drop the challenger now
+policy_rollback --                    any state but STOPPING: the champion's predecessor acts again
 backend        name: str              any state but STOPPING: connect the new cell between
                                       cycles; if it fails, the old cell stays
 snapshot       --                     any state but STOPPING: PNG (base64) of the last
@@ -90,6 +95,10 @@ COMMANDS: dict[str, dict[str, tuple[type, bool]]] = {
     "stop": {},
     "policy_load": {"path": (str, True)},
     "policy_save": {"path": (str, False)},
+    "policy_history": {"limit": (int, False)},
+    "policy_promote": {},
+    "policy_reject": {},
+    "policy_rollback": {},
     "backend": {"name": (str, True)},
     "snapshot": {},
 }
@@ -113,6 +122,7 @@ class Request:
     cmd: str
     args: dict = field(default_factory=dict)
     id: Any = None
+    peer: str = ""  # who sent it ("uid U pid P", from SO_PEERCRED; set by the server), for the gate's records
 
 
 def _scalar(v: Any) -> bool:

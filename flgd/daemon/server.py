@@ -9,6 +9,7 @@ with ``too_long`` and skipped, so no client can exhaust the daemon.
 
 from __future__ import annotations
 
+import dataclasses
 import grp
 import logging
 import math
@@ -210,14 +211,14 @@ class ControlServer:
                     f"uid {uid} is not allowed to control flgd (allowed: {self.policy.describe()})"))
                 return
             conn.settimeout(IDLE_TIMEOUT)
-            self._serve_lines(conn)
+            self._serve_lines(conn, f"uid {uid} pid {pid}")
         finally:
             try:
                 conn.close()
             finally:
                 self._slots.release()
 
-    def _serve_lines(self, conn: socket.socket) -> None:
+    def _serve_lines(self, conn: socket.socket, peer: str = "") -> None:
         buf = bytearray()
         skipping = False  # inside an over-long line whose too_long reply was already sent
         while not self._stopping.is_set():
@@ -244,14 +245,14 @@ class ControlServer:
                 if skipping:
                     skipping = False
                     continue
-                if not self._reply(conn, self._answer(line)):
+                if not self._reply(conn, self._answer(line, peer)):
                     return
 
-    def _answer(self, line: bytes) -> dict:
+    def _answer(self, line: bytes, peer: str = "") -> dict:
         if line.endswith(b"\r"):
             line = line[:-1]
         try:
-            request = parse_request(line)
+            request = dataclasses.replace(parse_request(line), peer=peer)
         except ProtocolError as exc:
             return error_reply(exc.request_id, self.state_name(), exc.code, exc.message)
         try:

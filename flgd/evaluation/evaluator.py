@@ -14,9 +14,12 @@ clutter), forget the agent's episode state, then cycle until the run ends:
 Frozen evaluation (the default) acts greedily: epsilon = 0 and no curriculum,
 while the anti-repeat and two-failures rules stay on -- they are part of the
 policy.  With ``learn`` the agent explores and learns online exactly as the
-daemon does: epsilon continues from the policy's training steps, and every
-transition goes to a replay trained by a background ``Learner``.  Nothing is
-written to the config's state directory.
+daemon does when it is given a policy: the ``finetune`` learner settings, epsilon
+continuing from the policy's training steps (capped at ``finetune.max_epsilon``),
+a background ``Learner`` handing its weights over every ``gate.handover_every``
+updates to the champion/challenger gate (or, with the gate off, to the agent),
+all built by the daemon's own ``flgd.wiring`` functions on a store in a temporary
+directory.  Nothing is written to the config's state directory.
 
 The cycle resets the scene when the workspace is empty; here that only marks
 the end of the run (``EpisodeCell``), so that the next run's scene is exactly
@@ -42,6 +45,7 @@ from __future__ import annotations
 
 import dataclasses
 import re
+import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -170,20 +174,37 @@ class Evaluator:
         self.progress = progress
         if self.config.learning.threads > 0:
             torch.set_num_threads(self.config.learning.threads)
-        self.agent = Agent(self.config, network, seed=options.seed)
-        self.replay = self.learner = None
+        self.replay = self.learner = self.gate = self.store = None
+        self._learn_dir: tempfile.TemporaryDirectory | None = None
         if options.learn:
-            from flgd.learning.learner import Learner
-            from flgd.learning.replay import PrioritizedReplay
-
-            self.replay = PrioritizedReplay.from_config(self.config.learning)
-            self.learner = Learner(self.config, network, self.replay, mailbox=self.agent.mailbox)
-            self.learner.start()
+            self._start_learning(network, training_steps)
+        else:
+            self.agent = Agent(self.config, network, seed=options.seed)
         self._cells: dict[str, Any] = {}
         self.results: list[tuple[SceneSpec, list[RunLog]]] = []
         self.episode = EpisodeCell(self.config, None)
         self.runner = CycleRunner(self.config, self.episode, self.agent, replay=self.replay, learner=self.learner,
-                                  step=training_steps if options.learn else 0, backend="sim")
+                                  store=self.store, step=0, backend="sim")
+
+    def _start_learning(self, network: Any, training_steps: int) -> None:
+        """The daemon's learning stack for a given policy (flgd.wiring), on a store in a temporary directory."""
+        from flgd.config import learner_settings
+        from flgd.learning.replay import PrioritizedReplay
+        from flgd.store import Store
+        from flgd.wiring import attach_gate, build_agent_and_learner
+
+        self._learn_dir = tempfile.TemporaryDirectory(prefix="flgd-eval-learn-")
+        self.config = learner_settings(self.config, True)
+        lc = self.config.learning
+        self.store = Store(self._learn_dir.name, keep_transitions=lc.replay_capacity)
+        self.replay = PrioritizedReplay.from_config(lc)
+        self.agent, self.learner = build_agent_and_learner(self.config, network, self.replay,
+                                                           checkpoint_callback=None, store=self.store,
+                                                           agent_seed=self.options.seed, fine_tune=True)
+        policy = (network, {"training_steps": int(training_steps)}, "the evaluated policy")
+        self.gate, _ = attach_gate(self.config, self.store, self.agent, self.learner, self._learn_dir.name, 0,
+                                   fine_tune=True, configured=lambda: policy, fresh=lambda: policy)
+        self.learner.start()
 
     # ------------------------------------------------------------------ cells
     def _cell_for(self, spec: SceneSpec) -> Any:
@@ -206,6 +227,12 @@ class Evaluator:
         if self.learner is not None:
             self.learner.stop(timeout=30.0)
             self.learner = None
+        if self.store is not None:
+            self.store.close()
+            self.store = None
+        if self._learn_dir is not None:
+            self._learn_dir.cleanup()
+            self._learn_dir = None
         for cell in self._cells.values():
             cell.close()
         self._cells.clear()
@@ -271,6 +298,8 @@ class Evaluator:
         while not end:
             try:
                 record = self.runner.run_once()
+                if self.gate is not None:
+                    self.gate.after_cycle(record)
             except CellFault as exc:
                 end, note = "fault", str(exc)
                 try:
