@@ -3,9 +3,8 @@
 Why: a greedy policy acts on the arg-max of 16 x 224 x 224 grasp values.  When
 a large share of them sits within a few hundredths of the maximum, the arg-max
 is decided by noise among grasps the network no longer tells apart, and frozen
-grasp success falls although training success looked fine.  Session 9 found
-exactly that in the pre-trained-trunk runs (BENCHMARKS.md, "The shipped
-policy"): their maps flattened as training went on while the shipped policy's
+grasp success falls although training success looked fine.  The pre-trained-trunk
+runs showed exactly that (BENCHMARKS.md, "Flatness of the grasp Q-maps"): their maps flattened as training went on while the shipped policy's
 stayed peaked.  This measures it for any policy files, on the same scenes.
 
 For each scene (``--scenes`` random clutter of ``--count`` blocks, seeded) the

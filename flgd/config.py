@@ -181,7 +181,7 @@ class SafetyConfig:
 
 @dataclass(frozen=True)
 class RewardConfig:
-    """Thresholds of the FLG rewards and masks (paper III-B, III-D); see README."""
+    """Thresholds of the FLG rewards and masks (paper III-B, III-D); why these values: docs/configuration.md."""
 
     delta: float = param(0.01, unit="m", gt=0.0, help="height rise that counts a pixel in mu")
     tau1: int = param(500, unit="px", ge=0, help="mu above this rewards a move")
@@ -590,8 +590,8 @@ def _check_device(cfg: CellConfig, problems: list[str]) -> None:
         return
     if not available:
         problems.append("learning.device: got 'cuda', but torch finds no CUDA device on this machine (CPU-only "
-                        "torch build, or no usable NVIDIA driver); expected 'cpu' or 'auto' (see README: "
-                        "Cell PC with an NVIDIA GPU)")
+                        "torch build, or no usable NVIDIA driver); expected 'cpu' or 'auto' (see docs/real-cell.md: "
+                        "A GPU on the cell PC)")
 
 
 class _StrictLoader(yaml.SafeLoader):

@@ -4,8 +4,8 @@ Why SQLite in WAL mode: one cycle is written as one transaction (the action-log
 row, the transition and any new heightmap), so a process killed at any instant
 leaves either the whole cycle or none of it, and readers (``flgctl stats``)
 never block the writer.  ``synchronous=FULL``: a commit is on disk when it
-returns (one fsync of the WAL per cycle, about 0.3 ms on the dev machine's
-disk), so a power cut loses at most the cycle in flight, as a killed process
+returns (one fsync of the WAL per cycle, small next to a cycle's controller
+time, BENCHMARKS.md "Controller overhead"), so a power cut loses at most the cycle in flight, as a killed process
 does; with NORMAL it could also lose the last few committed cycles.
 
 Schema (``SCHEMA_VERSION`` 3), file ``<state_dir>/flgd.sqlite``:

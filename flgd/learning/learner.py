@@ -23,8 +23,8 @@ One update (``update``):
   never move them (their scale and shift still learn).  With the default
   ``batch`` each update normalises its own batch of 4-8 rotated images and
   moves the running statistics 10 % towards them, and those statistics are
-  what the agent acts with: a fine-tune moved them 10-20 % within 100 updates
-  while the weights moved 1-4 % (BENCHMARKS.md);
+  what the agent acts with: in a fine-tune they drift far faster than the
+  weights (frozen statistics stopped the fine-tune's flood of moves, BENCHMARKS.md);
 * an update whose loss, TD errors or gradients are not finite (NaN/Inf) is
   skipped before the optimizer step: the weights, BatchNorm statistics, Adam
   moments and priorities stay as they were, ``skipped_updates`` counts it and

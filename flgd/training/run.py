@@ -506,7 +506,7 @@ class TrainingRun:
         Why: a scene the policy cannot clear is otherwise kept for ever, and
         the move reward pays for shuffling its last objects about (each shift
         changes the heightmap by more than tau1): a fine-tune collapsed that
-        way on a single block (BENCHMARKS.md, session 11).
+        way on a single block (BENCHMARKS.md, "Fine-tuning the shipped policy").
         """
         if record.primitive == "grasp" and record.success:
             self.actions_without_grasp = 0
