@@ -144,3 +144,36 @@ def test_exponent_floats_without_a_dot_are_numbers(tmp_path: Path) -> None:
         load_config(path)
     # the resolver is the loader's own: plain PyYAML still reads a string
     assert yaml.safe_load("x: 5e-4")["x"] == "5e-4"
+
+
+def test_a_given_policy_fine_tunes_with_the_finetune_settings_and_no_policy_trains_with_learning() -> None:
+    from flgd.config import fine_tunes, learner_settings
+
+    cfg = load_config(ROOT / "cell_config" / "sim.yaml")
+    tuned, why = fine_tunes(cfg)
+    assert tuned and "finetune" in why
+    ft = learner_settings(cfg, True).learning
+    assert (ft.learning_rate, ft.updates_per_action, ft.batchnorm, ft.min_replay) == (
+        cfg.finetune.learning_rate, cfg.finetune.updates_per_action, cfg.finetune.batchnorm, cfg.finetune.min_replay)
+    assert ft.learning_rate != cfg.learning.learning_rate and ft.updates_per_action != cfg.learning.updates_per_action
+    scratch = config_from_dict({"policy": ""})
+    assert not fine_tunes(scratch)[0] and learner_settings(scratch, False) is scratch
+
+
+def test_check_config_says_which_learner_settings_apply() -> None:
+    out = run_check(ROOT / "cell_config" / "sim.yaml")
+    assert out.returncode == 0, out.stderr
+    assert "learner settings that apply in flgd run and flgd eval --learn: finetune" in out.stdout
+    assert "# gate on" in out.stdout
+
+
+@pytest.mark.parametrize("data, needle", [
+    ({"gate": {"share": 1.5}}, "gate.share"),
+    ({"gate": {"min_attempts": 900, "max_attempts": 800}}, "gate.min_attempts: got 900, expected <= gate.max_attempts"),
+    ({"finetune": {"batchnorm": "moving"}}, "finetune.batchnorm"),
+    ({"finetune": {"max_epsilon": -0.1}}, "finetune.max_epsilon"),
+    ({"gate": {"handover_evry": 3}}, "handover_evry"),
+])
+def test_gate_and_finetune_keys_are_checked(data: dict, needle: str) -> None:
+    with pytest.raises(ConfigError, match=needle.replace(".", r"\.")):
+        config_from_dict(data)

@@ -282,3 +282,28 @@ def test_commits_are_fsynced_so_a_power_cut_loses_at_most_the_cycle_in_flight(tm
         assert store.query("PRAGMA journal_mode")[0][0] == "wal"
     finally:
         store.close()
+
+
+def test_a_version_2_store_gains_the_gate_column_and_tables_in_place(tmp_path):
+    store = Store(tmp_path)
+    store.commit_cycle(_row(0), Transition(_hm(0), Action("grasp", 0, 0, 0), 1.0, _hm(1), False))
+    store.close()
+    db = sqlite3.connect(tmp_path / "flgd.sqlite")  # make it exactly what version 2 wrote
+    db.execute("DROP INDEX actions_policy")
+    db.execute("ALTER TABLE actions DROP COLUMN policy")
+    db.execute("DROP TABLE policies")
+    db.execute("DROP TABLE gate_events")
+    db.execute("UPDATE meta SET value='2' WHERE key='schema_version'")
+    db.commit()
+    db.close()
+
+    store = Store(tmp_path)
+    try:
+        assert store.query("SELECT value FROM meta WHERE key='schema_version'") == [("3",)]
+        assert store.query("SELECT step, success, policy FROM actions") == [(0, 1, None)]
+        store.commit_cycle(_row(1, policy=4), None)
+        assert store.query("SELECT policy FROM actions WHERE step=1") == [(4,)]
+        assert store.query("SELECT COUNT(*) FROM policies") == [(0,)]
+        assert store.integrity_check() == "ok"
+    finally:
+        store.close()
