@@ -146,7 +146,7 @@ def _parser() -> argparse.ArgumentParser:
                                 metavar="load|save|history|promote|reject|rollback")
     load = polsub.add_parser("load", parents=[common], help="validate a policy file, then make it the champion")
     load.add_argument("file")
-    save = polsub.add_parser("save", parents=[common], help="write the learner's current weights (default: state dir)")
+    save = polsub.add_parser("save", parents=[common], help="write the acting policy, the champion (default: state dir)")
     save.add_argument("file", nargs="?")
     hist = polsub.add_parser("history", parents=[common],
                              help="every promotion, drop, rollback, load and override, with its evidence")
@@ -214,7 +214,8 @@ def _human(command: str, reply: dict, extra: dict) -> str:
         return f"policy reject: challenger #{r['rejected']} dropped"
     if command == "policy save":
         where = f"{r['copied_to']} (copy of {r['saved']})" if r.get("copied_to") else r["saved"]
-        return f"policy saved: {where} ({r['learner_updates']} learner updates)"
+        champion = f"champion #{r['champion']}, " if r.get("champion") is not None else ""
+        return f"policy saved: {where} ({champion}{r['learner_updates']} learner updates)"
     if command == "backend":
         return f"backend {r['previous']} -> {r['backend']}"
     if command == "stop":

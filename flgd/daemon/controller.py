@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import base64
 import concurrent.futures
+import copy
 import dataclasses
 import datetime as _dt
 import logging
@@ -704,16 +705,18 @@ class Controller:
         with self._learning_lock:
             try:
                 with lr.paused(LEARNER_QUIET_TIMEOUT):
+                    before = {k: v.detach().clone() for k, v in lr.online.state_dict().items()}
                     try:
                         lr.online.load_state_dict(loaded.network.state_dict())  # fits the running network?
                     except (RuntimeError, ValueError) as exc:
+                        lr.online.load_state_dict(before)
                         raise ProtocolError("failed", f"policy not loaded, the running policy stays: {path}: "
                                                       f"weights do not fit the running network: {exc}") from None
                     if self.gate is not None:
                         try:
                             self.gate.load_champion(loaded.network, loaded.metadata, f"policy {path}", step, who)
                         except (StoreError, OSError, PolicyFileError) as exc:
-                            lr.online.load_state_dict(lr.target.state_dict())
+                            lr.online.load_state_dict(before)
                             raise ProtocolError("failed", f"policy not loaded, the running policy stays: the "
                                                           f"gate could not record it: {exc}") from None
                     else:
@@ -784,16 +787,22 @@ class Controller:
                 raise ProtocolError("bad_request", f"policy_save: {path} is outside the state directory {root}; "
                                                    "omit the path (flgctl policy save FILE copies the file out)")
         stats = self.summary()
+        # the acting policy (the champion), copied between decisions; the learner's own weights are in checkpoints
+        acting = self._in_loop(lambda: {"network": copy.deepcopy(self.agent.network)})["network"]
+        champion = self.gate.champion if self.gate is not None else None
         meta = {"training_steps": int(self.runner.step if self.runner else 0),
                 "cell": self.config.name or self.backend,
                 "rolling_success": stats.get("grasp_success_last_50"),
-                "learner_updates": int(self.learner.updates), "source": self.policy_source}
+                "learner_updates": int(self.learner.updates),
+                "source": champion.origin if champion is not None else self.policy_source,
+                "gate_policy": None if champion is None else champion.id}
         try:
-            save_policy(path, self.learner.snapshot(), meta)
+            save_policy(path, acting, meta)
         except (PolicyFileError, OSError) as exc:
             raise ProtocolError("failed", f"policy not saved to {path}: {exc}") from None
         self._event("policy", f"saved {path}")
-        return {"saved": path, "learner_updates": int(self.learner.updates)}
+        return {"saved": path, "learner_updates": int(self.learner.updates),
+                "champion": None if champion is None else champion.id}
 
     def _swap_backend(self, name: str) -> dict:
         """Run loop: connect the new cell first; keep the old one if that fails."""
