@@ -276,9 +276,7 @@ class CycleRunner:
             return finish()
         self.last_decided = (state, decision, self.step)
         if self.learner is not None and hasattr(self.learner, "note_decision"):
-            version = getattr(decision, "weights_version", -1)
-            self.learner.note_decision(state, decision,
-                                       version if version >= 0 else getattr(self.agent, "weights_version", -1))
+            self.learner.note_decision(state, decision, getattr(decision, "weights_version", -1))
         action: Action = decision.action
         record.step = self.step
         record.action = action

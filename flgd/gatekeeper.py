@@ -30,6 +30,7 @@ agent's networks); ``status`` and ``history`` may be called from any thread.
 from __future__ import annotations
 
 import copy
+import dataclasses
 import json
 import logging
 import threading
@@ -61,11 +62,8 @@ class GateError(RuntimeError):
 
 
 def gate_settings(config: CellConfig) -> GateSettings:
-    g = config.gate
-    return GateSettings(share=g.share, min_attempts=g.min_attempts, max_attempts=g.max_attempts,
-                        promote_confidence=g.promote_confidence, drop_min_attempts=g.drop_min_attempts,
-                        drop_confidence=g.drop_confidence, rollback_min_attempts=g.rollback_min_attempts,
-                        rollback_confidence=g.rollback_confidence)
+    """The config's gate section as the statistics' settings (same names)."""
+    return GateSettings(**{f.name: getattr(config.gate, f.name) for f in dataclasses.fields(GateSettings)})
 
 
 @dataclass
@@ -107,6 +105,13 @@ def _record_from_row(row: tuple) -> PolicyRecord:
                         training_steps=int(d["training_steps"]), since_step=int(d["since_step"]), record=rec)
 
 
+def _insert(db: Any, r: PolicyRecord) -> None:
+    db.execute("INSERT INTO policies(id, created, role, file, sha256, origin, predecessor, learner_updates, "
+               "training_steps, since_step, record) VALUES(?,?,?,?,?,?,?,?,?,?,NULL)",
+               (r.id, time.time(), r.role, r.file, r.sha256, r.origin, r.predecessor, r.learner_updates,
+                r.training_steps, r.since_step))
+
+
 class Gatekeeper:
     """The gate's state: champion, challenger, their tallies; the agent's networks follow it."""
 
@@ -127,7 +132,11 @@ class Gatekeeper:
         self.champion_during_test = Tally()  # ... since the challenger under test came
         self.challenger_tally = Tally()
         self.by_promotion = False  # the champion came in by a promotion: it is rolled back automatically
-        self.verdict: Verdict | None = None
+        self.verdict: Verdict | None = None  # on the challenger under test
+        self.champion_verdict: Verdict | None = None  # on a promoted champion (rollback or keep)
+        # called with the champion's network after a rollback or a drop as worse: the learner starts again
+        # from what acts, instead of going on along the line of weights just rejected
+        self.reset_learner: Callable[[Any], None] | None = None
         self._lock = threading.RLock()
 
     # ------------------------------------------------------------------ files and records
@@ -198,7 +207,8 @@ class Gatekeeper:
         """Files in the gate directory no record points to (a kill between writing a file and its row)."""
         if not self.directory.is_dir():
             return
-        known = {r[0] for r in self.store.query("SELECT file FROM policies")}
+        known = {r[0] for r in self.store.query(
+            "SELECT file FROM policies WHERE role NOT IN ('dropped', 'rolled_back')")}
         for path in self.directory.iterdir():
             if f"{GATE_DIR}/{path.name}" not in known:
                 try:
@@ -220,6 +230,7 @@ class Gatekeeper:
         with self._lock:
             self._remove_strays()
             note = ""
+            first_start = int(self.store.query("SELECT COUNT(*) FROM policies")[0][0]) == 0
             champion = self._by_role("champion")
             network = None
             tried: list[str] = []
@@ -238,13 +249,13 @@ class Gatekeeper:
                 note = f"fell back to policy #{cur.id} ({'; '.join(tried)})"
             if network is None:
                 got = configured()
-                if got is None and champion is None:
+                if got is None and first_start:
                     got = fresh()
                 if got is None:
                     raise GateError("no usable champion and no configured policy: " + "; ".join(tried) +
                                     " (set `policy:` in the config, or flgctl policy load after a restart)")
                 net, meta, origin = got
-                kind = "initial" if champion is None else "fallback"
+                kind = "initial" if first_start else "fallback"
                 cur = self._register_champion(net, meta, origin, step, kind, "flgd",
                                               {"unusable": tried} if tried else {})
                 network = net
@@ -315,10 +326,7 @@ class Gatekeeper:
             if old is not None:
                 db.execute("UPDATE policies SET role='retired', record=? WHERE id=?",
                            (_tally_json(self.champion_live), old.id))
-            db.execute("INSERT INTO policies(id, created, role, file, sha256, origin, predecessor, learner_updates, "
-                       "training_steps, since_step, record) VALUES(?,?,?,?,?,?,?,?,?,?,NULL)",
-                       (pid, time.time(), "champion", rel, sha, origin, record.predecessor, record.learner_updates,
-                        steps, int(step)))
+            _insert(db, record)
             self._event(db, kind, step, pid, record.predecessor, who, f"policy #{pid} is the champion: {origin}",
                         evidence)
         self.store.transaction(write)
@@ -432,6 +440,7 @@ class Gatekeeper:
         with self._lock:
             if self.challenger is not None:
                 self._drop(step, who, "a policy was loaded", self._evidence())
+            self.handovers.take()  # weights handed over before the load are of the line it replaces
             rec = self._register_champion(network, meta, origin, step, "load", who, {"metadata": {
                 k: v for k, v in meta.items() if isinstance(v, (str, int, float, bool, type(None)))}})
             self._act_with_champion(rec, network)
@@ -451,26 +460,33 @@ class Gatekeeper:
             posted = self.handovers.take()
             if posted is None:
                 return False
+            from flgd.learning.policy_file import PolicyFileError
+
             weights, version = posted
             network = copy.deepcopy(self.agent.network)
             network.load_state_dict(weights)
             network.eval()
             pid = self._next_id()
             origin = f"learner update {version}"
-            rel, sha = self._write_file(pid, network, {"training_steps": int(step), "cell": self.config.name or
-                                                       self.config.backend, "source": origin,
-                                                       "learner_updates": int(version), "gate_policy": pid})
-            rec = PolicyRecord(pid, "challenger", rel, sha, origin, None, int(version),
-                               int(step), int(step), None)
+            steps = max(0, int(step) + int(getattr(self.agent, "exploration_offset", 0)))  # the policy's own count
+            try:
+                rel, sha = self._write_file(pid, network, {"training_steps": steps, "cell": self.config.name or
+                                                           self.config.backend, "source": origin,
+                                                           "learner_updates": int(version), "gate_policy": pid})
+            except PolicyFileError as exc:  # e.g. non-finite weights: never tested, never acting
+                self.store.transaction(lambda db: self._event(
+                    db, "refused", step, None, None, "gate", f"hand-over of learner update {version} refused: {exc}",
+                    {"error": str(exc)}))
+                log.error("gate: hand-over of learner update %s refused: %s", version, exc)
+                return False
+            rec = PolicyRecord(pid, "challenger", rel, sha, origin, None, int(version), steps, int(step), None)
             champion = self.champion
 
             def write(db: Any) -> None:
-                db.execute("INSERT INTO policies(id, created, role, file, sha256, origin, predecessor, "
-                           "learner_updates, training_steps, since_step, record) VALUES(?,?,?,?,?,?,?,?,?,?,NULL)",
-                           (pid, time.time(), "challenger", rel, sha, origin, None, int(version), int(step),
-                            int(step)))
+                _insert(db, rec)
                 self._event(db, "challenger", step, pid, None if champion is None else champion.id, "gate",
-                            f"policy #{pid} ({origin}) is the challenger", {"share": self.settings.share})
+                            f"policy #{pid} ({origin}) is the challenger", {"share": self.settings.share,
+                                                                             "training_steps": steps})
             self.store.transaction(write)
             self.challenger = rec
             self.challenger_tally, self.champion_during_test = Tally(), Tally()
@@ -505,40 +521,59 @@ class Gatekeeper:
     def _step_now(self) -> int:
         return int(self.store.next_step())
 
-    def _evaluate_only(self) -> Verdict | None:
-        if self.challenger is not None:
-            self.verdict = challenger_verdict(self.champion_during_test, self.challenger_tally, self.settings)
-        elif self.by_promotion and self.champion is not None and self.champion.predecessor is not None:
-            pred = self._row(self.champion.predecessor)
-            if pred is not None and pred.record is not None and pred.record.actions > 0:
-                self.verdict = rollback_verdict(self.champion_live, pred.record, self.settings)
-            else:
-                self.verdict = None
-        else:
-            self.verdict = None
-        return self.verdict
+    def _rollback_check(self) -> Verdict | None:
+        """The verdict on a champion that came in by promotion: keep it, or roll it back (None otherwise)."""
+        ch = self.champion
+        if not self.by_promotion or ch is None or ch.predecessor is None:
+            return None
+        pred = self._row(ch.predecessor)
+        if pred is None or pred.record is None or pred.record.actions == 0:
+            return None
+        return rollback_verdict(self.champion_live, pred.record, self.settings)
+
+    def _evaluate_only(self) -> None:
+        self.champion_verdict = self._rollback_check()
+        self.verdict = None if self.challenger is None else challenger_verdict(
+            self.champion_during_test, self.challenger_tally, self.settings)
+
+    def _restart_learner_from_champion(self, why: str) -> None:
+        self.handovers.take()  # of the rejected line too
+        if self.reset_learner is None:
+            return
+        try:
+            self.reset_learner(self.agent.network)
+            log.info("gate: the learner starts again from the champion (%s)", why)
+        except Exception as exc:  # the learner busy for long: it goes on from its own weights
+            log.warning("gate: the learner could not be reset to the champion (%s): %s", why, exc)
 
     def _apply_verdict(self, step: int) -> Verdict | None:
-        v = self._evaluate_only()
+        """Rollback first (checked on every cycle, with or without a challenger), then the challenger's verdict."""
+        self._evaluate_only()
+        rv = self.champion_verdict
+        if rv is not None and rv.kind == "rollback":
+            try:
+                self.rollback(step, "gate", rv.reason)
+            except GateError as exc:
+                log.error("gate: rollback not possible: %s", exc)
+                self.by_promotion = False  # do not retry every cycle; the operator sees the event
+                self.store.transaction(lambda db: self._event(
+                    db, "rollback-failed", step, self.champion.id, None, "gate", f"rollback not possible: {exc}",
+                    {"verdict": rv.reason}))
+                return None
+            self._restart_learner_from_champion("rollback")
+            return rv
+        v = self.verdict
         if v is None:
             return None
         if v.kind == "promote":
             self.promote(step, "gate", v.reason)
             return v
         if v.kind == "drop":
+            worse = v.p_better is not None and 1.0 - v.p_better >= self.settings.drop_confidence
             self._drop(step, "gate", v.reason, self._evidence())
             self.verdict = None
-            return v
-        if v.kind == "rollback":
-            try:
-                self.rollback(step, "gate", v.reason)
-            except GateError as exc:
-                log.error("gate: rollback not possible: %s", exc)
-                self.by_promotion = False  # do not retry every cycle; the operator sees the event
-                self.store.transaction(lambda db: self._event(
-                    db, "rollback-failed", step, self.champion.id, None, "gate", f"rollback not possible: {exc}",
-                    {"verdict": v.reason}))
-                return None
+            if worse:
+                self._restart_learner_from_champion("challenger dropped as worse")
             return v
         return None
 
@@ -554,6 +589,9 @@ class Gatekeeper:
                 **cl.as_dict(), "tally": self.challenger_tally.as_dict(), "file": str(self._path(cl)),
                 "champion_during_test": self.champion_during_test.as_dict()}
             out["verdict"] = None if v is None else {"kind": v.kind, "p_better": v.p_better, "reason": v.reason}
+            cv = self.champion_verdict
+            out["champion_verdict"] = None if cv is None else {"kind": cv.kind, "p_better": cv.p_better,
+                                                                "reason": cv.reason}
             out["handover_waiting"] = self.handovers.waiting
             return out
 

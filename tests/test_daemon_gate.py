@@ -159,17 +159,23 @@ def test_a_policy_load_while_the_learner_is_in_a_long_update_never_stops_the_lea
         d.close()
 
 
-def test_a_daemon_started_from_the_shipped_policy_explores_at_its_recorded_epsilon(daemon_factory, tmp_path):
-    d = daemon_factory(policy=str(SHIPPED), args=["--autostart"]).start().wait_ready()
+def test_a_daemon_started_from_a_trained_policy_explores_at_its_recorded_epsilon(daemon_factory, tmp_path):
+    """The policy records 250 training steps: on sim.yaml's schedule (0.5 -> 0.05 over 500 steps) that is 0.275,
+    where a daemon counting from 0 would start at 0.5; the config's few-moves phase is not the daemon's."""
+    policy = tmp_path / "p250.safetensors"
+    save_policy(policy, load_policy(SHIPPED).network, {"training_steps": 250, "cell": "test"})
+    d = daemon_factory(policy=str(policy), args=["--autostart"], finetune={"max_epsilon": 1.0},
+                       exploration={"curriculum_steps": 500}).start().wait_ready()
     d.wait_for(lambda st: (st.get("cycles") or 0) >= 4, "4 cycles")
     status = d.ok("status")
     d.ok("stop")
     d.wait_exit()
     db = sqlite3.connect(d.state_dir / "flgd.sqlite")
-    rows = db.execute("SELECT epsilon, rule FROM actions WHERE epsilon IS NOT NULL ORDER BY step").fetchall()
+    rows = db.execute("SELECT step, epsilon, rule FROM actions WHERE epsilon IS NOT NULL ORDER BY step").fetchall()
     db.close()
-    assert rows and all(abs(eps - 0.05) < 1e-9 for eps, _ in rows), rows  # the policy's 4,000 steps, not 0.5
-    assert "curriculum" not in {rule for _, rule in rows}
+    assert rows[0][0] == 0 and abs(rows[0][1] - 0.275) < 1e-9, rows  # from the first cycle
+    assert all(abs(eps - (0.5 - 0.45 * (250 + step) / 500)) < 1e-9 for step, eps, _ in rows), rows
+    assert "curriculum" not in {rule for _, _, rule in rows}
     assert status["learning"] == "finetune" and status["gate"]["champion"]["origin"].startswith("policy ")
 
 

@@ -260,3 +260,43 @@ def test_the_gate_off_never_takes_hand_overs_or_credits(tmp_path):
     assert not c.gate.take_handover(0) and c.agent.champion_id is None
     assert c.act(None, True) is None
     assert json.dumps(c.gate.status())  # status is plain JSON
+
+
+def test_a_rollback_is_checked_on_every_cycle_even_while_new_challengers_are_tested(tmp_path):
+    c = Cell(tmp_path, _config(min_attempts=500, max_attempts=500, drop_min_attempts=500))
+    resets = []
+    c.gate.reset_learner = resets.append
+    for k in range(40):
+        c.act(1, k % 5 != 0)  # the first champion's tenure: 80 %
+    c.hand_over(_net(20))
+    c.gate.promote(c.step, "gate", "test")  # by the gate, as a promotion
+    c.gate.by_promotion = True
+    c.hand_over(_net(21))  # the next challenger arrives at once, as hand-overs on schedule do
+    verdict = None
+    for k in range(600):
+        verdict = c.act(2 if k % 2 else 3, k % 5 == 0)  # champion #2 now at 20 %
+        if verdict is not None:
+            break
+    assert verdict is not None and verdict.kind == "rollback"
+    assert c.gate.champion.id == 1 and c.gate.challenger is None
+    assert len(resets) == 1 and _same(resets[0], c.configured)  # the learner starts again from what acts
+
+
+def test_a_challenger_dropped_as_worse_sends_the_learner_back_to_the_champion(tmp_path):
+    c = Cell(tmp_path, _config())
+    resets = []
+    c.gate.reset_learner = resets.append
+    c.hand_over(_net(22))
+    c.gate.handovers.post(_net(23).state_dict(), version=7)  # of the rejected line: discarded with it
+    for k in range(400):
+        if (c.act(2, False) if k % 2 else c.act(1, True)) is not None:
+            break
+    assert c.gate.challenger is None and len(resets) == 1 and not c.gate.handovers.waiting
+
+
+def test_a_restart_after_an_unusable_champion_never_lets_a_fresh_network_act(tmp_path):
+    c = Cell(tmp_path, _config(), configured=False)  # from scratch: the fresh network is the first champion
+    (tmp_path / c.gate.champion.file).unlink()
+    for _ in range(2):  # systemd restarts the daemon after the first refusal
+        with pytest.raises(GateError, match="no usable champion"):
+            c.reopen()

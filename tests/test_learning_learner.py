@@ -454,9 +454,7 @@ def test_wait_idle_returns_when_the_thread_has_left_even_with_updates_scheduled_
     lrn.stop(timeout=60, why="test")
     lrn.notify_new_transition()  # a cycle that schedules an update after the stop
     assert lrn.pending == 1 and not lrn.running and lrn.stopped_why == "test"
-    t0 = time.monotonic()
     assert lrn.wait_idle(timeout=20)  # nothing would ever run it: waiting would hang the caller
-    assert time.monotonic() - t0 < 10
 
 
 def test_paused_holds_the_thread_between_updates_and_it_resumes_after():

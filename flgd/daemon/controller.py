@@ -68,7 +68,10 @@ class Controller:
         self.config = config
         self.policy_arg = policy_path if policy_path is not None else (config.policy or None)
         self.fine_tune, self.learning_why = fine_tunes(dataclasses.replace(config, policy=self.policy_arg or ""))
-        self.learn_config = learner_settings(config, self.fine_tune)  # what the agent and learner run with
+        # what the agent and learner run with; the few-moves phase is `flgd train --curriculum`'s alone
+        tuned = learner_settings(config, self.fine_tune)
+        self.learn_config = dataclasses.replace(tuned, exploration=dataclasses.replace(tuned.exploration,
+                                                                                       curriculum_steps=0))
         self.autostart = autostart
         self.notifier = notifier or Notifier({})
         self.state = StateMachine(State.IDLE)
@@ -178,6 +181,7 @@ class Controller:
         self.agent, self.learner = build_agent_and_learner(
             self.learn_config, network, self.replay, checkpoint_callback=self._write_checkpoint,
             updates=self.resumed_from_updates, store=self.store, fine_tune=self.fine_tune)
+        self.learner.mailbox = None  # nothing is handed over before the gate is attached (``_build_gate``)
 
     def _build_gate(self) -> None:
         """The gatekeeper on the store: the agent acts with the stored champion (or the configured policy on a
@@ -197,7 +201,23 @@ class Controller:
             raise StartupError(f"no policy to act with: {exc}") from exc
         except (StoreError, OSError) as exc:
             raise StartupError(f"the gate's records in {self.state_dir} cannot be used: {exc}") from exc
+        self.gate.reset_learner = self._reset_learner_to
         log.info("acting policy: %s; gate %s", self.gate_note, "on" if self.gate.enabled else "OFF")
+
+    def _reset_learner_to(self, network: Any) -> None:
+        """Run loop (the gate, after a rollback or a drop as worse): the learner starts again from ``network``."""
+        from flgd.learning.learner import LearnerBusy
+
+        lr = self.learner
+        try:
+            with self._learning_lock, lr.paused(LEARNER_QUIET_TIMEOUT):
+                lr.load_weights(network, publish=False)
+                lr.reset_trainer_state()
+                owed = lr.drop_backlog()
+        except LearnerBusy as exc:
+            self._event("learner", f"not reset to the champion: {exc}")
+            raise
+        self._event("learner", f"learner restarted from the champion ({owed} owed updates dropped)")
 
     def _configured_policy(self) -> tuple[Any, dict, str] | None:
         from flgd.learning.policy_file import load_policy
@@ -249,7 +269,8 @@ class Controller:
         from flgd.learning.policy_file import save_policy
 
         step = self.runner.step if self.runner is not None else 0
-        meta = {"training_steps": int(step), "cell": self.config.name or self.backend,
+        step += int(getattr(self.agent, "exploration_offset", 0) or 0)  # the policy's own count, not the daemon's
+        meta = {"training_steps": max(0, int(step)), "cell": self.config.name or self.backend,
                 "learner_updates": int(updates), "source": self.policy_source}
         try:
             path = self.checkpoints.write(lambda p: save_policy(p, network, meta), updates)
@@ -341,6 +362,10 @@ class Controller:
                 self.gate.after_cycle(record)
             except (StoreError, OSError, PolicyFileError) as exc:
                 self._fault(f"the gate could not record its decision: {exc}")
+                return
+            except Exception as exc:  # a bug must stop the arm, not kill the service
+                log.exception("the gate failed")
+                self._fault(f"internal error in the gate: {type(exc).__name__}: {exc}")
                 return
         if record.outcome == "empty" and record.refill_needed:
             self._wait_for_refill()
@@ -498,7 +523,9 @@ class Controller:
             "backend": self.backend,
             "config": self.config.source,
             "state_dir": str(self.state_dir),
-            "policy": self.policy_source,
+            "policy": (f"champion #{self.gate.champion.id}: {self.gate.champion.origin}"
+                       if self.gate is not None and self.gate.champion is not None else self.policy_source),
+            "learner_from": self.policy_source,
             "step": self.runner.step if self.runner is not None else None,
             "cycle_in_flight": self.cycle_in_flight,
             "replay_size": len(self.replay) if self.replay is not None else 0,
@@ -636,12 +663,14 @@ class Controller:
                 self.runner.store, self.runner.replay, self.runner.learner = self.store, self.replay, self.learner
                 self.runner.agent = self.agent
                 self.runner.step = self._next_step()
-                self.learner.start()
-                try:
-                    self._build_gate()
-                except StartupError as exc:
-                    self._fault(str(exc))
-                    raise ProtocolError("failed", f"reset: {exc}") from None
+                self.gate = None
+                self.learner.start()  # it hands nothing over until the gate is attached (mailbox None)
+        if self.gate is None:  # the store came back (now or at an earlier reset whose gate failed)
+            try:
+                self._build_gate()
+            except StartupError as exc:
+                self._fault(str(exc))
+                raise ProtocolError("failed", f"reset: {exc}") from None
         try:
             self.store.record_event("reset", f"reset requested in {st.value}")
         except StoreError as exc:
@@ -726,7 +755,7 @@ class Controller:
                     owed = lr.drop_backlog()
                     if owed:
                         log.info("policy load: %d owed learner updates dropped", owed)
-                    offset = int(loaded.metadata.get("training_steps", 0)) - step if self.fine_tune else 0
+                    offset = int(loaded.metadata.get("training_steps", 0)) - step  # ε goes on from its steps
                     self.agent.exploration_offset = offset
                     self.policy_source = f"policy {path} (loaded at step {step} by {who})"
                     try:
@@ -790,7 +819,7 @@ class Controller:
         # the acting policy (the champion), copied between decisions; the learner's own weights are in checkpoints
         acting = self._in_loop(lambda: {"network": copy.deepcopy(self.agent.network)})["network"]
         champion = self.gate.champion if self.gate is not None else None
-        meta = {"training_steps": int(self.runner.step if self.runner else 0),
+        meta = {"training_steps": max(0, int(self.runner.step if self.runner else 0) + self.agent.exploration_offset),
                 "cell": self.config.name or self.backend,
                 "rolling_success": stats.get("grasp_success_last_50"),
                 "learner_updates": int(self.learner.updates),

@@ -32,7 +32,8 @@ Champion and challenger (flgd/gatekeeper.py): ``network`` is the champion; with 
 ``challenger_share`` (its own random stream, so the other draws are those of an
 agent without one), and ``Decision.role`` / ``Decision.policy_id`` say which
 network decided.  An epsilon-random action is credited to neither
-(``policy_id`` None).
+(``policy_id`` None), nor is a move forced by the two-failures rule: the
+streak behind it is shared by both networks' grasps.
 
 Exploration of a trained policy continues where its training left it: epsilon is
 taken at ``step + exploration_offset`` (the policy's recorded training steps) and
@@ -219,7 +220,8 @@ class Agent:
             return None
         role = "challenger" if by_challenger else "champion"
         policy = self.challenger_id if by_challenger else self.champion_id
-        return dataclasses.replace(decision, role=role, policy_id=None if decision.rule == "epsilon" else policy,
+        credited = decision.rule not in ("epsilon", "two-failures")
+        return dataclasses.replace(decision, role=role, policy_id=policy if credited else None,
                                    weights_version=self.challenger_version if by_challenger
                                    else self.weights_version)
 

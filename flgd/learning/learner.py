@@ -211,8 +211,8 @@ class Learner:
         masks are the ones the learner would compute for ``state`` as s'.
         """
         max_age = self.config.learning.next_argmax_max_age
-        if max_age <= 0 or weights_version < 0 or self.updates - weights_version > max_age:
-            return
+        if max_age <= 0 or weights_version < 0 or not 0 <= self.updates - weights_version <= max_age:
+            return  # unknown, too old, or of a line of weights ahead of this learner's (resumed from older)
         index = decision.greedy
         if index is None:   # a Decision built without it (older callers): the same argmax, computed here
             index = greedy_index(decision.q_maps, decision.grasp_mask, decision.move_mask,
