@@ -118,12 +118,13 @@ URGENT_COMMANDS = ("stop", "pause")
 URGENT_RETRY_SECONDS = 10.0
 
 
-def call(path: str | os.PathLike, cmd: str, timeout: float = 150.0, **args: Any) -> dict:
+def call(socket_path: str | os.PathLike, cmd: str, args: dict[str, Any] | None = None,
+         timeout: float = 150.0) -> dict:
     """One request on a new connection; ``stop`` and ``pause`` are retried on ``busy`` for a few seconds."""
     deadline = time.monotonic() + min(timeout, URGENT_RETRY_SECONDS)
     while True:
-        with Client(path, timeout=timeout) as client:
-            reply = client.call(cmd, **args)
+        with Client(socket_path, timeout=timeout) as client:
+            reply = client.call(cmd, **(args or {}))
         busy = not reply.get("ok") and reply.get("error", {}).get("code") == "busy"
         if not (busy and cmd in URGENT_COMMANDS and time.monotonic() < deadline):
             return reply
@@ -321,7 +322,7 @@ def _run(argv: list[str] | None) -> int:
         extra["file"] = args.file
 
     try:
-        reply = call(path, cmd, timeout=timeout, **call_args)
+        reply = call(path, cmd, call_args, timeout=timeout)
     except DaemonUnreachable as exc:
         if as_json:
             _say(json.dumps({"ok": False, "error": {"code": "not_running" if exc.code == EXIT_NOT_RUNNING
