@@ -112,15 +112,16 @@ class Client:
         self.close()
 
 
-# Commands the daemon serves even when all its connection slots are taken (flgd/daemon/server.py): for
-# them a ``busy`` reply means "the urgent lane is full for a moment", so flgctl tries again.
-URGENT_COMMANDS = ("stop", "pause")
+# For the commands the daemon serves even when all its connection slots are taken (URGENT_COMMANDS of
+# flgd/daemon/server.py), a ``busy`` reply means "the urgent lane is full for a moment": flgctl tries again.
 URGENT_RETRY_SECONDS = 10.0
 
 
 def call(socket_path: str | os.PathLike, cmd: str, args: dict[str, Any] | None = None,
          timeout: float = 150.0) -> dict:
     """One request on a new connection; ``stop`` and ``pause`` are retried on ``busy`` for a few seconds."""
+    from flgd.daemon.server import URGENT_COMMANDS
+
     deadline = time.monotonic() + min(timeout, URGENT_RETRY_SECONDS)
     while True:
         with Client(socket_path, timeout=timeout) as client:

@@ -607,8 +607,8 @@ class Controller:
         if not os.path.isabs(path):
             raise ProtocolError("bad_request", f"policy_load: path must be absolute, got {path!r}")
         try:
-            loaded = load_policy(path, expected_variant=self.config.learning.network,
-                                 expected_architecture=self.agent.network.architecture())
+            running = self.agent.network.architecture() if self.agent is not None else None
+            loaded = load_policy(path, expected_variant=self.config.learning.network, expected_architecture=running)
         except PolicyFileError as exc:
             raise ProtocolError("failed", f"policy not loaded, the running policy stays: {exc}") from None
         with self._learning_lock:
