@@ -34,7 +34,7 @@ fi
 .venv/bin/python - <<'PYCHECK'
 import importlib
 for name in ("torch", "numpy", "cv2", "yaml", "pybullet", "pyrealsense2", "rtde_control", "rtde_receive",
-             "safetensors", "flgd", "sim_cell"):
+             "safetensors", "prometheus_client", "flgd", "sim_cell"):
     importlib.import_module(name)
 import torch
 print(f"install: ok (torch {torch.__version__}, cuda available: {torch.cuda.is_available()})")

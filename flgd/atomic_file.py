@@ -11,6 +11,27 @@ import tempfile
 from pathlib import Path
 
 
+def temporary_prefix(name: str) -> str:
+    """How the temporary files of ``write_atomically`` to a file called ``name`` begin (they end in .tmp)."""
+    return f".{name}."
+
+
+def remove_temporaries(directory: str | os.PathLike, name: str) -> int:
+    """Delete the temporary files that writes of ``name`` in ``directory`` left when killed; how many.
+
+    Only call this while no write of ``name`` can be in progress (the daemon holds its state-directory
+    lock, a training run its run directory); the finished file itself is never touched.
+    """
+    directory = Path(directory)
+    if not directory.is_dir():
+        return 0
+    prefix = temporary_prefix(name)
+    stale = [p for p in directory.iterdir() if p.name.startswith(prefix) and p.name.endswith(".tmp")]
+    for p in stale:
+        p.unlink(missing_ok=True)
+    return len(stale)
+
+
 def write_atomically(path: str | os.PathLike, data: bytes, mode: int | None = None) -> None:
     """Write ``data`` to a temp file beside ``path``, fsync it, rename it over ``path``, fsync the directory.
 
@@ -21,7 +42,7 @@ def write_atomically(path: str | os.PathLike, data: bytes, mode: int | None = No
     is untouched.
     """
     path = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    fd, tmp = tempfile.mkstemp(prefix=temporary_prefix(path.name), suffix=".tmp", dir=path.parent)
     try:
         with os.fdopen(fd, "wb") as f:
             if mode is not None:

@@ -15,6 +15,8 @@ import difflib
 import math
 import os
 import re
+import reprlib
+import sys
 import typing
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -325,6 +327,8 @@ class CellConfig:
     policy: str = param("", help="policy file loaded at start (relative to the config file); "
                                    "empty = a fresh network")
     state_dir: str = param("/var/lib/flgd", help="replay store, logs and checkpoints")
+    metrics: str = param("", help="HOST:PORT where `flgd run` serves Prometheus metrics (e.g. 127.0.0.1:9808); "
+                                  "empty = off")
     source: str = param("<defaults>", help="file this config came from (set by the loader)")
 
 
@@ -348,6 +352,37 @@ def learner_settings(cfg: CellConfig, fine_tune: bool) -> CellConfig:
 
 
 # --------------------------------------------------------------------------- loading
+
+# A cell config is a few KiB; the caps keep a wrong or hostile file from hanging check-config or the daemon
+# (PyYAML parses ~200 KiB/s, and a few lines of YAML aliases can stand for billions of values).
+MAX_CONFIG_BYTES = 256 * 1024
+MAX_CONFIG_VALUES = 20000  # scalars, lists and mappings after expanding aliases; sim.yaml has ~250
+_MAX_QUOTE = 80  # characters of a value quoted in an error message
+
+_REPR = reprlib.Repr()
+_REPR.maxstring = _REPR.maxother = _REPR.maxlong = 60
+_REPR.maxlist = _REPR.maxtuple = _REPR.maxdict = _REPR.maxset = 6
+_REPR.maxlevel = 3
+
+
+def _quote(value: Any) -> str:
+    """A short repr for error messages: a value of megabytes, or a list of millions, is summarised."""
+    if isinstance(value, int) and not isinstance(value, bool) and value.bit_length() > 200:
+        try:
+            return f"an integer of {len(str(abs(value)))} digits"
+        except ValueError:  # beyond what str() converts
+            return f"an integer of about {int(value.bit_length() * math.log10(2)) + 1} digits"
+    try:
+        text = _REPR.repr(value)
+    except Exception:  # a repr that fails must not hide the actual problem
+        text = f"<{type(value).__name__}>"
+    return text if len(text) <= _MAX_QUOTE else text[:_MAX_QUOTE - 3] + "..."
+
+
+def _key_name(raw_key: Any) -> str:
+    name = str(raw_key) if not isinstance(raw_key, int) or raw_key.bit_length() <= 200 else _quote(raw_key)
+    return name if len(name) <= _MAX_QUOTE else name[:_MAX_QUOTE - 3] + "..."
+
 
 def _type_name(tp: Any) -> str:
     origin = typing.get_origin(tp)
@@ -377,7 +412,7 @@ def _convert(value: Any, tp: Any, key: str, meta: dict, problems: list[str], sou
 
     def bad(why: str = "") -> Any:
         extra = f" ({why})" if why else ""
-        problems.append(f"{key}: got {value!r}, expected {expected}{extra}")
+        problems.append(f"{key}: got {_quote(value)}, expected {expected}{extra}")
         return dataclasses.MISSING
 
     if dataclasses.is_dataclass(tp):
@@ -402,6 +437,8 @@ def _convert(value: Any, tp: Any, key: str, meta: dict, problems: list[str], sou
     if tp is int:
         if isinstance(value, bool) or not isinstance(value, int):
             return bad()
+        if not -2**63 <= value < 2**63:
+            return bad("does not fit a 64-bit integer")
         return _check_range(value, key, meta, expected, problems)
     if tp is float:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
@@ -428,7 +465,7 @@ def _check_range(value: float, key: str, meta: dict, expected: str, problems: li
     for name, ok in checks:
         bound = meta.get(name)
         if bound is not None and not ok(value, bound):
-            problems.append(f"{key}: got {value!r}, expected {expected}")
+            problems.append(f"{key}: got {_quote(value)}, expected {expected}")
             return dataclasses.MISSING
     return value
 
@@ -438,9 +475,9 @@ def _build(cls: type, data: dict, prefix: str, problems: list[str], source: str)
     fields = {f.name: f for f in dataclasses.fields(cls)}
     kwargs: dict[str, Any] = {}
     for raw_key, value in data.items():
-        key = f"{prefix}.{raw_key}" if prefix else str(raw_key)
+        key = f"{prefix}.{_key_name(raw_key)}" if prefix else _key_name(raw_key)
         if raw_key not in fields or raw_key == "source":
-            close = difflib.get_close_matches(str(raw_key), [n for n in fields if n != "source"], n=1)
+            close = difflib.get_close_matches(_key_name(raw_key), [n for n in fields if n != "source"], n=1)
             hint = f"; did you mean '{close[0]}'?" if close else ""
             valid = ", ".join(n for n in fields if n != "source")
             problems.append(f"{key}: unknown key{hint} (valid keys here: {valid})")
@@ -549,6 +586,27 @@ def _check_relations(cfg: CellConfig, problems: list[str]) -> None:
         problems.append(f"camera.depth_range: got {list(cfg.camera.depth_range)!r}, expected 0 < min < max")
     if not cfg.state_dir:
         problems.append("state_dir: got '', expected a directory path")
+    if cfg.metrics:
+        try:
+            parse_metrics_address(cfg.metrics)
+        except ValueError as exc:
+            problems.append(f"metrics: {exc}")
+
+
+def parse_metrics_address(text: str) -> tuple[str, int]:
+    """(host, port) of ``HOST:PORT`` (``[::1]:PORT`` for IPv6); ValueError saying what was expected.
+
+    Port 0 asks the system for a free port (the daemon logs the one it got).
+    """
+    expected = "expected HOST:PORT such as 127.0.0.1:9808 (or '' for no metrics)"
+    host, sep, port_text = text.rpartition(":")
+    if host.startswith("[") and host.endswith("]"):
+        host = host[1:-1]
+    if not sep or not host or any(c.isspace() for c in host) or (":" in host and not text.startswith("[")):
+        raise ValueError(f"got {_quote(text)}, {expected}")
+    if not port_text.isdigit() or not 0 <= int(port_text) <= 65535:
+        raise ValueError(f"got {_quote(text)}: port {_quote(port_text)} is not a number 0..65535; {expected}")
+    return host, int(port_text)
 
 
 # Gripper drivers each cell can drive.  A backend not listed here takes any driver: the simulated cell
@@ -594,12 +652,66 @@ def _check_device(cfg: CellConfig, problems: list[str]) -> None:
                         "A GPU on the cell PC)")
 
 
+_MERGE_TAG = "tag:yaml.org,2002:merge"
+
+
+def _check_expansion(root: yaml.Node, limit: int) -> None:
+    """Refuse a document that stands for more than ``limit`` values once its aliases are expanded, or whose
+    aliases refer to themselves, before anything is built from it (counted per distinct node, so the check
+    itself stays as small as the file)."""
+    sizes: dict[int, int] = {}
+    open_nodes: set[int] = set()
+
+    def size(node: yaml.Node) -> int:
+        key = id(node)
+        if key in sizes:
+            return sizes[key]
+        if key in open_nodes:
+            raise yaml.constructor.ConstructorError(
+                None, None, "an alias refers to the node that contains it, expected a finite config",
+                node.start_mark)
+        open_nodes.add(key)
+        total = 1
+        if isinstance(node, yaml.SequenceNode):
+            children = node.value
+        elif isinstance(node, yaml.MappingNode):
+            children = [n for pair in node.value for n in pair]
+        else:
+            children = []
+        for child in children:
+            total += size(child)
+            if total > limit:
+                raise yaml.constructor.ConstructorError(
+                    None, None, f"the document stands for more than {limit} values once its aliases (*name) are "
+                                "expanded, expected a cell config (a few hundred values)", node.start_mark)
+        open_nodes.discard(key)
+        sizes[key] = total
+        return total
+
+    size(root)
+
+
 class _StrictLoader(yaml.SafeLoader):
-    """SafeLoader that refuses duplicate keys: with plain YAML the last one silently wins."""
+    """SafeLoader that refuses duplicate keys (with plain YAML the last one silently wins), alias bombs and
+    integers too long to read; merge keys (``<<: *defaults``) work, their keys overridden by explicit ones."""
+
+    def construct_document(self, node):
+        _check_expansion(node, MAX_CONFIG_VALUES)
+        return super().construct_document(node)
+
+    def construct_yaml_int(self, node):
+        try:
+            return super().construct_yaml_int(node)
+        except ValueError:  # more digits than Python converts (sys.get_int_max_str_digits)
+            raise yaml.constructor.ConstructorError(
+                None, None, f"an integer of {len(str(node.value))} characters is too long, expected a number of "
+                            f"at most {sys.get_int_max_str_digits()} digits", node.start_mark) from None
 
     def construct_mapping(self, node, deep=False):
         seen: dict = {}
         for key_node, _ in node.value:
+            if key_node.tag == _MERGE_TAG:
+                continue  # merged keys may be overridden; only explicit keys must be unique
             key = self.construct_object(key_node, deep=deep)
             try:
                 hash(key)
@@ -609,9 +721,12 @@ class _StrictLoader(yaml.SafeLoader):
                     key_node.start_mark) from None
             if key in seen:
                 raise yaml.constructor.ConstructorError(
-                    None, None, f"duplicate key {key!r} (first at line {seen[key] + 1})", key_node.start_mark)
+                    None, None, f"duplicate key {_quote(key)} (first at line {seen[key] + 1})", key_node.start_mark)
             seen[key] = key_node.start_mark.line
         return super().construct_mapping(node, deep=deep)
+
+
+_StrictLoader.add_constructor("tag:yaml.org,2002:int", _StrictLoader.construct_yaml_int)
 
 
 # YAML 1.1 (PyYAML) reads ``5e-4`` as a string; engineers write learning rates that way, so
@@ -642,14 +757,7 @@ def load_config(path: str | os.PathLike) -> CellConfig:
     """Read, parse and validate a YAML config file."""
     p = Path(path)
     source = str(p)
-    try:
-        text = p.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise ConfigError(source, ["file not found"]) from None
-    except IsADirectoryError:
-        raise ConfigError(source, ["is a directory, expected a YAML file"]) from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise ConfigError(source, [f"cannot read: {exc}"]) from None
+    text = _read_config_text(p)
     try:
         data = yaml.load(text, Loader=_StrictLoader)
     except yaml.YAMLError as exc:
@@ -659,6 +767,9 @@ def load_config(path: str | os.PathLike) -> CellConfig:
         raise ConfigError(source, [f"invalid YAML{where}: {problem}"]) from None
     except RecursionError:  # PyYAML parses recursively: thousands of nested brackets exhaust the stack
         raise ConfigError(source, ["invalid YAML: nested too deeply, expected a mapping of sections"]) from None
+    if data is None:  # not defaults: an empty file would run the cell against /var/lib/flgd
+        raise ConfigError(source, ["the file is empty (or only comments), expected a mapping of sections such as "
+                                   "backend, state_dir, workspace (see cell_config/sim.yaml)"])
     cfg = config_from_dict(data, source)
     # A relative state directory or policy file is relative to the config file, not to the cwd.
     if not os.path.isabs(cfg.state_dir):
@@ -669,6 +780,34 @@ def load_config(path: str | os.PathLike) -> CellConfig:
         cfg = dataclasses.replace(cfg, learning=dataclasses.replace(
             cfg.learning, init_trunk=str((p.parent / cfg.learning.init_trunk).resolve())))
     return cfg
+
+
+def _read_config_text(p: Path) -> str:
+    """The file's text, refusing (ConfigError) a directory, a file over MAX_CONFIG_BYTES or one not UTF-8.
+
+    At most the cap is ever read, so a device or a file that grows cannot hold the loader.
+    """
+    source = str(p)
+    cap_text = f"at most {MAX_CONFIG_BYTES // 1024} KiB (a cell config is a few KiB)"
+    try:
+        size = p.stat().st_size if p.is_file() else 0
+        if size > MAX_CONFIG_BYTES:
+            raise ConfigError(source, [f"is {size / 1024:.0f} KiB, expected a YAML file of {cap_text}"])
+        with open(p, "rb") as f:
+            data = f.read(MAX_CONFIG_BYTES + 1)
+    except FileNotFoundError:
+        raise ConfigError(source, ["file not found"]) from None
+    except IsADirectoryError:
+        raise ConfigError(source, ["is a directory, expected a YAML file"]) from None
+    except OSError as exc:
+        raise ConfigError(source, [f"cannot read: {exc.strerror or exc}"]) from None
+    if len(data) > MAX_CONFIG_BYTES:
+        raise ConfigError(source, [f"holds more than {MAX_CONFIG_BYTES // 1024} KiB, expected a YAML file of "
+                                   f"{cap_text}"])
+    try:
+        return data.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise ConfigError(source, [f"cannot read: not UTF-8 text ({exc.reason} at byte {exc.start})"]) from None
 
 
 def load_sim_config(path: str | os.PathLike, why: str) -> CellConfig:

@@ -17,10 +17,11 @@ import os
 import shutil
 import socket
 import sys
+import time
 from pathlib import Path
 from typing import Any
 
-__all__ = ["main", "Client", "DaemonUnreachable", "EXIT_OK", "EXIT_FAILED", "EXIT_USAGE", "EXIT_NOT_RUNNING",
+__all__ = ["main", "Client", "call", "DaemonUnreachable", "EXIT_OK", "EXIT_FAILED", "EXIT_USAGE", "EXIT_NOT_RUNNING",
            "EXIT_FORBIDDEN"]
 
 EXIT_OK, EXIT_FAILED, EXIT_USAGE, EXIT_NOT_RUNNING, EXIT_FORBIDDEN = 0, 1, 2, 3, 4
@@ -40,7 +41,7 @@ class Client:
         self.sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
         self.sock.settimeout(timeout)
         try:
-            self.sock.connect(str(self.path))
+            self._connect(time.monotonic() + timeout)
         except FileNotFoundError:
             self.sock.close()
             raise DaemonUnreachable(f"flgd is not running (no control socket at {self.path})") from None
@@ -55,6 +56,17 @@ class Client:
             self.sock.close()
             raise DaemonUnreachable(f"cannot connect to {self.path}: {exc}") from None
         self._buf = b""
+
+    def _connect(self, deadline: float) -> None:
+        """Connect; a full listen queue (EAGAIN: a Unix socket with a timeout does not wait) is tried again."""
+        while True:
+            try:
+                self.sock.connect(str(self.path))
+                return
+            except BlockingIOError:
+                if time.monotonic() >= deadline:
+                    raise
+                time.sleep(0.05)
 
     def call(self, cmd: str, **args: Any) -> dict:
         req: dict[str, Any] = {"cmd": cmd}
@@ -98,6 +110,26 @@ class Client:
 
     def __exit__(self, *exc: Any) -> None:
         self.close()
+
+
+# For the commands the daemon serves even when all its connection slots are taken (URGENT_COMMANDS of
+# flgd/daemon/server.py), a ``busy`` reply means "the urgent lane is full for a moment": flgctl tries again.
+URGENT_RETRY_SECONDS = 10.0
+
+
+def call(socket_path: str | os.PathLike, cmd: str, args: dict[str, Any] | None = None,
+         timeout: float = 150.0) -> dict:
+    """One request on a new connection; ``stop`` and ``pause`` are retried on ``busy`` for a few seconds."""
+    from flgd.daemon.server import URGENT_COMMANDS
+
+    deadline = time.monotonic() + min(timeout, URGENT_RETRY_SECONDS)
+    while True:
+        with Client(socket_path, timeout=timeout) as client:
+            reply = client.call(cmd, **(args or {}))
+        busy = not reply.get("ok") and reply.get("error", {}).get("code") == "busy"
+        if not (busy and cmd in URGENT_COMMANDS and time.monotonic() < deadline):
+            return reply
+        time.sleep(0.2)
 
 
 def _find_socket(explicit: str | None) -> Path:
@@ -271,15 +303,63 @@ def _history_lines(events: list[dict]) -> str:
 def _local_failure(as_json: bool, reply: dict, message: str) -> int:
     """The daemon succeeded but flgctl's own step failed: say so on stderr, and with --json also as a
     ``{"ok": false}`` object on stdout, so a script never reads an empty output as success."""
-    print(f"flgctl: {message}", file=sys.stderr)
+    _say(f"flgctl: {message}", sys.stderr)
     if as_json:
-        print(json.dumps({"ok": False, "id": reply.get("id"), "state": reply.get("state"),
+        _say(json.dumps({"ok": False, "id": reply.get("id"), "state": reply.get("state"),
                           "error": {"code": "local", "message": message}, "daemon_result": reply.get("result")},
                          indent=2))
     return EXIT_FAILED
 
 
+class _OutputFailed(Exception):
+    """stdout could not be written (a closed pipe, a full disk)."""
+
+    def __init__(self, error: OSError):
+        super().__init__(str(error))
+        self.error = error
+
+
+def _say(text: str, stream: Any = None) -> None:
+    """Write one line and flush it, so a write error shows here rather than in a traceback at exit.
+
+    A failed write to stdout raises _OutputFailed; one to stderr is dropped (there is nowhere left to say it).
+    """
+    stream = sys.stdout if stream is None else stream
+    try:
+        stream.write(text + "\n")
+        stream.flush()
+    except OSError as exc:
+        if stream is sys.stderr:
+            return
+        raise _OutputFailed(exc) from None
+
+
+def _output_failed(exc: _OutputFailed) -> int:
+    """Like Unix tools: silent on a reader that went away (``| head -1``), one line on any other write error.
+
+    stdout then points at /dev/null, so the interpreter's final flush of what is still buffered cannot
+    print a traceback either.
+    """
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        os.close(devnull)
+    except (OSError, ValueError):
+        pass
+    if not isinstance(exc.error, BrokenPipeError):
+        _say(f"flgctl: cannot write the output: {exc.error.strerror or exc.error}", sys.stderr)
+    return EXIT_FAILED
+
+
 def main(argv: list[str] | None = None) -> int:
+    """The command line; the exit codes of the module docstring (1 also when the output cannot be written)."""
+    try:
+        return _run(argv)
+    except _OutputFailed as exc:
+        return _output_failed(exc)
+
+
+def _run(argv: list[str] | None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     parser = _parser()
     try:
@@ -307,14 +387,13 @@ def main(argv: list[str] | None = None) -> int:
         extra["file"] = args.file
 
     try:
-        with Client(path, timeout=timeout) as client:
-            reply = client.call(cmd, **call_args)
+        reply = call(path, cmd, call_args, timeout=timeout)
     except DaemonUnreachable as exc:
         if as_json:
-            print(json.dumps({"ok": False, "error": {"code": "not_running" if exc.code == EXIT_NOT_RUNNING
-                                                     else "unreachable", "message": str(exc)}}))
+            _say(json.dumps({"ok": False, "error": {"code": "not_running" if exc.code == EXIT_NOT_RUNNING
+                                                    else "unreachable", "message": str(exc)}}))
         else:
-            print(f"flgctl: {exc}", file=sys.stderr)
+            _say(f"flgctl: {exc}", sys.stderr)
         return exc.code
 
     if reply.get("ok") and command == "policy save" and args.file is not None:
@@ -340,13 +419,13 @@ def main(argv: list[str] | None = None) -> int:
             return _local_failure(as_json, reply, f"cannot write {args.file}: {exc}")
 
     if as_json:
-        print(json.dumps(reply, indent=2))
+        _say(json.dumps(reply, indent=2))
     elif reply.get("ok"):
-        print(_human(command, reply, extra))
+        _say(_human(command, reply, extra))
     else:
         err = reply.get("error", {})
-        print(f"flgctl {command}: {err.get('message', 'failed')} [{err.get('code')}; state "
-              f"{reply.get('state')}]", file=sys.stderr)
+        _say(f"flgctl {command}: {err.get('message', 'failed')} [{err.get('code')}; state "
+             f"{reply.get('state')}]", sys.stderr)
     if reply.get("ok"):
         return EXIT_OK
     return EXIT_FORBIDDEN if reply.get("error", {}).get("code") == "forbidden" else EXIT_FAILED

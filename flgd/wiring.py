@@ -41,11 +41,12 @@ def starting_network(config: CellConfig, checkpoints: CheckpointDir, policy_path
     from flgd.learning.policy_file import PolicyFileError, load_policy
 
     variant = config.learning.network
+    fits = {"rotations": config.learning.rotations}
     existing = checkpoints.checkpoints()
     resumed = CheckpointDir.updates_of(existing[0]) if existing else 0
     for path in existing:
         try:
-            loaded = load_policy(path, expected_variant=variant)
+            loaded = load_policy(path, expected_variant=variant, expected_architecture=fits)
         except PolicyFileError as exc:
             log.warning("skipping unusable checkpoint: %s", exc)
             continue
@@ -53,7 +54,7 @@ def starting_network(config: CellConfig, checkpoints: CheckpointDir, policy_path
         log.info("resuming from %s (%d learner updates)", path, updates)
         return StartingNetwork(loaded.network, f"checkpoint {path}", updates, path)
     if policy_path:
-        loaded = load_policy(policy_path, expected_variant=variant)
+        loaded = load_policy(policy_path, expected_variant=variant, expected_architecture=fits)
         return StartingNetwork(loaded.network, f"policy {policy_path}", resumed, None)
     network, source = fresh_network(config, config.learning.seed)
     return StartingNetwork(network, source, resumed, None)

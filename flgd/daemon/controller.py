@@ -113,6 +113,7 @@ class Controller:
                 log.info("removed %d unfinished checkpoint file(s) of an interrupted run", removed)
         except OSError as exc:
             log.warning("cannot clean %s: %s", self.checkpoints.directory, exc)
+        self._remove_trainer_state_temporaries()
         network = self._initial_network()
         self._start_network = network
         self._build_learning(network)
@@ -130,6 +131,16 @@ class Controller:
         self.learner.start()
         if self.store_problem:
             self.state.transition(State.FAULT, self.store_problem)
+
+    def _remove_trainer_state_temporaries(self) -> None:
+        from flgd.training.state import remove_temporary
+
+        try:
+            removed = remove_temporary(self.state_dir)
+            if removed:
+                log.info("removed %d unfinished trainer-state file(s) of an interrupted run", removed)
+        except OSError as exc:
+            log.warning("cannot clean %s: %s", self.state_dir, exc)
 
     def _take_state_dir_lock(self) -> None:
         from flgd.state_dir_lock import StateDirBusy, lock_state_dir
@@ -712,7 +723,8 @@ class Controller:
         if not os.path.isabs(path):
             raise ProtocolError("bad_request", f"policy_load: path must be absolute, got {path!r}")
         try:
-            loaded = load_policy(path, expected_variant=self.config.learning.network)
+            running = self.agent.network.architecture() if self.agent is not None else None
+            loaded = load_policy(path, expected_variant=self.config.learning.network, expected_architecture=running)
         except PolicyFileError as exc:
             raise ProtocolError("failed", f"policy not loaded, the running policy stays: {exc}") from None
         return self._in_loop(lambda: self._swap_in_policy(path, loaded, who or "operator"))

@@ -20,11 +20,13 @@ Definitions (VPG's where they exist):
 from __future__ import annotations
 
 import statistics
+import threading
 from typing import Any
 
 from flgd.store import TIMING_PHASES, Store
 
-__all__ = ["compute_stats", "status_summary", "TIMING_WINDOW", "format_stats"]
+__all__ = ["compute_stats", "status_summary", "TIMING_WINDOW", "format_stats", "FAULT_KINDS", "fault_counts",
+           "PHASE_BUCKETS", "PhaseHistograms"]
 
 TIMING_WINDOW = 200
 
@@ -133,3 +135,71 @@ def format_stats(s: dict[str, Any]) -> str:
     for phase in (*TIMING_PHASES, "cycle", "controller"):
         lines.append(f"  {phase:<10} {_num(t.get(phase), '{:.3f}')} s")
     return "\n".join(lines)
+
+
+# What a fault was about, from how the daemon words its cause (flgd/daemon/controller.py): a small fixed set,
+# so that a dashboard can count faults by kind without one series per message.
+FAULT_KINDS: tuple[tuple[str, str], ...] = (
+    ("cell fault", "cell"),            # the cell reported a fault (arm, gripper, camera), also during a snapshot
+    ("store ", "storage"),             # the store could not be written or read (disk full, read-only, damaged)
+    ("checkpoint failed", "learning"),  # a checkpoint of the learner could not be written
+    ("reset failed", "reset"),         # the recovery of a reset failed
+    ("internal error", "internal"),    # a bug caught in the cycle
+)
+OTHER_FAULT = "other"
+
+
+def fault_counts(store: Store) -> dict[str, int]:
+    """Recorded faults by kind (every kind of FAULT_KINDS and "other", zeros included)."""
+    cases = " ".join(f"WHEN message LIKE '{prefix}%' THEN '{kind}'" for prefix, kind in FAULT_KINDS)
+    rows = store.query(f"SELECT CASE {cases} ELSE '{OTHER_FAULT}' END AS k, COUNT(*) FROM events "
+                       "WHERE kind='fault' GROUP BY k")
+    counts = {kind: 0 for _, kind in FAULT_KINDS}
+    counts[OTHER_FAULT] = 0
+    counts.update({k: int(n) for k, n in rows})
+    return counts
+
+
+# Upper bounds (s) of the cycle-phase histograms: a decision takes ~0.1 s, a real cell's move several seconds.
+PHASE_BUCKETS = (0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0, 20.0, 40.0, 80.0)
+
+
+class PhaseHistograms:
+    """Cumulative histograms of every phase's duration (and the whole cycle's) over the whole action log.
+
+    Read incrementally: each call adds only the rows logged since the last one, so a scrape costs the
+    same after a year of cycles as after an hour.  The newest row is left for the next call, because its
+    store time is filled in by the commit after it.
+    """
+
+    PHASES = (*TIMING_PHASES, "cycle")
+
+    def __init__(self, buckets: tuple[float, ...] = PHASE_BUCKETS):
+        self.buckets = tuple(buckets)
+        self._lock = threading.Lock()
+        self._upto = -1  # highest step already counted (steps start at 0)
+        self._counts = {p: [0] * len(self.buckets) for p in self.PHASES}  # cumulative: <= bound
+        self._sums = {p: 0.0 for p in self.PHASES}
+        self._totals = {p: 0 for p in self.PHASES}
+
+    def read(self, store: Store) -> dict[str, tuple[list[int], float, int]]:
+        """phase -> (cumulative counts per bucket bound, sum of seconds, count of cycles with the phase)."""
+        columns = [f"t_{p}" for p in TIMING_PHASES] + ["duration"]
+        parts = []
+        for c in columns:
+            parts.append(f"COUNT({c})")
+            parts.append(f"COALESCE(SUM({c}), 0)")
+            parts.extend(f"COALESCE(SUM({c} <= {b!r}), 0)" for b in self.buckets)
+        with self._lock:
+            newest = store.query("SELECT COALESCE(MAX(step), -1) FROM actions")[0][0]
+            if newest - 1 > self._upto:
+                row = store.query(f"SELECT {', '.join(parts)} FROM actions WHERE step > ? AND step < ?",
+                                  (self._upto, newest))[0]
+                width = 2 + len(self.buckets)
+                for i, phase in enumerate(self.PHASES):
+                    chunk = row[i * width:(i + 1) * width]
+                    self._totals[phase] += int(chunk[0])
+                    self._sums[phase] += float(chunk[1])
+                    self._counts[phase] = [a + int(b) for a, b in zip(self._counts[phase], chunk[2:])]
+                self._upto = newest - 1
+            return {p: (list(self._counts[p]), self._sums[p], self._totals[p]) for p in self.PHASES}

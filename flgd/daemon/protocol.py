@@ -68,6 +68,7 @@ the file out with the caller's own permissions).
 from __future__ import annotations
 
 import json
+import sys
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -146,6 +147,9 @@ def parse_request(line: bytes) -> Request:
     except (json.JSONDecodeError, RecursionError) as exc:
         where = f" at column {exc.colno}" if isinstance(exc, json.JSONDecodeError) else ""
         raise ProtocolError("bad_request", f"request is not valid JSON{where}") from None
+    except ValueError:  # an integer of more digits than Python converts (sys.get_int_max_str_digits)
+        raise ProtocolError("bad_request", "request holds a number too long to read (more than "
+                                           f"{sys.get_int_max_str_digits()} digits)") from None
     if not isinstance(data, dict):
         raise ProtocolError("bad_request", f"request is a JSON {type(data).__name__}, expected an object "
                                            'such as {"cmd": "status"}')

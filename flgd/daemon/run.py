@@ -1,8 +1,11 @@
 """``flgd run``: the cell-controller daemon (foreground; systemd runs it as ``Type=notify``).
 
-Start-up order: config -> state directory and store -> policy -> cell ->
-control socket -> READY=1.  A bad config, policy or cell is reported with a
-clear message and exit code 1, before anything moves.  SIGTERM or Ctrl-C
+Start-up order: config -> checks (state directory, named policy) -> control
+socket claimed (answering ``busy`` until ready) and metrics port bound ->
+state-directory lock and store -> policy -> cell -> READY=1.  A bad config,
+policy, state directory, a socket or port in use, or a cell that fails is
+reported with a clear message and exit code 1, before anything moves; a
+daemon that exits early never removes a socket it did not create.  SIGTERM or Ctrl-C
 halts the motion in flight at once (on the UR5e ``stopL``: the arm
 decelerates and holds; nothing more is sent), the interrupted action is
 logged and not learned from, then the daemon saves a checkpoint, flushes the
@@ -28,10 +31,12 @@ import signal
 import sys
 import threading
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
-from flgd.config import ConfigError, load_config
+from flgd.config import ConfigError, load_config, parse_metrics_address
 from flgd.daemon.notify import Notifier
+from flgd.daemon.preflight import PreflightError, check_policy, check_state_dir, warn_if_policy_unused
+from flgd.daemon.protocol import ProtocolError, Request
 from flgd.daemon.state import State
 from flgd.daemon.server import ControlServer, PeerPolicy, SocketInUse
 
@@ -159,6 +164,9 @@ def _parser() -> argparse.ArgumentParser:
                                     "/run/flgd/flgd.sock)")
     p.add_argument("--control-group", help="group whose members may use flgctl (in addition to root and "
                                            "the daemon's user)")
+    p.add_argument("--metrics", metavar="HOST:PORT",
+                   help="serve Prometheus metrics at http://HOST:PORT/metrics (default: the config's metrics "
+                        "key; off when neither is set; '' turns it off)")
     p.add_argument("--checkpoints-keep", type=int, default=3, help="checkpoints kept in the state directory")
     p.add_argument("--log-level", default="INFO", choices=["DEBUG", "INFO", "WARNING", "ERROR"])
     p.add_argument("--no-status-line", action="store_true", help="no live status line on a terminal")
@@ -189,6 +197,20 @@ def main(argv: list[str]) -> int:
     except ValueError as exc:
         print(f"flgd run: --control-group: {exc}", file=sys.stderr)
         return EXIT_STARTUP
+    metrics_address = config.metrics if args.metrics is None else args.metrics
+    try:
+        metrics_bind = parse_metrics_address(metrics_address) if metrics_address else None
+    except ValueError as exc:
+        where = "--metrics" if args.metrics is not None else f"config {config.source}: metrics"
+        print(f"flgd run: {where}: {exc}", file=sys.stderr)
+        return EXIT_STARTUP
+    # Everything an operator must fix is found before the socket is claimed or the cell touched.
+    try:
+        check_state_dir(config)
+        policy = check_policy(config, args.policy)
+    except PreflightError as exc:
+        print(f"flgd run: {exc}", file=sys.stderr)
+        return EXIT_STARTUP
 
     from flgd.daemon.controller import Controller, StartupError
 
@@ -198,14 +220,24 @@ def main(argv: list[str]) -> int:
     stop = _SignalStop(controller)
     previous = {sig: signal.signal(sig, stop.on_signal) for sig in (signal.SIGTERM, signal.SIGINT)}
 
-    server = None
+    sock_path = Path(args.socket) if args.socket else default_socket_path()
+    ready = threading.Event()
+    state_name = lambda: controller.state.state.value if ready.is_set() else "STARTING"  # noqa: E731
+    server = ControlServer(sock_path, _until_ready(controller.handle, ready), state_name, peers)
+    metrics = None
     status_stop = threading.Event()
     try:
+        server.bind()  # before the cell: a second daemon on this socket stops here, touching nothing
+        if metrics_bind is not None:
+            from flgd.daemon.prometheus import MetricsServer
+
+            metrics = MetricsServer(controller, *metrics_bind, state_name=state_name)
+            metrics.start()
+        server.start()  # answers "busy: starting" until the setup is done
         notifier.status("starting: loading policy and connecting the cell")
         controller.setup()
-        sock_path = Path(args.socket) if args.socket else default_socket_path()
-        server = ControlServer(sock_path, controller.handle, lambda: controller.state.state.value, peers)
-        server.start()
+        ready.set()
+        warn_if_policy_unused(policy, controller.status()["policy"], controller.policy_source, str(config.state_dir))
         if live:
             threading.Thread(target=_status_loop, args=(controller, handler, status_stop), daemon=True,
                              name="flgd-status").start()
@@ -222,8 +254,9 @@ def main(argv: list[str]) -> int:
         return EXIT_STARTUP
     finally:
         status_stop.set()
-        if server is not None:
-            server.stop()
+        server.stop()  # removes only the socket file this daemon created
+        if metrics is not None:
+            metrics.stop()
     handler.finish()
     log.info("stopping: %s", controller.state.cause)
     controller.shutdown()
@@ -232,6 +265,18 @@ def main(argv: list[str]) -> int:
     for sig, previous_handler in previous.items():  # run in-process (tests): leave no handler behind
         signal.signal(sig, previous_handler)
     return EXIT_OK
+
+
+def _until_ready(handle: Callable[[Request], dict], ready: threading.Event) -> Callable[[Request], dict]:
+    """The control handler, answering ``busy`` while the daemon is still setting up."""
+
+    def serve(request: Request) -> dict:
+        if not ready.is_set():
+            raise ProtocolError("busy", "flgd is starting (loading the policy, connecting the cell); try again "
+                                        "in a moment")
+        return handle(request)
+
+    return serve
 
 
 def _status_loop(controller, handler: _StatusLine, stop: threading.Event) -> None:

@@ -2,14 +2,30 @@
 
 Why a thread per connection: requests are tiny and few, and a handler may
 wait for the run loop (a backend swap); one slow client must not block
-``flgctl status`` from another.  The number of connections is capped, every
-connection has an idle timeout, and a line longer than the cap is answered
-with ``too_long`` and skipped, so no client can exhaust the daemon.
+``flgctl status`` from another.  A line longer than the cap is answered with
+``too_long`` and skipped, so no client can exhaust the daemon's memory.
+
+Why the operator can always stop the cell: connections are capped in all
+(``MAX_CONNECTIONS``) and per uid (``MAX_CONNECTIONS_PER_UID``, so one account's
+runaway script cannot take the slots of the others), and a request line must
+arrive whole within ``REQUEST_TIMEOUT`` of its first byte (a client trickling
+a byte at a time is cut off).  A connection over either cap is not refused
+outright: it goes to the urgent lane, which reads one request within
+``URGENT_TIMEOUT`` and serves it only if it is ``stop`` or ``pause`` (both are
+answered at once, without the run loop).  Lane connections live for seconds,
+so connections held open -- idle, trickling or by the hundred -- cannot take
+stop and pause away; the lane has its own caps in all and per uid.
+
+Who owns the socket path: the daemon holds an exclusive lock on ``PATH.lock``
+(beside the socket) from before it binds until it exits, and removes only the
+socket file it created itself (same inode), never one another daemon made.
+A socket file found while holding the lock is a dead daemon's, and is replaced.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import fcntl
 import grp
 import logging
 import math
@@ -19,23 +35,62 @@ import socket
 import stat
 import struct
 import threading
+import time
 from pathlib import Path
 from typing import Any, Callable
 
 from flgd.daemon.protocol import (MAX_REQUEST_BYTES, ProtocolError, Request, encode, error_reply,
                                   ok_reply, parse_request)
+from flgd.daemon.peer_access import unreadable_path_arg
 
-__all__ = ["PeerPolicy", "ControlServer", "SocketInUse", "peer_credentials"]
+__all__ = ["PeerPolicy", "ControlServer", "ConnectionSlots", "SocketInUse", "peer_credentials",
+           "URGENT_COMMANDS"]
 
 log = logging.getLogger("flgd.control")
 
 MAX_CONNECTIONS = 32
-IDLE_TIMEOUT = 120.0
+MAX_CONNECTIONS_PER_UID = 16
+IDLE_TIMEOUT = 120.0  # seconds a connection may wait between two requests
+REQUEST_TIMEOUT = 10.0  # seconds from a request line's first byte to its newline
+# The urgent lane, for connections over the caps: one request, read within URGENT_TIMEOUT.
+URGENT_COMMANDS = frozenset({"stop", "pause"})
+MAX_URGENT = 16
+MAX_URGENT_PER_UID = 8
+URGENT_TIMEOUT = 2.0
 _SO_PEERCRED_FORMAT = "3i"  # struct ucred {pid_t pid; uid_t uid; gid_t gid;}
 
 
 class SocketInUse(RuntimeError):
     """Another daemon already answers on the socket path."""
+
+
+class ConnectionSlots:
+    """At most ``total`` connections at once, and at most ``per_uid`` of them from one uid."""
+
+    def __init__(self, total: int, per_uid: int):
+        self.total = total
+        self.per_uid = per_uid
+        self._lock = threading.Lock()
+        self._by_uid: dict[int, int] = {}
+
+    def acquire(self, uid: int) -> bool:
+        with self._lock:
+            if sum(self._by_uid.values()) >= self.total or self._by_uid.get(uid, 0) >= self.per_uid:
+                return False
+            self._by_uid[uid] = self._by_uid.get(uid, 0) + 1
+            return True
+
+    def release(self, uid: int) -> None:
+        with self._lock:
+            left = self._by_uid.get(uid, 0) - 1
+            if left > 0:
+                self._by_uid[uid] = left
+            else:
+                self._by_uid.pop(uid, None)
+
+    def held(self, uid: int | None = None) -> int:
+        with self._lock:
+            return sum(self._by_uid.values()) if uid is None else self._by_uid.get(uid, 0)
 
 
 def peer_credentials(conn: socket.socket) -> tuple[int, int, int]:
@@ -92,47 +147,93 @@ StateName = Callable[[], str]
 
 
 class ControlServer:
-    """Serves ``handler(request) -> result dict`` on a Unix socket; handler errors become replies."""
+    """Serves ``handler(request) -> result dict`` on a Unix socket; handler errors become replies.
+
+    ``bind`` claims the path (lock, stale-socket check, bind, listen) and is
+    cheap, so the daemon calls it before anything touches the cell; ``start``
+    binds if needed and begins serving.
+    """
 
     def __init__(self, path: str | os.PathLike, handler: Handler, state_name: StateName,
-                 policy: PeerPolicy, mode: int = 0o660):
+                 policy: PeerPolicy, mode: int = 0o660, *, request_timeout: float = REQUEST_TIMEOUT,
+                 idle_timeout: float = IDLE_TIMEOUT, urgent_timeout: float = URGENT_TIMEOUT):
         self.path = Path(path)
+        self.lock_path = self.path.with_name(self.path.name + ".lock")
         self.handler = handler
         self.state_name = state_name
         self.policy = policy
         self.mode = mode
+        self.request_timeout = request_timeout
+        self.idle_timeout = idle_timeout
+        self.urgent_timeout = urgent_timeout
         self._sock: socket.socket | None = None
+        self._lock_fd: int | None = None
+        self._created: tuple[int, int] | None = None  # (st_dev, st_ino) of the socket file this server made
         self._thread: threading.Thread | None = None
         self._stopping = threading.Event()
-        self._slots = threading.BoundedSemaphore(MAX_CONNECTIONS)
+        self._slots = ConnectionSlots(MAX_CONNECTIONS, MAX_CONNECTIONS_PER_UID)
+        self._urgent = ConnectionSlots(MAX_URGENT, MAX_URGENT_PER_UID)
         self.requests_served = 0
         self.refused_peers = 0
 
     # ------------------------------------------------------------------ life cycle
-    def start(self) -> None:
+    def bind(self) -> None:
+        """Claim the socket path; SocketInUse if another daemon has it (nothing of theirs is touched)."""
+        if self._sock is not None:
+            return
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._remove_stale_socket()
-        sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-        old_umask = os.umask(0o117)  # the socket file is never world-accessible, even briefly
+        self._take_path_lock()
         try:
-            sock.bind(str(self.path))
-        finally:
-            os.umask(old_umask)
-        os.chmod(self.path, self.mode)
-        if self.policy.gid is not None:
+            self._remove_stale_socket()
+            sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+            old_umask = os.umask(0o117)  # the socket file is never world-accessible, even briefly
             try:
-                os.chown(self.path, -1, self.policy.gid)
-            except PermissionError:
-                log.warning("cannot give the control socket to group %s; only uid %d and root may use it",
-                            self.policy.group_name, os.getuid())
-        sock.listen(16)
-        sock.settimeout(0.5)
-        self._sock = sock
+                sock.bind(str(self.path))
+            except OSError:
+                sock.close()
+                raise
+            finally:
+                os.umask(old_umask)
+            st = os.lstat(self.path)
+            self._created = (st.st_dev, st.st_ino)
+            os.chmod(self.path, self.mode)
+            if self.policy.gid is not None:
+                try:
+                    os.chown(self.path, -1, self.policy.gid)
+                except PermissionError:
+                    log.warning("cannot give the control socket to group %s; only uid %d and root may use it",
+                                self.policy.group_name, os.getuid())
+            sock.listen(128)  # a burst of connections waits here instead of failing
+            sock.settimeout(0.5)
+            self._sock = sock
+        except BaseException:
+            self._remove_own_socket()
+            self._release_path_lock()
+            raise
+
+    def start(self) -> None:
+        self.bind()
         self._thread = threading.Thread(target=self._accept_loop, name="flgd-control", daemon=True)
         self._thread.start()
         log.info("control socket %s (mode %o; allowed: %s)", self.path, self.mode, self.policy.describe())
 
+    def _take_path_lock(self) -> None:
+        fd = os.open(self.lock_path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o600)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            os.close(fd)
+            raise SocketInUse(f"another flgd is running or starting on {self.path} (it holds {self.lock_path}); "
+                              "stop it first or use --socket") from None
+        self._lock_fd = fd
+
+    def _release_path_lock(self) -> None:
+        if self._lock_fd is not None:
+            os.close(self._lock_fd)  # the lock file stays: removing it would let two daemons lock two files
+            self._lock_fd = None
+
     def _remove_stale_socket(self) -> None:
+        """With the path lock held: a socket file there is a dead daemon's, unless something answers on it."""
         try:
             st = self.path.lstat()
         except FileNotFoundError:
@@ -152,6 +253,18 @@ class ControlServer:
             probe.close()
         raise SocketInUse(f"another flgd answers on {self.path}; stop it first or use --socket")
 
+    def _remove_own_socket(self) -> None:
+        """Unlink the socket file only if it is still the one this server created."""
+        if self._created is None:
+            return
+        try:
+            st = os.lstat(self.path)
+            if (st.st_dev, st.st_ino) == self._created:
+                self.path.unlink()
+        except FileNotFoundError:
+            pass
+        self._created = None
+
     def stop(self) -> None:
         self._stopping.set()
         if self._thread is not None:
@@ -159,10 +272,8 @@ class ControlServer:
         if self._sock is not None:
             self._sock.close()
             self._sock = None
-        try:
-            self.path.unlink()
-        except FileNotFoundError:
-            pass
+        self._remove_own_socket()
+        self._release_path_lock()
 
     # ------------------------------------------------------------------ serving
     def _accept_loop(self) -> None:
@@ -177,57 +288,124 @@ class ControlServer:
                     return
                 log.exception("control socket accept failed")
                 continue
-            if not self._slots.acquire(blocking=False):
-                self._send_and_close(conn, error_reply(None, self.state_name(), "busy",
-                                                       f"too many connections (max {MAX_CONNECTIONS})"))
-                continue
-            threading.Thread(target=self._serve_connection, args=(conn,), name="flgd-client",
-                             daemon=True).start()
+            try:
+                self._admit(conn)
+            except Exception:  # never let one connection end the accept loop
+                log.exception("control connection setup failed")
+                conn.close()
 
-    def _send_and_close(self, conn: socket.socket, reply: dict) -> None:
+    def _admit(self, conn: socket.socket) -> None:
+        """Check the caller, then give the connection a slot, an urgent-lane slot, or a ``busy`` reply."""
         try:
-            conn.settimeout(2.0)
-            conn.sendall(encode(reply))
+            pid, uid, gid = peer_credentials(conn)
+        except OSError as exc:
+            log.warning("cannot read peer credentials: %s", exc)
+            self._refuse(conn, "forbidden", "peer credentials unavailable")
+            return
+        if not self.policy.allows(uid, gid):
+            self.refused_peers += 1
+            log.warning("refused control connection from pid %d uid %d gid %d (allowed: %s)",
+                        pid, uid, gid, self.policy.describe())
+            self._refuse(conn, "forbidden",
+                         f"uid {uid} is not allowed to control flgd (allowed: {self.policy.describe()})")
+            return
+        peer = (pid, uid, gid)
+        if self._slots.acquire(uid):
+            threading.Thread(target=self._serve_connection, args=(conn, peer), name="flgd-client",
+                             daemon=True).start()
+        elif self._urgent.acquire(uid):
+            threading.Thread(target=self._serve_urgent, args=(conn, peer), name="flgd-urgent",
+                             daemon=True).start()
+        else:
+            self._refuse(conn, "busy", self._busy_message(uid))
+
+    def _busy_message(self, uid: int) -> str:
+        return (f"too many connections ({self._slots.held(uid)} of uid {uid}, at most {MAX_CONNECTIONS_PER_UID} "
+                f"per uid and {MAX_CONNECTIONS} in all); close some and try again (stop and pause are still "
+                "served, and flgctl retries them)")
+
+    def _refuse(self, conn: socket.socket, code: str, message: str) -> None:
+        """One error line without waiting for the peer (the accept loop must never block), then close."""
+        try:
+            conn.setblocking(False)
+            conn.send(encode(error_reply(None, self.state_name(), code, message)))
         except OSError:
             pass
         finally:
             conn.close()
 
-    def _serve_connection(self, conn: socket.socket) -> None:
+    def _serve_connection(self, conn: socket.socket, peer: tuple[int, int, int]) -> None:
         try:
-            try:
-                pid, uid, gid = peer_credentials(conn)
-            except OSError as exc:
-                log.warning("cannot read peer credentials: %s", exc)
-                self._send_and_close(conn, error_reply(None, self.state_name(), "forbidden",
-                                                       "peer credentials unavailable"))
-                return
-            if not self.policy.allows(uid, gid):
-                self.refused_peers += 1
-                log.warning("refused control connection from pid %d uid %d gid %d (allowed: %s)",
-                            pid, uid, gid, self.policy.describe())
-                self._send_and_close(conn, error_reply(
-                    None, self.state_name(), "forbidden",
-                    f"uid {uid} is not allowed to control flgd (allowed: {self.policy.describe()})"))
-                return
-            conn.settimeout(IDLE_TIMEOUT)
-            self._serve_lines(conn, f"uid {uid} pid {pid}")
+            self._serve_lines(conn, peer)
         finally:
             try:
                 conn.close()
             finally:
-                self._slots.release()
+                self._slots.release(peer[1])
 
-    def _serve_lines(self, conn: socket.socket, peer: str = "") -> None:
+    def _serve_urgent(self, conn: socket.socket, peer: tuple[int, int, int]) -> None:
+        """One request, read within ``urgent_timeout``; only stop and pause are served."""
+        try:
+            line = self._read_one_line(conn, time.monotonic() + self.urgent_timeout)
+            if line is None:
+                return
+            try:
+                request = parse_request(line.rstrip(b"\r"))
+            except ProtocolError as exc:
+                self._reply(conn, error_reply(exc.request_id, self.state_name(), exc.code, exc.message))
+                return
+            if request.cmd in URGENT_COMMANDS:
+                reply = self._answer(line, peer)
+            else:
+                reply = error_reply(request.id, self.state_name(), "busy", self._busy_message(peer[1]))
+            self._reply(conn, reply)
+        finally:
+            try:
+                conn.close()
+            finally:
+                self._urgent.release(peer[1])
+
+    def _read_one_line(self, conn: socket.socket, deadline: float) -> bytes | None:
+        buf = bytearray()
+        while b"\n" not in buf:
+            remaining = deadline - time.monotonic()
+            if remaining <= 0 or len(buf) >= MAX_REQUEST_BYTES:
+                return None
+            try:
+                conn.settimeout(remaining)
+                chunk = conn.recv(MAX_REQUEST_BYTES)
+            except OSError:  # socket.timeout included
+                return None
+            if not chunk:
+                return None
+            buf += chunk
+        return bytes(buf[:buf.find(b"\n")])
+
+    def _serve_lines(self, conn: socket.socket, peer: tuple[int, int, int]) -> None:
         buf = bytearray()
         skipping = False  # inside an over-long line whose too_long reply was already sent
+        line_deadline: float | None = None  # when the line being received must be complete
         while not self._stopping.is_set():
+            if line_deadline is None:
+                timeout = self.idle_timeout
+            else:
+                timeout = line_deadline - time.monotonic()
+                if timeout <= 0:
+                    self._reply_timeout(conn)
+                    return
             try:
+                conn.settimeout(timeout)
                 chunk = conn.recv(65536)
-            except (socket.timeout, OSError):
+            except socket.timeout:
+                if line_deadline is not None:
+                    self._reply_timeout(conn)
+                return
+            except OSError:
                 return
             if not chunk:
                 return
+            if line_deadline is None:
+                line_deadline = time.monotonic() + self.request_timeout
             buf += chunk
             while True:
                 nl = buf.find(b"\n")
@@ -242,19 +420,30 @@ class ControlServer:
                     break
                 line = bytes(buf[:nl])
                 del buf[:nl + 1]
+                # the next line's clock starts with its first byte, already here or still to come
+                line_deadline = time.monotonic() + self.request_timeout if buf else None
                 if skipping:
                     skipping = False
                     continue
                 if not self._reply(conn, self._answer(line, peer)):
                     return
 
-    def _answer(self, line: bytes, peer: str = "") -> dict:
+    def _reply_timeout(self, conn: socket.socket) -> None:
+        self._reply(conn, error_reply(None, self.state_name(), "bad_request",
+                                      f"request line not complete within {self.request_timeout:g} s of its first "
+                                      "byte (send each request as one line); connection closed"))
+
+    def _answer(self, line: bytes, peer: tuple[int, int, int]) -> dict:
         if line.endswith(b"\r"):
             line = line[:-1]
         try:
-            request = dataclasses.replace(parse_request(line), peer=peer)
+            request = dataclasses.replace(parse_request(line), peer=f"uid {peer[1]} pid {peer[0]}")
         except ProtocolError as exc:
             return error_reply(exc.request_id, self.state_name(), exc.code, exc.message)
+        refusal = unreadable_path_arg(request, peer[1], peer[2], own_uid=self.policy.own_uid)
+        if refusal:
+            log.warning("refused %s from uid %d: %s", request.cmd, peer[1], refusal)
+            return error_reply(request.id, self.state_name(), "forbidden", refusal)
         try:
             result = self.handler(request)
         except ProtocolError as exc:
@@ -268,6 +457,7 @@ class ControlServer:
 
     def _reply(self, conn: socket.socket, reply: dict) -> bool:
         try:
+            conn.settimeout(self.request_timeout)  # a client that does not read its reply is let go too
             conn.sendall(encode(_json_safe(reply)))
             return True
         except OSError:

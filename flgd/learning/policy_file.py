@@ -54,7 +54,7 @@ from flgd.atomic_file import write_atomically
 from flgd.learning.networks import VARIANTS, QMapNetwork, build_network
 
 __all__ = ["FORMAT", "FORMAT_VERSION", "POLICY_SUFFIX", "MAX_POLICY_BYTES", "POLICY_MODE", "PolicyFileError", "first_non_finite",
-           "LoadedPolicy", "save_policy", "load_policy", "read_metadata"]
+           "LoadedPolicy", "save_policy", "load_policy", "read_metadata", "check_fits"]
 
 FORMAT = "flgd-policy"
 FORMAT_VERSION = 1
@@ -302,15 +302,18 @@ def _decode(meta: dict[str, str]) -> dict:
     }
 
 
-def load_policy(path: str | os.PathLike, expected_variant: str | None = None) -> LoadedPolicy:
-    """Load and verify a policy file; raises PolicyFileError naming the file and the problem."""
-    path = Path(path)
-    blob = _read_file(path)
-    meta = _check_metadata(path, _read_header(path, blob))
-    try:
-        info = _decode(meta)
-    except (ValueError, TypeError) as exc:
-        raise PolicyFileError(path, f"metadata value cannot be decoded: {exc}") from None
+# Where an expected architecture value comes from, for the message when a file's differs.
+_EXPECTED_FROM = {"rotations": "learning.rotations in the config"}
+
+
+def check_fits(path: str | os.PathLike, info: dict, expected_variant: str | None = None,
+               expected_architecture: dict | None = None) -> dict:
+    """The file's architecture (without the variant) if it is the expected one; else PolicyFileError.
+
+    ``info`` is ``read_metadata``'s result.  ``expected_architecture`` holds the keys that must be equal
+    (e.g. ``{"rotations": 16}`` from the config, or a running network's whole ``architecture()``); a
+    difference is named in one line, before any weights are loaded into a network that cannot take them.
+    """
     variant = info["variant"]
     if variant not in VARIANTS:
         raise PolicyFileError(path, f"variant: got {variant!r}, expected one of {', '.join(VARIANTS)}")
@@ -320,6 +323,32 @@ def load_policy(path: str | os.PathLike, expected_variant: str | None = None) ->
     arch = dict(info["architecture"]) if isinstance(info["architecture"], dict) else None
     if arch is None or arch.pop("variant", None) != variant:
         raise PolicyFileError(path, f"architecture {info['architecture']!r} does not match variant {variant!r}")
+    for key, want in (expected_architecture or {}).items():
+        if key == "variant":
+            continue
+        got = arch.get(key)
+        if got != want:
+            source = _EXPECTED_FROM.get(key, "the running network's")
+            raise PolicyFileError(path, f"architecture: the file's {variant} network has {key} = {got!r}, "
+                                        f"expected {want!r} ({source})")
+    return arch
+
+
+def load_policy(path: str | os.PathLike, expected_variant: str | None = None,
+                expected_architecture: dict | None = None) -> LoadedPolicy:
+    """Load and verify a policy file; raises PolicyFileError naming the file and the problem.
+
+    ``expected_variant`` and ``expected_architecture``: see ``check_fits``.
+    """
+    path = Path(path)
+    blob = _read_file(path)
+    meta = _check_metadata(path, _read_header(path, blob))
+    try:
+        info = _decode(meta)
+    except (ValueError, TypeError) as exc:
+        raise PolicyFileError(path, f"metadata value cannot be decoded: {exc}") from None
+    arch = check_fits(path, info, expected_variant, expected_architecture)
+    variant = info["variant"]
     try:
         network = build_network(variant, **arch)
     except (TypeError, ValueError) as exc:

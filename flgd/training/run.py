@@ -274,6 +274,9 @@ class TrainingRun:
         self.store = Store(self.out, keep_transitions=self.config.learning.replay_capacity)
         self.checkpoints = CheckpointDir(self.out / "checkpoints", keep=1_000_000)
         self.checkpoints.remove_temporary()
+        from flgd.training.state import remove_temporary as remove_trainer_state_temporaries
+
+        remove_trainer_state_temporaries(self.out)
         start = starting_network(self.config, self.checkpoints, self.settings.init_policy or None)
         self.last_checkpoint_updates = start.resumed_from_updates if start.checkpoint else -1
         replay_seed = _derived_seed(self.settings.seed, self.segment, 3)

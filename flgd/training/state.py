@@ -24,9 +24,10 @@ import numpy as np
 import torch
 from safetensors.torch import load_file, save
 
-from flgd.atomic_file import write_atomically
+from flgd.atomic_file import remove_temporaries, write_atomically
 
-__all__ = ["TRAINER_STATE", "TrainerState", "save_trainer_state", "load_trainer_state", "restore_learner"]
+__all__ = ["TRAINER_STATE", "TrainerState", "save_trainer_state", "load_trainer_state", "restore_learner",
+           "remove_temporary"]
 
 TRAINER_STATE = "trainer-state.safetensors"
 
@@ -58,6 +59,15 @@ def save_trainer_state(path: str | os.PathLike, learner, priority_ids: np.ndarra
     meta = {"updates": str(int(learner.updates)), "adam_groups": json.dumps(groups)}
     data = save(tensors, metadata=meta)
     write_atomically(path, data)
+
+
+def remove_temporary(directory: str | os.PathLike) -> int:
+    """Delete ``.trainer-state.safetensors.*.tmp`` files of writes interrupted by a kill; how many.
+
+    A trainer state is ~3x the policy's size, so each kill during a write would otherwise leave that much
+    behind for good.  Call with the directory's writer not running (the daemon: at setup, under its lock).
+    """
+    return remove_temporaries(directory, TRAINER_STATE)
 
 
 def load_trainer_state(path: str | os.PathLike) -> TrainerState:
