@@ -55,6 +55,10 @@ def test_a_scrape_of_a_running_daemon_agrees_with_flgctl(daemon_factory):
     assert "flgd_learner_backlog" in m and "flgd_learner_dropped_updates" in m and "flgd_learner_skipped_updates" in m
     assert _value(m, "flgd_policy_info", source=status["policy"]) == 1
     assert _value(m, "flgd_cell_info", backend="sim") == 1
+    gate = status["gate"]
+    assert _value(m, "flgd_gate_enabled") == 1
+    assert _value(m, "flgd_gate_policy_id", role="champion") == gate["champion"]["id"]
+    assert _value(m, "flgd_gate_actions_total", role="champion") == gate["champion"]["live"]["actions"]
     # every phase's histogram counts each logged cycle but the newest (whose store time comes later)
     for phase in PhaseHistograms.PHASES:
         count = _value(m, "flgd_cycle_phase_seconds_count", phase=phase)

@@ -49,6 +49,32 @@ def _gauge(name: str, doc: str, value: float | None) -> GaugeMetricFamily | None
     return GaugeMetricFamily(name, doc, value=value)
 
 
+def _gate_families(gate: dict | None) -> Iterator[Metric]:
+    """The champion/challenger gate: which policies act and their tallies (absent while there is no gate)."""
+    if not gate:
+        return
+    yield GaugeMetricFamily("flgd_gate_enabled", "1 when learned weights act only after the gate promotes them",
+                            value=1.0 if gate.get("enabled") else 0.0)
+    roles = [("champion", gate.get("champion"), "live"), ("challenger", gate.get("challenger"), "tally")]
+    ids = GaugeMetricFamily("flgd_gate_policy_id", "the gate's id of the policy in each role", labels=["role"])
+    actions = CounterMetricFamily("flgd_gate_actions", "greedy actions credited to the policy in each role "
+                                                       "(the champion: since it became champion)", labels=["role"])
+    picks = CounterMetricFamily("flgd_gate_successes", "successful grasps credited to the policy in each role",
+                                labels=["role"])
+    for role, rec, key in roles:
+        if rec:
+            ids.add_metric([role], float(rec["id"]))
+            actions.add_metric([role], float(rec[key]["actions"]))
+            picks.add_metric([role], float(rec[key]["successes"]))
+    yield ids
+    yield actions
+    yield picks
+    verdict = gate.get("verdict")
+    if verdict and verdict.get("p_better") is not None:
+        yield GaugeMetricFamily("flgd_gate_challenger_p_better", "P(challenger better than the champion)",
+                                value=float(verdict["p_better"]))
+
+
 def cell_metric_families(controller: Any, state_name: Callable[[], str],
                          histograms: PhaseHistograms) -> Iterator[Metric]:
     """Every metric of one scrape, read from the controller's status and the store's statistics."""
@@ -81,6 +107,7 @@ def cell_metric_families(controller: Any, state_name: Callable[[], str],
                             value=1.0 if status.get("learner_running") else 0.0)
     yield GaugeMetricFamily("flgd_replay_transitions", "transitions in the replay memory",
                             value=float(status.get("replay_size") or 0))
+    yield from _gate_families(status.get("gate"))
 
     store = getattr(controller, "store", None)
     readable = store is not None
