@@ -246,6 +246,9 @@ class LearningConfig:
                       "(training from scratch); 'frozen': updates use and keep the network's running statistics "
                       "(fine-tuning a trained policy, whose statistics a batch of 4 transitions would drift)")
     checkpoint_every: int = param(100, ge=1, unit="updates")
+    wait_for_updates: bool = param(False, help="each cycle waits until the learner has run the updates scheduled "
+                                               "before it (gives a fast simulated cell the learner time a real cell's "
+                                               "~9 s cycle gives; off on a real cell)")
     threads: int = param(0, ge=0, help="torch CPU threads; 0 = all cores")
     device: Literal["cpu", "cuda", "auto"] = param("auto")
     seed: int = param(0, ge=0)

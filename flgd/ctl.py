@@ -208,9 +208,10 @@ def _human(command: str, reply: dict, extra: dict) -> str:
                  f"backend       {r['backend']}   config {r['config']}",
                  f"policy        {r['policy']}",
                  f"learner       {r['learner_updates']} updates ({r.get('learner_backlog', 0)} waiting, "
-                 f"{r.get('learner_dropped', 0)} dropped, from {r.get('learner_from') or '-'}), "
+                 f"{r.get('learner_dropped', 0)} dropped), "
                  f"replay {r['replay_size']} "
-                 f"(stored {r['stored_transitions']}), last checkpoint {r['last_checkpoint'] or '-'}, "
+                 f"(stored {r['stored_transitions']}), from {r.get('learner_from') or '-'}, "
+                 f"last checkpoint {r['last_checkpoint'] or '-'}, "
                  f"optimizer {r.get('trainer_state', '-')}",
                  f"state dir     {r['state_dir']}   pid {r['pid']}"]
         if not r.get("learner_running", True):

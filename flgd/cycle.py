@@ -49,6 +49,8 @@ from flgd.safety import PlanRefused, check_plan
 
 __all__ = ["CycleRecord", "CycleRunner", "UNSTABLE_MARK"]
 
+# learning.wait_for_updates: the longest a cycle waits for the learner's scheduled updates, in seconds
+LEARNER_WAIT_LIMIT = 600.0
 # ExecutionResult.failure containing this word means the simulation blew up: never learn from it.
 UNSTABLE_MARK = "unstable"
 
@@ -263,6 +265,8 @@ class CycleRunner:
             self.current = self.perceive(timer)
         state = self.current
 
+        if self.learner is not None and self.config.learning.wait_for_updates and hasattr(self.learner, "wait_idle"):
+            self.learner.wait_idle(LEARNER_WAIT_LIMIT)  # the learner time a real cell's slow cycle would give
         with timer.phase("decide"):
             if hasattr(self.agent, "maybe_swap_weights"):
                 self.agent.maybe_swap_weights()

@@ -347,3 +347,39 @@ def test_learned_priorities_are_written_to_the_store_and_come_back_after_a_resta
         if replay.tag(i) in sampled:
             assert rebuilt.priority(i) == pytest.approx(replay.priority(i), rel=1e-12)
     store.close()
+
+
+@pytest.mark.parametrize("wait", [True, False])
+def test_with_wait_for_updates_each_decision_waits_for_the_learners_scheduled_updates(tmp_path, wait):
+    from flgd.learning.learner import Learner
+
+    cfg, cell, store, replay, runner = _setup(tmp_path)
+    cfg = dataclasses.replace(cfg, learning=dataclasses.replace(cfg.learning, wait_for_updates=wait, batch_size=2,
+                                                                updates_per_action=3, max_backlog=0))
+    learner = Learner(cfg, runner.agent.agent.network, replay, thread_nice=0)
+    backlog_at_decision = []
+    decide = runner.agent.decide
+
+    def noting_decide(hm, step):
+        backlog_at_decision.append(learner.pending)
+        return decide(hm, step)
+    runner.agent.decide = noting_decide
+    runner.config, runner.learner = cfg, learner
+    slow = learner.update
+
+    def slow_update():
+        time.sleep(0.3)  # an update that takes longer than a simulated cycle's decision
+        return slow()
+    learner.update = slow_update
+    learner.start()
+    try:
+        for _ in range(4):
+            runner.run_once()
+    finally:
+        learner.stop(timeout=120)
+        cell.close()
+    assert len(backlog_at_decision) == 4
+    if wait:
+        assert backlog_at_decision == [0, 0, 0, 0]
+    else:
+        assert max(backlog_at_decision) > 0  # without waiting the cycle outruns the learner
