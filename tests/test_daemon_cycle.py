@@ -9,6 +9,7 @@ the decision of chosen steps (to force a refused plan or a push).
 from __future__ import annotations
 
 import dataclasses
+import time
 from pathlib import Path
 
 import numpy as np
