@@ -209,6 +209,8 @@ def main(argv: list[str]) -> int:
     parser.add_argument("--reference-runs", type=int, default=3,
                         help="timed decisions of densenet121 (0 skips it)")
     parser.add_argument("--update-runs", type=int, default=5, help="timed learner updates")
+    parser.add_argument("--reference-update-runs", type=int, default=0,
+                        help="timed learner updates of densenet121 (exact target; default 0 skips them)")
     parser.add_argument("--threads", type=int, default=0, help="torch threads (0 = torch's default)")
     parser.add_argument("--widths", type=str, default="", help="also time these fast widths, e.g. 8,16,24")
     parser.add_argument("--learning", action="store_true", help="run the learning-speed comparison too")
@@ -257,6 +259,14 @@ def main(argv: list[str]) -> int:
     result["update"][f"{default}-cached"] = {"median_s": round(cached_s, 4),
                                              "runs_s": [round(t, 4) for t in cached_runs],
                                              "ratio_to_exact": round(cached_s / upd_s, 3)}
+    if args.reference_update_runs > 0:
+        dense_u, dense_u_runs = update_latency("densenet121", args.reference_update_runs, cfg)
+        print(f"learner update, densenet121, batch {cfg.learning.batch_size} (non-terminal): median {dense_u:.3f} s "
+              f"over {args.reference_update_runs} runs ({', '.join(f'{t:.3f}' for t in dense_u_runs)}); "
+              f"densenet121 / {default} = {dense_u / upd_s:.1f}x")
+        result["update"]["densenet121"] = {"median_s": round(dense_u, 4), "runs_s": [round(t, 4) for t in dense_u_runs],
+                                           "batch_size": cfg.learning.batch_size,
+                                           "ratio_to_default": round(dense_u / upd_s, 2)}
     busy_s, busy_runs = decision_while_training(args.runs, cfg)
     print(f"decision, {default}, while the learner thread trains: median {busy_s:.3f} s "
           f"({', '.join(f'{t:.3f}' for t in busy_runs)}); {busy_s / fast_s:.2f}x the idle decision")

@@ -17,7 +17,8 @@ import math
 
 import numpy as np
 
-__all__ = ["UR5E_DH", "JOINT_LIMITS", "forward", "inverse", "nearest_solution", "pose_error"]
+__all__ = ["UR5E_DH", "JOINT_LIMITS", "forward", "inverse", "nearest_solution", "pose_error",
+           "forward_many", "inverse_many"]
 
 # Standard DH parameters of the UR5e (Universal Robots' published values).
 UR5E_DH = {
@@ -133,3 +134,81 @@ def nearest_solution(solutions: list[np.ndarray], q_ref) -> np.ndarray | None:
     shifted = np.where(np.abs(shifted) > JOINT_LIMITS, qs, shifted)
     cost = np.sum((shifted - q_ref) ** 2, axis=1)
     return shifted[int(np.argmin(cost))]
+
+
+def _dh_many(theta: np.ndarray, d: float, a: float, alpha: float) -> np.ndarray:
+    """``_dh`` for an array of angles: (n, 4, 4)."""
+    ct, st = np.cos(theta), np.sin(theta)
+    ca, sa = math.cos(alpha), math.sin(alpha)
+    out = np.zeros(theta.shape + (4, 4))
+    out[..., 0, 0], out[..., 0, 1], out[..., 0, 2], out[..., 0, 3] = ct, -st * ca, st * sa, a * ct
+    out[..., 1, 0], out[..., 1, 1], out[..., 1, 2], out[..., 1, 3] = st, ct * ca, -ct * sa, a * st
+    out[..., 2, 1], out[..., 2, 2], out[..., 2, 3] = sa, ca, d
+    out[..., 3, 3] = 1.0
+    return out
+
+
+def _rigid_inverse_many(t: np.ndarray) -> np.ndarray:
+    out = np.zeros_like(t)
+    r = np.swapaxes(t[..., :3, :3], -1, -2)
+    out[..., :3, :3] = r
+    out[..., :3, 3] = -np.einsum("...ij,...j->...i", r, t[..., :3, 3])
+    out[..., 3, 3] = 1.0
+    return out
+
+
+def forward_many(q: np.ndarray) -> np.ndarray:
+    """``forward`` for (n, 6) joint vectors: (n, 4, 4) flange poses."""
+    q = np.asarray(q, dtype=float)
+    t = np.broadcast_to(np.eye(4), q.shape[:-1] + (4, 4)).copy()
+    for i in range(6):
+        t = t @ _dh_many(q[..., i], _D[i], _A[i], _ALPHA[i])
+    return t
+
+
+def inverse_many(targets: np.ndarray) -> np.ndarray:
+    """``inverse`` for (n, 4, 4) flange poses at once: (n, 8, 6), NaN rows where a branch has no
+    solution.  Branches come in ``inverse``'s order, so the nearest valid one is the same solution."""
+    t = np.asarray(targets, dtype=float)
+    n = t.shape[0]
+    d1, d4, d5, d6 = _D[0], _D[3], _D[4], _D[5]
+    a2, a3 = _A[1], _A[2]
+    out = np.full((n, 8, 6), np.nan)
+    p05 = t[:, :3, 3] - d6 * t[:, :3, 2]
+    r = np.hypot(p05[:, 0], p05[:, 1])
+    reach = r >= abs(d4) + 1e-9
+    r = np.where(reach, r, 1.0)
+    psi = np.arctan2(p05[:, 1], p05[:, 0])
+    phi = np.arccos(np.clip(d4 / r, -1.0, 1.0))
+    k = 0
+    for s1 in (1.0, -1.0):
+        th1 = psi + s1 * phi + math.pi / 2
+        c1, sn1 = np.cos(th1), np.sin(th1)
+        c5 = (t[:, 0, 3] * sn1 - t[:, 1, 3] * c1 - d4) / d6
+        ok5 = reach & (np.abs(c5) <= 1.0 + 1e-9)
+        c5 = np.clip(c5, -1.0, 1.0)
+        t01_inv = _rigid_inverse_many(_dh_many(th1, d1, 0.0, _ALPHA[0]))
+        for s5 in (1.0, -1.0):
+            th5 = s5 * np.arccos(c5)
+            sin5 = np.sin(th5)
+            small = np.abs(sin5) < 1e-9
+            safe = np.where(small, 1.0, sin5)
+            th6 = np.where(small, 0.0, np.arctan2((-t[:, 0, 1] * sn1 + t[:, 1, 1] * c1) / safe,
+                                                  (t[:, 0, 0] * sn1 - t[:, 1, 0] * c1) / safe))
+            t56 = _dh_many(th5, d5, 0.0, _ALPHA[4]) @ _dh_many(th6, d6, 0.0, _ALPHA[5])
+            t14 = t01_inv @ t @ _rigid_inverse_many(t56)
+            th234 = np.arctan2(t14[:, 1, 0], t14[:, 0, 0])
+            px = t14[:, 0, 3] - d4 * t14[:, 0, 1]
+            py = t14[:, 1, 3] - d4 * t14[:, 1, 1]
+            c3 = (px * px + py * py - a2 * a2 - a3 * a3) / (2 * a2 * a3)
+            ok = ok5 & (np.abs(c3) <= 1.0 + 1e-9)
+            c3 = np.clip(c3, -1.0, 1.0)
+            for s3 in (1.0, -1.0):
+                th3 = s3 * np.arccos(c3)
+                th2 = np.arctan2(py, px) - np.arctan2(a3 * np.sin(th3), a2 + a3 * np.cos(th3))
+                th4 = th234 - th2 - th3
+                q = np.stack([th1, th2, th3, th4, th5, th6], axis=1)
+                q = np.remainder(q + math.pi, 2 * math.pi) - math.pi
+                out[:, k] = np.where(ok[:, None], q, np.nan)
+                k += 1
+    return out

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from flgd.geometry import matrix_to_rotvec, rotvec_to_matrix
+from flgd.geometry import matrix_to_rotvec
 from sim_cell import kinematics
 
 __all__ = ["Trajectory", "Unreachable", "trapezoid_duration", "trapezoid_fraction", "plan_line",
@@ -109,26 +109,53 @@ def plan_line(q_start: np.ndarray, start: np.ndarray, goal: np.ndarray, speed: f
     else:
         total, prof = t_rot, (angle, ANGULAR_SPEED, ANGULAR_ACCELERATION)
     ticks = max(int(math.ceil(total / tick)), 1)
+    frac = np.array([trapezoid_fraction(i * tick, *prof) for i in range(ticks)] + [1.0])
+    poses = np.zeros((ticks + 1, 4, 4))
+    poses[:, 3, 3] = 1.0
+    poses[:, :3, 3] = p0 + frac[:, None] * (p1 - p0)
+    poses[:, :3, :3] = r0 @ _rotations(rel, frac)
+    flanges = poses.copy()
+    flanges[:, :3, 3] = poses[:, :3, 3] - np.einsum("nij,j->ni", poses[:, :3, :3], np.asarray(tcp_offset, dtype=float))
+    # every tick's solutions at once; the branch nearest the previous tick's joints is picked in order
+    branches = kinematics.inverse_many(flanges)
     joints = np.empty((ticks + 1, 6))
-    poses = np.empty((ticks + 1, 4, 4))
     q_prev = np.asarray(q_start, dtype=float)
+    solved = ticks + 1
     for i in range(ticks + 1):
-        s = trapezoid_fraction(i * tick, *prof) if i < ticks else 1.0
-        pose = np.eye(4)
-        pose[:3, 3] = p0 + s * (p1 - p0)
-        pose[:3, :3] = r0 @ rotvec_to_matrix(rel * s)
-        flange = tcp_to_flange(pose, tcp_offset)
-        q = kinematics.nearest_solution(kinematics.inverse(flange), q_prev)
-        where = f"TCP ({pose[0, 3]:.3f}, {pose[1, 3]:.3f}, {pose[2, 3]:.3f}) m"
+        valid = branches[i][~np.isnan(branches[i, :, 0])]
+        q = kinematics.nearest_solution(list(valid), q_prev)
         if q is None:
-            raise Unreachable(f"no inverse-kinematics solution at {where}")
-        dp, dr = kinematics.pose_error(q, flange)
-        if dp > MAX_POSITION_ERROR or dr > MAX_ROTATION_ERROR:
-            raise Unreachable(f"inverse-kinematics residual {dp * 1000:.2f} mm / {dr:.4f} rad at {where}")
-        if np.max(np.abs(q - q_prev)) > MAX_JOINT_STEP:
-            raise Unreachable(f"the straight line passes a singularity near {where} "
-                              f"(joint jump {np.max(np.abs(q - q_prev)):.2f} rad in one tick)")
+            solved = i
+            break
         joints[i] = q
-        poses[i] = pose
         q_prev = q
+    reached = kinematics.forward_many(joints[:solved])
+    dp = np.linalg.norm(reached[:, :3, 3] - flanges[:solved, :3, 3], axis=1)
+    cos_a = (np.einsum("nji,nji->n", reached[:, :3, :3], flanges[:solved, :3, :3]) - 1.0) / 2.0
+    dr = np.arccos(np.clip(cos_a, -1.0, 1.0))
+    steps = np.max(np.abs(np.diff(np.vstack([np.asarray(q_start, dtype=float)[None], joints[:solved]]), axis=0)),
+                   axis=1)
+    for i in range(ticks + 1):
+        pose = poses[i]
+        where = f"TCP ({pose[0, 3]:.3f}, {pose[1, 3]:.3f}, {pose[2, 3]:.3f}) m"
+        if i == solved:
+            raise Unreachable(f"no inverse-kinematics solution at {where}")
+        if dp[i] > MAX_POSITION_ERROR or dr[i] > MAX_ROTATION_ERROR:
+            raise Unreachable(f"inverse-kinematics residual {dp[i] * 1000:.2f} mm / {dr[i]:.4f} rad at {where}")
+        if steps[i] > MAX_JOINT_STEP:
+            raise Unreachable(f"the straight line passes a singularity near {where} "
+                              f"(joint jump {steps[i]:.2f} rad in one tick)")
     return Trajectory(joints=joints, tcp=poses, tick=tick)
+
+
+def _rotations(rel: np.ndarray, frac: np.ndarray) -> np.ndarray:
+    """The rotation by ``rel * s`` (axis-angle) for every fraction s: (n, 3, 3), Rodrigues' formula."""
+    angle = float(np.linalg.norm(rel))
+    out = np.broadcast_to(np.eye(3), (len(frac), 3, 3)).copy()
+    if angle < 1e-12:
+        return out
+    k = rel / angle
+    kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    a = angle * frac
+    out += np.sin(a)[:, None, None] * kx + (1 - np.cos(a))[:, None, None] * (kx @ kx)
+    return out

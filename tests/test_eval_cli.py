@@ -311,3 +311,18 @@ def test_bench_eval_validation_runs_20_blocks_at_each_evaluation_seed_and_pools_
     assert f"({successes}/{attempts})" in printed and "validation 1 run(s) at each of seeds 7, 8, 9, 10" in printed
     assert bench_eval.main(["--fresh", "--parts", "validation", "--validation-runs", "0"]) == 2
     assert "--validation-runs: got 0, expected >= 1" in capsys.readouterr().err
+
+
+def test_eval_variant_sets_the_masks_and_must_match_the_policy_head(tmp_path, capsys):
+    """--variant is the method (masks on or off, FLG or VPG head), independent of the trunk."""
+    shipped = REPO / "policies" / "flg-sim.safetensors"
+    code = flgd_main(["eval", "--config", str(SIM_CONFIG), "--policy", str(shipped), "--variant", "rho-fcn",
+                      "--objects", "blocks", "--count", "1", "--runs", "1", "--quiet"])
+    assert code == 1
+    err = capsys.readouterr().err
+    assert "--variant rho-fcn" in err and "'fast'" in err and "flg or dpen" in err
+    out = tmp_path / "fresh.json"
+    code = flgd_main(["eval", "--config", str(SIM_CONFIG), "--fresh", "--variant", "rho-fcn", "--objects", "blocks",
+                      "--count", "1", "--runs", "1", "--max-actions", "1", "--quiet", "--json", str(out)])
+    assert code == 0, capsys.readouterr().err
+    assert json.loads(out.read_text())["policy"]["variant"] == "rho-fcn-fast"

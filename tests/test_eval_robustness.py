@@ -319,3 +319,18 @@ def test_greedy_action_names_moves_as_plans_move_kind_does(config):
         no = np.zeros((8, 8), np.uint8)
         action = visualize.greedy_action(q, no, np.ones((8, 8), np.uint8), height, limit)
         assert action.primitive == move_kind(h, config), h
+
+
+def test_the_table_counts_aborted_runs_beside_the_rates_that_leave_them_out():
+    spec = scene_from_argument("pile-20-a")
+    ok = RunLog(scene="pile-20-a", run=1, objects=3, actions=(ActionEntry("grasp", True),) * 3, objects_left=0,
+                objects_grasped=3, end="cleared")
+    gave_up = RunLog(scene="pile-20-a", run=2, objects=3, actions=(ActionEntry("grasp", False),), objects_left=3,
+                     objects_grasped=0, end="unstable")
+    report = build_report([(spec, [ok, gave_up])], policy={"path": "p"}, config="c", options={"runs": 2},
+                          seconds=1.0)
+    lines = format_table(report).splitlines()
+    header = lines[1].split()
+    assert header[:4] == ["scene", "runs", "aborted", "complete"]
+    overall = next(ln for ln in lines if ln.startswith("OVERALL")).split()
+    assert overall[1:4] == ["2", "1", "100.0%"]   # 2 runs, 1 aborted, the rate over the other one

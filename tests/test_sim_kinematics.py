@@ -39,3 +39,23 @@ def test_nearest_solution_shifts_a_joint_by_two_pi_when_nearer_within_limits():
     sol = np.array([-3.0, -1.0, 1.0, -1.5, -1.5, -3.1])     # the same pose, joints 1 and 6 wrapped
     out = kinematics.nearest_solution([sol], q_ref)
     assert np.allclose(out, [-3.0 + 2 * math.pi, -1.0, 1.0, -1.5, -1.5, -3.1 + 2 * math.pi])
+
+
+def test_inverse_many_gives_inverse_s_solutions_in_its_order_and_nothing_out_of_reach():
+    from sim_cell.kinematics import forward_many, inverse_many
+
+    rng = np.random.default_rng(3)
+    qs = rng.uniform(-np.pi, np.pi, (200, 6))
+    poses = forward_many(qs)
+    far = np.eye(4)
+    far[:3, 3] = (2.0, 0.0, 0.5)   # out of the UR5e's reach
+    poses = np.concatenate([poses, far[None]])
+    batch = inverse_many(poses)
+    for i, pose in enumerate(poses):
+        if i < len(qs):
+            assert np.allclose(pose, kinematics.forward(qs[i]))
+        solutions = kinematics.inverse(pose)
+        valid = [q for q in batch[i] if not np.isnan(q[0])]
+        assert len(valid) == len(solutions)
+        assert all(np.allclose(a, b, atol=1e-9) for a, b in zip(valid, solutions))
+    assert np.isnan(batch[-1]).all()

@@ -1,16 +1,17 @@
 """The simulated cell's speed shortcuts keep what matters: shifts drag blocks, weak grips still slip,
-and a carried block leaves with the gripper."""
+a carried block leaves with the gripper, and sleeping blocks wake when touched or left unsupported."""
 
 from __future__ import annotations
 
 import math
 
 import numpy as np
+import pybullet as p
 import pytest
 
 from flgd.clutter import grasp_reward
 from flgd.geometry import ToolPose
-from flgd.plans import MoveL, Plan, plan_grasp, plan_home, plan_shift
+from flgd.plans import MoveL, Plan, plan_grasp, plan_home, plan_push, plan_shift
 from flgd.safety import check_plan
 from sim_cell.cell import SimCell
 from sim_cell.objects import ObjectSpec
@@ -94,3 +95,34 @@ def test_a_gripped_block_moves_with_the_gripper_and_is_carried_out(empty_cell):
     # opening the gripper hands the measured block out of the cell
     empty_cell.execute(check_plan(plan_home(cfg), cfg))
     assert empty_cell.object_count == 0 and empty_cell.stats["grasped_out"] == 1
+
+
+def _asleep(cell: SimCell, body: int) -> bool:
+    """A sleeping body reports exactly zero velocity (an awake resting one jitters by micrometres per second)."""
+    return p.getBaseVelocity(body, physicsClientId=cell._client) == ((0.0, 0.0, 0.0), (0.0, 0.0, 0.0))
+
+
+def test_a_block_whose_support_is_removed_wakes_and_falls(empty_cell):
+    """Still blocks sleep (the solver skips them); a sleeping block that lost what it rested on must not hang
+    in the air: pybullet does not wake it, the cell does."""
+    bottom = cube_at(empty_cell, -0.5, 0.0, size=(0.08, 0.03, 0.03))
+    top = empty_cell.add_object(ObjectSpec(shape="cube", size=(0.03,), position=(-0.5, 0.0, 0.046)), settle=0.5)
+    assert _asleep(empty_cell, bottom) and _asleep(empty_cell, top)
+    assert state(empty_cell, top).top > 0.055
+    assert empty_cell.remove_object(bottom, settle=0.3)
+    assert state(empty_cell, top).top < 0.032, "the cube fell onto the table"
+
+
+def test_a_sleeping_block_is_pushed_like_an_awake_one(empty_cell):
+    cfg = empty_cell.config
+    body = cube_at(empty_cell, -0.50, 0.0, size=(0.04, 0.04, 0.04))
+    empty_cell.simulate(0.5)
+    assert _asleep(empty_cell, body)
+    before = np.array(state(empty_cell, body).position)
+    result = empty_cell.execute(check_plan(plan_push(-0.56, 0.0, 0.0, cfg), cfg))
+    assert result.completed, result.failure
+    moved = np.array(state(empty_cell, body).position) - before
+    assert moved[0] > 0.03 and abs(moved[1]) < 0.02, moved
+    # and after the push it is still again: every body below the stillness threshold, asleep or not
+    lin, ang = p.getBaseVelocity(body, physicsClientId=empty_cell._client)
+    assert np.linalg.norm(lin) < 0.01 and np.linalg.norm(ang) < 0.2

@@ -2,17 +2,19 @@
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
+import yaml
 
 from flgd.config import config_from_dict, config_to_dict, load_config
 from flgd.learning.networks import RhoFcnFastQNet, build_network, q_maps
 from flgd.learning.policy_file import load_policy, save_policy
 from flgd.perception import Heightmaps
-from flgd.training.run import TRAIN_VARIANTS, RunSettings, effective_config
+from flgd.training.run import TRAIN_VARIANTS, RunSettings, effective_config, variant_network
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -94,3 +96,38 @@ def test_the_shipped_sim_policy_is_the_configs_default_and_loads():
     sidecar = json.loads(path.with_suffix(".json").read_text())
     assert sidecar["policy_metadata"]["weights_sha256"] == meta["weights_sha256"]
     assert (path.parent / sidecar["learning_curve"]).exists()
+
+
+@pytest.mark.parametrize("trunk,variant,network,masks", [
+    ("densenet121", "flg", "densenet121", True), ("densenet121", "dpen", "densenet121", False),
+    ("densenet121", "rho-fcn", "rho-fcn", True), ("rho-fcn", "flg", "densenet121", True),
+    ("rho-fcn-fast", "dpen", "fast", False), ("fast", "rho-fcn", "rho-fcn-fast", True)])
+def test_the_variant_picks_head_and_masks_and_learning_network_the_trunk(tmp_path, trunk, variant, network, masks):
+    base = load_config(REPO / "cell_config" / "sim.yaml")
+    base = dataclasses.replace(base, learning=dataclasses.replace(base.learning, network=trunk))
+    cfg = effective_config(base, RunSettings(variant=variant), tmp_path)
+    assert (cfg.learning.network, cfg.exploration.masks) == (network, masks)
+    assert variant_network(variant, network) == network   # a run's own config resumes with the same network
+
+
+def test_a_densenet121_config_trains_a_few_steps_and_writes_a_loadable_policy(tmp_path):
+    """The paper's network is trainable, not only built: a tiny run on CPU (56 x 56 heightmaps, 2 rotations)."""
+    from flgd.training.run import main as train_main
+
+    cfg = yaml.safe_load((REPO / "cell_config" / "sim.yaml").read_text())
+    cfg["policy"] = ""
+    cfg["state_dir"] = str(tmp_path / "state")
+    cfg["workspace"]["resolution"] = 0.008
+    cfg["learning"].update(network="densenet121", init_trunk="", rotations=2, updates_per_action=1, device="cpu")
+    config = tmp_path / "densenet.yaml"
+    config.write_text(yaml.safe_dump(cfg))
+    out = tmp_path / "run"
+    assert train_main(["--config", str(config), "--out", str(out), "--threads", "1", "--steps", "2",
+                       "--objects", "3"]) == 0
+    (last,) = sorted((out / "checkpoints").glob("checkpoint-*.safetensors"))[-1:]
+    loaded = load_policy(last, expected_variant="densenet121")
+    assert loaded.metadata["train_variant"] == "flg" and loaded.metadata["variant"] == "densenet121"
+    assert loaded.metadata["training_steps"] == 2
+    fresh = build_network("densenet121", rotations=2, seed=0).state_dict()
+    trained = loaded.network.state_dict()
+    assert any(not torch.equal(fresh[k], trained[k]) for k in fresh if fresh[k].is_floating_point())

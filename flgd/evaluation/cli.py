@@ -86,6 +86,10 @@ def _parser() -> argparse.ArgumentParser:
     learn.add_argument("--no-learn", dest="learn", action="store_false",
                        help="frozen policy, greedy (epsilon 0; anti-repeat and two-failures rules on) [default]")
     p.set_defaults(learn=False)
+    p.add_argument("--variant", choices=("dpen", "flg", "rho-fcn"),
+                   help="the method, independent of the trunk: flg and rho-fcn act with the masks, dpen without "
+                        "(default: the config's exploration.masks); with --fresh it also picks the head on the "
+                        "trunk of the config's learning.network; a --policy must have the variant's head")
     p.add_argument("--grasp-only", action="store_true",
                    help="never move (exploration.grasp_only: the paper's Grasping-only mode, Table II)")
     p.add_argument("--max-actions", type=int,
@@ -165,6 +169,16 @@ def main(argv: list[str]) -> int:
         config = load_config(args.config)
     except ConfigError as exc:
         return _fail(str(exc))
+    if args.variant:
+        import dataclasses
+
+        from flgd.training.run import TRAIN_VARIANTS, variant_network
+
+        config = dataclasses.replace(
+            config, exploration=dataclasses.replace(config.exploration, masks=TRAIN_VARIANTS[args.variant][1]))
+        if args.fresh:
+            config = dataclasses.replace(config, learning=dataclasses.replace(
+                config.learning, network=variant_network(args.variant, config.learning.network)))
     try:
         scenes = _collect_scenes(args, config)
     except SceneSetError as exc:
@@ -181,6 +195,13 @@ def main(argv: list[str]) -> int:
     network, policy = _load_network(args, config)
     if network is None:
         return _fail(policy["error"])
+    if args.variant and args.policy:
+        from flgd.training.run import variant_network
+
+        if variant_network(args.variant, policy["variant"]) != policy["variant"]:
+            return _fail(f"--variant {args.variant}: the policy {args.policy} is a {policy['variant']!r} network, "
+                         f"whose head is not the {args.variant} head; expected --variant "
+                         f"{'rho-fcn' if policy['variant'].startswith('rho-fcn') else 'flg or dpen'}")
     options = EvalOptions(runs=args.runs, seed=args.seed, learn=args.learn, grasp_only=args.grasp_only,
                           max_actions=args.max_actions, save_qmaps=qmap_dir)
     t0 = time.perf_counter()

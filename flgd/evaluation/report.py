@@ -116,13 +116,13 @@ def _num(v: float | None) -> str:
     return "-" if v is None else f"{v:.1f}"
 
 
-_COLUMNS = (("scene", "<"), ("runs", ">"), ("complete", ">"), ("grasp ok", ">"), ("grasps", ">"),
+_COLUMNS = (("scene", "<"), ("runs", ">"), ("aborted", ">"), ("complete", ">"), ("grasp ok", ">"), ("grasps", ">"),
             ("act.eff", ">"), ("actions/run", ">"), ("push", ">"), ("shift", ">"), ("lost", ">"), ("ends", "<"))
 
 
 def _row(name: str, s: dict[str, Any]) -> list[str]:
     ends = ", ".join(f"{k} {v}" for k, v in sorted(s["ends"].items()))
-    return [name, str(s["runs"]), _pct(s["completion"]), _pct(s["grasp_success"]),
+    return [name, str(s["runs"]), str(s.get("aborted", 0)), _pct(s["completion"]), _pct(s["grasp_success"]),
             f"{s['grasp_successes']}/{s['grasp_attempts']}", _pct(s["action_efficiency"]), _num(s["mean_actions"]),
             str(s["moves"]["push"]), str(s["moves"]["shift"]), str(s["objects_lost"]), ends]
 
@@ -148,7 +148,8 @@ def format_table(report: dict[str, Any]) -> str:
            f"policy {report['policy'].get('path', '?')} ({mode}; {opts.get('runs')} run(s) per scene, "
            f"seed {opts.get('seed')})", line(header), rule, *map(line, rows), rule, *map(line, tail),
            "complete: cleared without more than "
-           f"{opts.get('failure_limit', FAILURE_LIMIT)} consecutive failed actions; grasp ok: successful/attempted "
+           f"{opts.get('failure_limit', FAILURE_LIMIT)} consecutive failed actions, over the runs not aborted "
+           "(aborted: the simulator gave up, the run is in no rate); grasp ok: successful/attempted "
            "grasps; act.eff: objects/actions over completed runs; lost: objects that left the workspace other than in the gripper (pushed off, or dropped on the way out)",
            *([note] if note else [])]
     return "\n".join(out)

@@ -58,7 +58,7 @@ import numpy as np
 from flgd.atomic_file import write_atomically
 from flgd.config import CellConfig, ConfigError, dump_config, load_sim_config
 
-__all__ = ["TRAIN_VARIANTS", "RunSettings", "RunFileError", "TrainingRun", "effective_config", "read_run_info",
+__all__ = ["TRAIN_VARIANTS", "TRUNK_NETWORKS", "variant_network", "RunSettings", "RunFileError", "TrainingRun", "effective_config", "read_run_info",
            "main", "EXIT_INTERRUPTED"]
 
 log = logging.getLogger("flgd.train")
@@ -70,12 +70,30 @@ LOG_FILE = "actions.csv"
 CURVE_FILE = "curve.png"
 MAX_CONSECUTIVE_FAULTS = 5
 
-# variant -> (network, masks, paper method).  All three share the fast trunk (see networks.py).
+# variant -> (network on the fast trunk, masks, paper method).  The variant picks the head and the masks;
+# the config's learning.network picks the trunk (TRUNK_NETWORKS), so the paper's DenseNet-121 trains too.
 TRAIN_VARIANTS: dict[str, tuple[str, bool, str]] = {
     "flg": ("fast", True, "FLG"),
     "dpen": ("fast", False, "DPEN"),
     "rho-fcn": ("rho-fcn-fast", True, "rho-FCN"),
 }
+# trunk -> variant -> learning.network.  Each learning.network names one trunk (rho-fcn is the VPG head on the
+# DenseNet-121, rho-fcn-fast the same head on the fast trunk).
+TRUNK_NETWORKS: dict[str, dict[str, str]] = {
+    "fast": {"flg": "fast", "dpen": "fast", "rho-fcn": "rho-fcn-fast"},
+    "densenet121": {"flg": "densenet121", "dpen": "densenet121", "rho-fcn": "rho-fcn"},
+}
+_TRUNK_OF = {net: trunk for trunk, nets in TRUNK_NETWORKS.items() for net in nets.values()}
+
+
+def variant_network(variant: str, network: str) -> str:
+    """The learning.network that trains ``variant`` on the trunk of the config's ``network``
+    (fast or densenet121; its head, FLG or VPG, is the variant's)."""
+    if variant not in TRAIN_VARIANTS:
+        raise ValueError(f"variant: got {variant!r}, expected one of {', '.join(sorted(TRAIN_VARIANTS))}")
+    if network not in _TRUNK_OF:
+        raise ValueError(f"learning.network: got {network!r}, expected one of {', '.join(sorted(_TRUNK_OF))}")
+    return TRUNK_NETWORKS[_TRUNK_OF[network]][variant]
 
 
 @dataclass(frozen=True)
@@ -149,10 +167,12 @@ def _derived_seed(seed: int, segment: int, stream: int) -> int:
 
 
 def effective_config(base: CellConfig, settings: RunSettings, out: Path, segment: int = 0) -> CellConfig:
-    """The cell config of a run: variant, objects, seeds, curriculum and the run directory as state dir."""
+    """The cell config of a run: variant, objects, seeds, curriculum and the run directory as state dir.
+    The variant sets the head and the masks, ``base.learning.network`` the trunk (``variant_network``)."""
     from flgd.curriculum import Curriculum
 
-    network, masks, _ = TRAIN_VARIANTS[settings.variant]
+    _, masks, _ = TRAIN_VARIANTS[settings.variant]
+    network = variant_network(settings.variant, base.learning.network)
     cfg = dataclasses.replace(
         base,
         state_dir=str(out),
@@ -605,8 +625,9 @@ def _parser() -> argparse.ArgumentParser:
         prog="flgd train", description="Train a policy headless in sim_cell (the daemon's cycle, agent and "
                                        "learner; synchronous updates).  Run again with the same --out to resume.")
     p.add_argument("--config", help="cell config YAML (backend sim); optional when resuming --out")
-    p.add_argument("--variant", choices=sorted(TRAIN_VARIANTS), help="flg (default), dpen (no masks), "
-                                                                     "rho-fcn (VPG head on the fast trunk)")
+    p.add_argument("--variant", choices=sorted(TRAIN_VARIANTS),
+                   help="flg (default), dpen (no masks), rho-fcn (VPG head); the trunk is the config's "
+                        "learning.network (fast or densenet121, the paper's)")
     p.add_argument("--objects", type=int, help="objects per random scene (default 10; not with --curriculum)")
     p.add_argument("--steps", type=int, help="train until this many steps (actions) in total (default 1000)")
     p.add_argument("--seed", type=int, help="seed of the sim, network, agent and replay (default 0)")
@@ -667,12 +688,6 @@ def main(argv: list[str]) -> int:
                                  + ("1..60" if name == "objects" else ">= 0"))
         if args.threads is not None and args.threads < 0:
             raise ValueError(f"--threads: got {args.threads!r}, expected >= 0")
-        if settings.init_policy and not previous_info:
-            from flgd.learning.policy_file import PolicyFileError, load_policy
-            try:
-                load_policy(settings.init_policy, expected_variant=TRAIN_VARIANTS[settings.variant][0])
-            except PolicyFileError as exc:
-                raise ValueError(f"--init-policy: {exc}") from None
     except ValueError as exc:
         print(f"flgd train: {exc}", file=sys.stderr)
         return EXIT_USAGE
@@ -684,6 +699,17 @@ def main(argv: list[str]) -> int:
         base = load_sim_config(config_path, "training runs in sim_cell; fine-tune on a real cell with `flgd run`")
     except ConfigError as exc:
         print(f"flgd train: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    try:
+        network = variant_network(settings.variant, base.learning.network)
+        if settings.init_policy and not previous_info:
+            from flgd.learning.policy_file import PolicyFileError, load_policy
+            try:
+                load_policy(settings.init_policy, expected_variant=network)
+            except PolicyFileError as exc:
+                raise ValueError(f"--init-policy: {exc}") from None
+    except ValueError as exc:
+        print(f"flgd train: {config_path}: {exc}", file=sys.stderr)
         return EXIT_USAGE
     if base.learning.init_trunk and not previous_info and not settings.init_policy:
         from flgd.learning.trunk import TrunkFileError
