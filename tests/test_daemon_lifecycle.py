@@ -148,7 +148,7 @@ def test_kill_9_at_random_points_then_resume(daemon_factory, tmp_path):
         if run > 0:
             assert on_disk is not None, "a checkpoint must exist after the first runs"
             newest, state_updates = on_disk
-            assert st["resumed_from_updates"] == newest and "checkpoint" in st["policy"]
+            assert st["resumed_from_updates"] == newest and "checkpoint" in st["learner_from"]
             assert newest >= last_updates  # never goes back
             last_updates = newest
             # restored exactly when the kill left the trainer state of that very checkpoint on disk
