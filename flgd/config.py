@@ -296,8 +296,29 @@ class GateConfig:
 
 
 @dataclass(frozen=True)
+class CameraPoseErrorConfig:
+    """How far the simulated camera's true pose is off ``camera.pose`` (a miscalibrated cell).
+
+    The renderer uses the true pose; the frame, and so perception, carries the configured one, as on a real cell
+    whose hand-eye calibration is off.  Zero = the camera is exactly where the config says.
+    """
+
+    position: Vec3 = param((0.0, 0.0, 0.0), unit="m", ge=-0.05, le=0.05,
+                           help="true position minus configured position, in the robot base frame")
+    rpy: Vec3 = param((0.0, 0.0, 0.0), unit="rad", ge=-0.1, le=0.1,
+                      help="rotation of the true optical frame relative to the configured one, about the "
+                           "camera's own axes (roll about its x, pitch about its y, yaw about its optical axis)")
+
+
+@dataclass(frozen=True)
 class SimConfig:
-    """Used only by the simulated cell."""
+    """Used only by the simulated cell.
+
+    The keys after ``time_step`` describe how this simulated cell differs from the one the shipped policy was
+    trained in (its camera calibration, depth noise, colours, lighting, object physics): a second, different cell
+    on which to measure what fine-tuning gains (``cell_config/sim-shifted.yaml``).  Their defaults are the
+    training cell; ranges drawn per scene or per object apply when ``domain_randomization`` is on.
+    """
 
     objects: int = param(10, ge=0, le=60)
     object_set: str = param("blocks", help="comma-separated items, each drawn equally often: 'blocks', a block shape, "
@@ -310,6 +331,25 @@ class SimConfig:
                                       "laid flush, sim_cell.packed) instead of dropped clutter")
     scene: str = param("", help="scene file to load instead of random clutter")
     time_step: float = param(1.0 / 240.0, unit="s", gt=0.0, le=0.01)
+    camera_pose_error: CameraPoseErrorConfig = param(default_factory=CameraPoseErrorConfig)
+    depth_noise_std: float = param(0.001, unit="m", ge=0.0, le=0.02,
+                                   help="std of the per-pixel depth noise at 0.5 m; it grows with the square of "
+                                        "the distance (with depth_noise on)")
+    depth_dropout: float = param(0.002, ge=0.0, le=0.5, help="share of pixels with no depth reading (with "
+                                                             "depth_noise on)")
+    depth_edge_holes: float = param(0.5, ge=0.0, le=1.0,
+                                    help="chance that a pixel at a depth edge (a step > 8 mm to a neighbour) has "
+                                         "no reading, as stereo matching fails there (with depth_noise on)")
+    table_shade: Range = param((0.25, 0.6), ge=0.0, le=1.0,
+                               help="grey level range of the table top, drawn per scene")
+    object_color_shift: Vec3 = param((0.0, 0.0, 0.0), ge=-1.0, le=1.0,
+                                     help="added to every object's RGB colour (0..1 per channel, then clipped)")
+    light_ambient: Range = param((0.45, 0.75), ge=0.0, le=1.0, help="ambient light coefficient range, per scene")
+    light_diffuse: Range = param((0.25, 0.5), ge=0.0, le=1.0, help="diffuse light coefficient range, per scene")
+    object_friction: Range = param((0.4, 0.9), ge=0.0, le=2.0,
+                                   help="lateral friction range of random objects, drawn per object")
+    object_mass_scale: float = param(1.0, ge=0.2, le=5.0,
+                                     help="multiplies the mass of every object the cell spawns")
 
 
 @dataclass(frozen=True)
@@ -585,6 +625,10 @@ def _check_relations(cfg: CellConfig, problems: list[str]) -> None:
     if not (0 <= intr.cx < intr.width and 0 <= intr.cy < intr.height):
         problems.append(f"camera.intrinsics: principal point ({intr.cx}, {intr.cy}) lies outside the "
                         f"{intr.width}x{intr.height} image")
+    for key in ("table_shade", "light_ambient", "light_diffuse", "object_friction"):
+        lo, hi = getattr(cfg.sim, key)
+        if lo > hi:
+            problems.append(f"sim.{key}: got {[lo, hi]!r}, expected min <= max")
     if not 0 < cfg.camera.depth_range[0] < cfg.camera.depth_range[1]:
         problems.append(f"camera.depth_range: got {list(cfg.camera.depth_range)!r}, expected 0 < min < max")
     if not cfg.state_dir:

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 import pybullet as p
 
-from flgd.config import CameraConfig
+from flgd.config import CameraConfig, CameraPoseErrorConfig, SimConfig
 from flgd.geometry import pose_matrix, rpy_to_matrix
 
 __all__ = ["CameraModel", "DepthNoise", "render", "render_labelled", "add_depth_noise", "to_raw_depth"]
@@ -45,10 +45,15 @@ class CameraModel:
     projection: tuple[float, ...]
 
     @staticmethod
-    def from_config(cam: CameraConfig) -> "CameraModel":
+    def from_config(cam: CameraConfig, pose_error: CameraPoseErrorConfig | None = None) -> "CameraModel":
+        """The camera of ``cam``; with ``pose_error``, the camera where it truly is on a miscalibrated cell:
+        position offset in the base frame, rotation offset about the configured optical frame's own axes."""
         ic = cam.intrinsics
         k = np.array([[ic.fx, 0.0, ic.cx], [0.0, ic.fy, ic.cy], [0.0, 0.0, 1.0]])
         pose = pose_matrix(cam.pose.position, rpy_to_matrix(*cam.pose.rpy))
+        if pose_error is not None:
+            pose = pose_matrix(np.asarray(cam.pose.position, float) + np.asarray(pose_error.position, float),
+                               pose[:3, :3] @ rpy_to_matrix(*pose_error.rpy))
         gl_from_cv = np.diag([1.0, -1.0, -1.0, 1.0])
         view = np.linalg.inv(pose @ gl_from_cv)
         w, h = ic.width, ic.height
@@ -103,6 +108,12 @@ class DepthNoise:
     dropout_rate: float = DROPOUT_RATE
     edge_step: float = EDGE_STEP
     edge_hole_rate: float = EDGE_HOLE_RATE
+
+    @staticmethod
+    def from_config(sim: SimConfig) -> "DepthNoise":
+        """The noise of a cell's ``sim.depth_noise_std``, ``depth_dropout`` and ``depth_edge_holes``."""
+        return DepthNoise(std_at_half_metre=sim.depth_noise_std, dropout_rate=sim.depth_dropout,
+                          edge_hole_rate=sim.depth_edge_holes)
 
 
 def add_depth_noise(depth: np.ndarray, rng: np.random.Generator, noise: DepthNoise = DepthNoise()) -> np.ndarray:

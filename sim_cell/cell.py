@@ -195,7 +195,10 @@ class SimCell(Cell):
         self._still_checks: dict[int, int] = {}  # body -> consecutive stability checks it was still
         self._insomniac: set[int] = set()        # bodies woken by hand, may sleep again from the next check
         self._light = ((0.3, -0.2, 1.0), 0.6, 0.4)
+        # Perception is told the configured camera; the picture is taken from where the camera truly is.
         self._camera = simcam.CameraModel.from_config(config.camera)
+        self._true_camera = simcam.CameraModel.from_config(config.camera, config.sim.camera_pose_error)
+        self._depth_noise = simcam.DepthNoise.from_config(config.sim)
         ws = config.workspace
         self._ws = ws
         c = self._client
@@ -244,15 +247,15 @@ class SimCell(Cell):
             cfg = self.config.camera
             direction, ambient, diffuse = self._light
             if labelled:
-                color, depth, seg = simcam.render_labelled(self._client, self._camera, direction, ambient=ambient,
+                color, depth, seg = simcam.render_labelled(self._client, self._true_camera, direction, ambient=ambient,
                                                            diffuse=diffuse)
                 labels = np.where(np.isin(seg, list(self._objects)), seg, 0).astype(np.int32)
             else:
-                color, depth = simcam.render(self._client, self._camera, direction, ambient=ambient,
+                color, depth = simcam.render(self._client, self._true_camera, direction, ambient=ambient,
                                              diffuse=diffuse)
                 labels = None
             if self.config.sim.depth_noise:
-                depth = simcam.add_depth_noise(depth, self._noise_rng)
+                depth = simcam.add_depth_noise(depth, self._noise_rng, self._depth_noise)
             raw = simcam.to_raw_depth(depth, cfg.depth_scale, cfg.depth_range)
             return Frame(color=color, depth=raw, depth_scale=cfg.depth_scale,
                          intrinsics=self._camera.intrinsics.copy(), camera_pose=self._camera.pose.copy(),
@@ -881,6 +884,11 @@ class SimCell(Cell):
     # -- objects
     def _add(self, spec: objects.ObjectSpec) -> int:
         obj = objects.spawn(self._client, spec)
+        scale = self.config.sim.object_mass_scale
+        if scale != 1.0:
+            for link in range(-1, p.getNumJoints(obj.body, physicsClientId=self._client)):
+                mass = p.getDynamicsInfo(obj.body, link, physicsClientId=self._client)[0]
+                p.changeDynamics(obj.body, link, mass=mass * scale, physicsClientId=self._client)
         p.changeDynamics(obj.body, -1, activationState=p.ACTIVATION_STATE_ENABLE_SLEEPING,
                          sleepThreshold=SLEEP_MOTION, physicsClientId=self._client)
         self._objects[obj.body] = obj
@@ -915,23 +923,23 @@ class SimCell(Cell):
                 self._remove(body, "grasped_out" if body in self._held else "left_workspace")
 
     def _randomise_domain(self) -> None:
-        rng = self._scene_rng
-        if self.config.sim.domain_randomization:
-            shade = rng.uniform(0.25, 0.6)
+        rng, sim = self._scene_rng, self.config.sim
+        if sim.domain_randomization:
+            shade = rng.uniform(*sim.table_shade)
             tint = rng.uniform(-0.05, 0.05, 3)
             p.changeVisualShape(self._table, -1, rgbaColor=[*np.clip(shade + tint, 0, 1), 1.0],
                                 physicsClientId=self._client)
             p.changeDynamics(self._table, -1, lateralFriction=float(rng.uniform(0.4, 0.8)),
                              physicsClientId=self._client)
             direction = (float(rng.uniform(-0.5, 0.5)), float(rng.uniform(-0.5, 0.5)), 1.0)
-            self._light = (direction, float(rng.uniform(0.45, 0.75)), float(rng.uniform(0.25, 0.5)))
+            self._light = (direction, float(rng.uniform(*sim.light_ambient)), float(rng.uniform(*sim.light_diffuse)))
 
     def _random_spec(self) -> objects.ObjectSpec:
         rng = self._scene_rng
         kind = objects.draw_object_kind(self._object_groups, rng)
-        colour = tuple(np.clip(_PALETTE[int(rng.integers(len(_PALETTE)))] + rng.uniform(-0.06, 0.06, 3), 0, 1).tolist())
+        colour = self._object_colour(rng)
         dr = self.config.sim.domain_randomization
-        friction = float(rng.uniform(0.4, 0.9)) if dr else 0.6
+        friction = float(rng.uniform(*self.config.sim.object_friction)) if dr else 0.6
         if kind.startswith("block:"):
             shape = kind.split(":", 1)[1]
             return self._block_spec(shape, shapes.random_block_dims(shape, rng), colour, friction)
@@ -947,6 +955,11 @@ class SimCell(Cell):
         mass = float(rng.uniform(0.03, 0.15)) if dr else None
         return objects.ObjectSpec(urdf=kind, scale=scale, color=colour, mass=mass, friction=friction)
 
+    def _object_colour(self, rng: np.random.Generator) -> tuple[float, float, float]:
+        """A palette colour, jittered, plus the cell's ``sim.object_color_shift``."""
+        base = _PALETTE[int(rng.integers(len(_PALETTE)))] + rng.uniform(-0.06, 0.06, 3)
+        return tuple(np.clip(base + np.asarray(self.config.sim.object_color_shift), 0, 1).tolist())
+
     def _block_spec(self, shape: str, dims: tuple[float, ...], colour: tuple[float, float, float] | None = None,
                     friction: float | None = None) -> objects.ObjectSpec:
         """A procedural block with this cell's colours, densities and frictions (random where the
@@ -954,10 +967,9 @@ class SimCell(Cell):
         rng = self._scene_rng
         dr = self.config.sim.domain_randomization
         if colour is None:
-            colour = tuple(np.clip(_PALETTE[int(rng.integers(len(_PALETTE)))] + rng.uniform(-0.06, 0.06, 3),
-                                   0, 1).tolist())
+            colour = self._object_colour(rng)
         if friction is None:
-            friction = float(rng.uniform(0.4, 0.9)) if dr else 0.6
+            friction = float(rng.uniform(*self.config.sim.object_friction)) if dr else 0.6
         density = float(rng.uniform(400, 900)) if dr else 600.0
         volume = float(np.prod(shapes.make_block(shape, dims).extents)) * 0.7
         return objects.ObjectSpec(shape=shape, size=dims, color=colour, mass=max(volume * density, 0.02),
