@@ -27,11 +27,10 @@ import dataclasses
 import json
 import os
 import platform
-import sqlite3
-import subprocess
-import sys
 import time
 from pathlib import Path
+
+from benchmarks._daemon_runs import action_rows, gate_counts, grasp_outcomes, run_controller, run_workers, steps_done
 
 REPO = Path(__file__).resolve().parents[1]
 CONFIG = REPO / "cell_config" / "sim.yaml"
@@ -60,65 +59,9 @@ def variant_config(variant: str, seed: int, state_dir: Path):
     return cfg
 
 
-def _steps_done(state_dir: Path) -> int:
-    db_path = state_dir / "flgd.sqlite"
-    if not db_path.exists():
-        return 0
-    db = sqlite3.connect(db_path)
-    try:
-        return int(db.execute("SELECT COALESCE(MAX(step) + 1, 0) FROM actions").fetchone()[0])
-    except sqlite3.Error:
-        return 0
-    finally:
-        db.close()
-
-
 def worker(variant: str, seed: int, state_dir: Path, actions: int) -> int:
     """One run: the daemon's Controller on the variant's config until ``actions`` actions are in its log."""
-    import logging
-
-    from flgd.config import dump_config
-    from flgd.daemon.controller import Controller
-
-    logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(levelname)s %(message)s")
-    cfg = variant_config(variant, seed, state_dir)
-    state_dir.mkdir(parents=True, exist_ok=True)
-    (state_dir / "config.yaml").write_text(dump_config(cfg))
-    ctl = Controller(cfg, autostart=True)
-    ctl.setup()
-    try:
-        ctl.run_loop(stop_requested=lambda: ctl.runner.step >= actions)
-    finally:
-        ctl.shutdown()
-    return 0
-
-
-# ---------------------------------------------------------------------------- report
-
-def _rows(state_dir: Path, actions: int) -> list[tuple]:
-    db = sqlite3.connect(state_dir / "flgd.sqlite")
-    try:
-        return db.execute("SELECT step, primitive, success, rule, policy, outcome FROM actions "
-                          "WHERE step < ? ORDER BY step", (actions,)).fetchall()
-    finally:
-        db.close()
-
-
-def _gate_counts(state_dir: Path) -> dict:
-    db = sqlite3.connect(state_dir / "flgd.sqlite")
-    try:
-        kinds = dict(db.execute("SELECT kind, COUNT(*) FROM gate_events GROUP BY kind").fetchall())
-        updates = db.execute("SELECT value FROM counters WHERE name='learner_updates'").fetchone()
-    finally:
-        db.close()
-    out = {k: int(kinds.get(k, 0)) for k in ("challenger", "promote", "drop", "rollback")}
-    out["learner_updates"] = int(updates[0]) if updates else 0
-    return out
-
-
-def _grasps(rows: list[tuple], greedy_only: bool = False) -> list[int]:
-    return [int(s == 1) for _, prim, s, rule, _, outcome in rows
-            if prim == "grasp" and outcome in ("executed", "refused") and (not greedy_only or rule != "epsilon")]
+    return run_controller(variant_config(variant, seed, state_dir), state_dir, actions)
 
 
 def summarize(root: Path, seeds: list[int], actions: int) -> dict:
@@ -127,12 +70,12 @@ def summarize(root: Path, seeds: list[int], actions: int) -> dict:
         runs, missing = {}, []
         for seed in seeds:
             d = root / f"{variant}-s{seed}"
-            done = _steps_done(d)
+            done = steps_done(d)
             if done < actions:
                 missing.append(f"{variant}-s{seed} ({done}/{actions} actions)")
                 continue
-            rows = _rows(d, actions)
-            runs[seed] = {"grasps": _grasps(rows), "greedy": _grasps(rows, True), "gate": _gate_counts(d),
+            rows = action_rows(d, actions)
+            runs[seed] = {"grasps": grasp_outcomes(rows), "greedy": grasp_outcomes(rows, True), "gate": gate_counts(d),
                           "moves": sum(1 for r in rows if r[1] not in (None, "grasp")),
                           "epsilon_actions": sum(1 for r in rows if r[3] == "epsilon")}
         v: dict = {"missing": missing, "per_seed": {}}
@@ -225,25 +168,10 @@ def main(argv: list[str]) -> int:
         variant, seed = args.worker[0], int(args.worker[1])
         return worker(variant, seed, args.root / f"{variant}-s{seed}", args.actions)
     if not args.report_only:
-        todo = [(v, s) for s in args.seeds for v in args.variants
-                if _steps_done(args.root / f"{v}-s{s}") < args.actions]
-        running: list[tuple[subprocess.Popen, str]] = []
-        env = dict(os.environ, OMP_NUM_THREADS="1")
-        while todo or running:
-            while todo and len(running) < args.jobs:
-                v, s = todo.pop(0)
-                log = (args.root / f"{v}-s{s}.log")
-                args.root.mkdir(parents=True, exist_ok=True)
-                cmd = [sys.executable, "-m", "flgd.cli", "bench", "daemon_learning", "--root", str(args.root),
-                       "--actions", str(args.actions), "--worker", v, str(s)]
-                running.append((subprocess.Popen(cmd, stdout=open(log, "ab"), stderr=subprocess.STDOUT, env=env,
-                                                 cwd=REPO), f"{v}-s{s}"))
-                print(f"started {v}-s{s} (log {log})", flush=True)
-            time.sleep(5)
-            for proc, name in list(running):
-                if proc.poll() is not None:
-                    running.remove((proc, name))
-                    print(f"{name} finished with {proc.returncode}", flush=True)
+        todo = [(f"{v}-s{s}", ["bench", "daemon_learning", "--root", str(args.root), "--actions", str(args.actions),
+                               "--worker", v, str(s)])
+                for s in args.seeds for v in args.variants if steps_done(args.root / f"{v}-s{s}") < args.actions]
+        run_workers(todo, args.root, args.jobs)
     summary = summarize(args.root, args.seeds, args.actions)
     summary["machine"] = f"{platform.machine()}, {os.cpu_count()} cores, {platform.python_version()}"
     summary["command"] = "flgd bench daemon_learning " + " ".join(argv)

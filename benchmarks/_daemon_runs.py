@@ -1,0 +1,111 @@
+"""Runs of the daemon's own Controller for benchmarks: one config per run in its own process and state directory,
+resumable (a run continues from its state directory), and what its store says afterwards.
+
+``flgd bench daemon_learning`` and ``flgd bench finetune`` both use it, so that every row they compare runs the
+same cycle, background learner and gate as ``flgd run``.
+"""
+
+from __future__ import annotations
+
+import os
+import sqlite3
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def steps_done(state_dir: Path) -> int:
+    """Actions in a run's log (0 for a run not started or a store that cannot be read)."""
+    db_path = state_dir / "flgd.sqlite"
+    if not db_path.exists():
+        return 0
+    db = sqlite3.connect(db_path)
+    try:
+        return int(db.execute("SELECT COALESCE(MAX(step) + 1, 0) FROM actions").fetchone()[0])
+    except sqlite3.Error:
+        return 0
+    finally:
+        db.close()
+
+
+def run_controller(cfg: Any, state_dir: Path, actions: int) -> int:
+    """One run: the daemon's Controller on ``cfg`` until ``actions`` actions are in its log."""
+    import logging
+
+    from flgd.config import dump_config
+    from flgd.daemon.controller import Controller
+
+    logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(levelname)s %(message)s")
+    state_dir.mkdir(parents=True, exist_ok=True)
+    (state_dir / "config.yaml").write_text(dump_config(cfg))
+    ctl = Controller(cfg, autostart=True)
+    ctl.setup()
+    try:
+        ctl.run_loop(stop_requested=lambda: ctl.runner.step >= actions)
+    finally:
+        ctl.shutdown()
+    return 0
+
+
+def run_workers(jobs: list[tuple[str, list[str]]], root: Path, parallel: int) -> dict[str, int]:
+    """Run ``(name, argv)`` worker commands (``python -m flgd.cli`` + argv), ``parallel`` at a time, one core each,
+    logging to ``root/NAME.log``; returns each name's exit code."""
+    todo = list(jobs)
+    running: list[tuple[subprocess.Popen, str]] = []
+    codes: dict[str, int] = {}
+    env = dict(os.environ, OMP_NUM_THREADS="1")
+    root.mkdir(parents=True, exist_ok=True)
+    while todo or running:
+        while todo and len(running) < parallel:
+            name, argv = todo.pop(0)
+            log = root / f"{name}.log"
+            with open(log, "ab") as out:
+                proc = subprocess.Popen([sys.executable, "-m", "flgd.cli", *argv], stdout=out,
+                                        stderr=subprocess.STDOUT, env=env, cwd=REPO)
+            running.append((proc, name))
+            print(f"started {name} (log {log})", flush=True)
+        time.sleep(0.5)
+        for proc, name in list(running):
+            if proc.poll() is not None:
+                running.remove((proc, name))
+                codes[name] = proc.returncode
+                print(f"{name} finished with {proc.returncode}", flush=True)
+    return codes
+
+
+def action_rows(state_dir: Path, actions: int) -> list[tuple]:
+    """(step, primitive, success, rule, policy, outcome) of the first ``actions`` actions."""
+    db = sqlite3.connect(state_dir / "flgd.sqlite")
+    try:
+        return db.execute("SELECT step, primitive, success, rule, policy, outcome FROM actions "
+                          "WHERE step < ? ORDER BY step", (actions,)).fetchall()
+    finally:
+        db.close()
+
+
+def gate_counts(state_dir: Path) -> dict:
+    """Challengers, promotions, drops, rollbacks and learner updates of a run."""
+    db = sqlite3.connect(state_dir / "flgd.sqlite")
+    try:
+        kinds = dict(db.execute("SELECT kind, COUNT(*) FROM gate_events GROUP BY kind").fetchall())
+        updates = db.execute("SELECT value FROM counters WHERE name='learner_updates'").fetchone()
+    finally:
+        db.close()
+    out = {k: int(kinds.get(k, 0)) for k in ("challenger", "promote", "drop", "rollback")}
+    out["learner_updates"] = int(updates[0]) if updates else 0
+    return out
+
+
+def grasp_outcomes(rows: list[tuple], greedy_only: bool = False) -> list[int]:
+    """1/0 per grasp the cell made, in order (ε-random ones left out with ``greedy_only``)."""
+    return [int(s == 1) for _, prim, s, rule, _, outcome in rows
+            if prim == "grasp" and outcome in ("executed", "refused") and (not greedy_only or rule != "epsilon")]
+
+
+def grasp_steps(rows: list[tuple]) -> list[int]:
+    """The action index of each grasp ``grasp_outcomes`` counts, in the same order."""
+    return [step for step, prim, _, _, _, outcome in rows if prim == "grasp" and outcome in ("executed", "refused")]
