@@ -67,7 +67,13 @@ def parse_settings(items: list[str]) -> dict[str, Any]:
         if not key.startswith(SETTABLE):
             raise ValueError(f"--set {item!r}: only learner settings ({', '.join(k + '*' for k in SETTABLE)}) may "
                              "be set; the cell itself is chosen with --shifted")
-        out[key] = yaml.safe_load(text)
+        value = yaml.safe_load(text)
+        if isinstance(value, str):   # YAML 1.1 reads 3e-5 (no dot) as a string
+            try:
+                value = float(value)
+            except ValueError:
+                pass
+        out[key] = value
     return out
 
 

@@ -1,0 +1,101 @@
+"""``flgd bench finetune``: the rows' configs, the report's arithmetic, and a tiny real run end to end."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import cv2
+import pytest
+import yaml
+
+from benchmarks import finetune
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def test_actions_to_level_counts_actions_until_the_last_100_grasps_reach_it():
+    outcomes = [0] * 50 + [1] * 200
+    steps = [2 * i for i in range(len(outcomes))]          # a move between every two grasps
+    # the window of the last 100 grasps first holds 80 successes at grasp index 129 (grasps 30..129)
+    assert finetune.actions_to_level(outcomes, steps, 0.8) == steps[129] + 1
+    assert finetune.actions_to_level(outcomes, steps, 0.9) == steps[139] + 1
+    assert finetune.actions_to_level([1] * 99, list(range(99)), 0.5) is None   # fewer than 100 grasps
+    assert finetune.actions_to_level([1, 0] * 100, list(range(200)), 0.9) is None
+
+
+def test_median_ranks_never_above_every_number():
+    assert finetune._median_or_none([300, None, 500]) == 500
+    assert finetune._median_or_none([300, None, None]) is None
+    assert finetune._median_or_none([300, 400, 600, None]) == 500
+    assert finetune._median_or_none([300, None, 600, None]) is None
+
+
+@pytest.mark.parametrize("item, needle", [
+    ("finetune.learning_rate", "expected KEY=VALUE"),
+    ("sim.depth_noise_std=0.01", "only learner settings"),
+    ("=3", "expected KEY=VALUE"),
+])
+def test_bad_settings_are_refused(item, needle):
+    with pytest.raises(ValueError, match=needle):
+        finetune.parse_settings([item])
+
+
+def test_row_configs(tmp_path):
+    settings = finetune.parse_settings(["finetune.learning_rate=3e-5", "gate.share=0.3"])
+    frozen = finetune.row_config("shifted-frozen", 5, tmp_path / "a", finetune.SHIFTED_CONFIG, settings)
+    gate = finetune.row_config("shifted-gate", 5, tmp_path / "b", finetune.SHIFTED_CONFIG, settings)
+    scratch = finetune.row_config("shifted-scratch", 5, tmp_path / "c", finetune.SHIFTED_CONFIG, settings)
+    train = finetune.row_config("train-gate", 5, tmp_path / "d", finetune.SHIFTED_CONFIG, {})
+    for cfg in (frozen, gate, scratch, train):
+        assert cfg.learning.wait_for_updates and cfg.sim.seed == 5 and cfg.learning.seed == 5
+    assert frozen.finetune.updates_per_action == 0 and frozen.finetune.learning_rate != 3e-5   # no settings
+    assert gate.finetune.learning_rate == 3e-5 and gate.gate.share == 0.3 and gate.gate.enabled
+    assert scratch.policy == "" and not scratch.gate.enabled
+    assert gate.sim.camera_pose_error.position != (0.0, 0.0, 0.0)        # the second cell
+    assert train.sim.camera_pose_error.position == (0.0, 0.0, 0.0)       # the training cell
+    assert Path(gate.policy) == Path(train.policy)
+    assert finetune.run_name("shifted-frozen", 5, "lr3") == "shifted-frozen-s5"
+    assert finetune.run_name("shifted-gate", 5, "lr3") == "lr3-shifted-gate-s5"
+
+
+def test_a_setting_out_of_range_is_one_line_before_anything_runs(tmp_path):
+    r = subprocess.run([sys.executable, "-m", "flgd.cli", "bench", "finetune", "--root", str(tmp_path), "--tag", "x",
+                        "--set", "finetune.learning_rate=-1", "--actions", "2", "--seeds", "0"],
+                       cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2
+    assert "finetune.learning_rate: got -1" in r.stderr
+    assert not any(tmp_path.iterdir())
+
+
+def test_tiny_run_writes_a_well_formed_report_and_png(tmp_path):
+    out = tmp_path / "report.json"
+    rows = ["shifted-frozen", "shifted-gate", "shifted-scratch"]
+    r = subprocess.run([sys.executable, "-m", "flgd.cli", "bench", "finetune", "--root", str(tmp_path / "runs"),
+                        "--actions", "3", "--seeds", "0", "--rows", *rows, "--jobs", "2", "--out", str(out)],
+                       cwd=REPO, capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stdout + r.stderr
+    report = json.loads(out.read_text())
+    assert report["actions"] == 3 and report["seeds"] == [0] and list(report["rows"]) == rows
+    for name in rows:
+        row = report["rows"][name]
+        assert row["missing"] == []
+        seed = row["per_seed"]["0"]
+        assert 0 <= seed["grasp_attempts"] <= 3 and len(seed["windows"]) == (1 if seed["grasp_attempts"] else 0)
+        assert seed["actions_to_80"] is None            # fewer than 100 grasps
+        # what each run actually ran with
+        cfg = yaml.safe_load((tmp_path / "runs" / f"{name}-s0" / "config.yaml").read_text())
+        assert cfg["learning"]["wait_for_updates"] is True
+        assert cfg["sim"]["camera_pose_error"]["position"] == [0.010, -0.008, 0.004]
+    assert (yaml.safe_load((tmp_path / "runs" / "shifted-scratch-s0" / "config.yaml").read_text())["policy"]
+            == "")
+    img = cv2.imread(str(out.with_suffix(".png")))
+    assert img is not None and img.shape == (400, 720, 3)
+    # a second call with the runs complete starts nothing and reports the same
+    again = subprocess.run([sys.executable, "-m", "flgd.cli", "bench", "finetune", "--root", str(tmp_path / "runs"),
+                            "--actions", "3", "--seeds", "0", "--rows", *rows, "--out", str(out)],
+                           cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert again.returncode == 0 and "started" not in again.stdout
+    assert json.loads(out.read_text())["rows"] == report["rows"]
