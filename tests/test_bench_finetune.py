@@ -99,3 +99,17 @@ def test_tiny_run_writes_a_well_formed_report_and_png(tmp_path):
                            cwd=REPO, capture_output=True, text=True, timeout=120)
     assert again.returncode == 0 and "started" not in again.stdout
     assert json.loads(out.read_text())["rows"] == report["rows"]
+
+
+def test_the_second_cell_differs_from_the_training_cell_only_in_its_sim_section():
+    """Its learner, gate, robot and safety settings are the training cell's, so that a row on either cell measures
+    the same daemon; only what the simulated world looks and behaves like differs."""
+    from flgd.config import config_to_dict, load_config
+
+    train = config_to_dict(load_config(finetune.TRAIN_CONFIG))
+    shifted = config_to_dict(load_config(finetune.SHIFTED_CONFIG))
+    differs = sorted(k for k in train if train[k] != shifted[k])
+    assert differs == ["name", "sim", "state_dir"]
+    assert sorted(k for k in train["sim"] if train["sim"][k] != shifted["sim"][k]) == [
+        "camera_pose_error", "depth_dropout", "depth_edge_holes", "depth_noise_std", "light_ambient", "light_diffuse",
+        "object_color_shift", "object_friction", "object_mass_scale", "object_set", "table_shade"]
