@@ -12,6 +12,8 @@ noise, colours, light, object physics and objects).  Rows, each ``--seeds`` (0 1
   network has no level to protect, so no gate);
 * ``train-frozen``, ``train-gate`` -- the shipped policy frozen and gated on the cell it was trained in.
 
+A learning row brings its cell's frozen row along: every learning row is judged against it.
+
 Every run is the daemon's own Controller (cycle, background learner, gate) in its own process and state
 directory under ``--root``; a run cut short continues when the bench is run again.  Every run is paced
 (``learning.wait_for_updates: true``): a cycle waits until the learner has run the previous actions' scheduled
@@ -273,6 +275,9 @@ def main(argv: list[str]) -> int:
     except ValueError as exc:
         p.error(str(exc))
     shifted = args.shifted.resolve()
+    # Each learning row is judged against the frozen row of its cell, so that row is run and reported too.
+    args.rows = [r for r in ROWS if r in args.rows or (r.endswith("-frozen") and any(
+        x.split("-")[0] == r.split("-")[0] for x in args.rows))]
     if args.worker:
         row, seed = args.worker[0], int(args.worker[1])
         d = args.root / run_name(row, seed, args.tag)
