@@ -113,6 +113,12 @@ def row_config(row: str, seed: int, state_dir: Path, shifted: Path, settings: di
     return cfg
 
 
+def with_references(rows: list[str]) -> list[str]:
+    """``rows`` plus the frozen row of each of their cells (every learning row is judged against it), in ROWS order."""
+    cells = {r.split("-")[0] for r in rows}
+    return [r for r in ROWS if r in rows or (r.endswith("-frozen") and r.split("-")[0] in cells)]
+
+
 def run_name(row: str, seed: int, tag: str) -> str:
     """A run's directory name; frozen rows are shared by every tag."""
     return f"{row}-s{seed}" if not tag or row.endswith("-frozen") else f"{tag}-{row}-s{seed}"
@@ -275,9 +281,7 @@ def main(argv: list[str]) -> int:
     except ValueError as exc:
         p.error(str(exc))
     shifted = args.shifted.resolve()
-    # Each learning row is judged against the frozen row of its cell, so that row is run and reported too.
-    args.rows = [r for r in ROWS if r in args.rows or (r.endswith("-frozen") and any(
-        x.split("-")[0] == r.split("-")[0] for x in args.rows))]
+    args.rows = with_references(args.rows)
     if args.worker:
         row, seed = args.worker[0], int(args.worker[1])
         d = args.root / run_name(row, seed, args.tag)

@@ -61,6 +61,13 @@ def test_row_configs(tmp_path):
     assert finetune.run_name("shifted-gate", 5, "lr3") == "lr3-shifted-gate-s5"
 
 
+def test_learning_rows_bring_the_frozen_row_of_their_cell():
+    assert finetune.with_references(["shifted-gate"]) == ["shifted-frozen", "shifted-gate"]
+    assert finetune.with_references(["train-gate", "shifted-scratch"]) == [
+        "shifted-frozen", "shifted-scratch", "train-frozen", "train-gate"]
+    assert finetune.with_references(["train-frozen"]) == ["train-frozen"]
+
+
 def test_a_setting_out_of_range_is_one_line_before_anything_runs(tmp_path):
     r = subprocess.run([sys.executable, "-m", "flgd.cli", "bench", "finetune", "--root", str(tmp_path), "--tag", "x",
                         "--set", "finetune.learning_rate=-1", "--actions", "2", "--seeds", "0"],
