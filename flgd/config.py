@@ -282,6 +282,10 @@ class GateConfig:
     handover_every: int = param(100, ge=1, unit="updates",
                                 help="the learner hands its weights over every N updates, whatever its backlog")
     share: float = param(0.2, gt=0.0, lt=1.0, help="chance a greedy decision is made by the challenger")
+    max_share: float = param(0.0, ge=0.0, lt=1.0,
+                             help="above share: a challenger doing better gets up to this share of the greedy "
+                                  "decisions (rising with P(better) from share at 0.5 to max_share at 0.9, after "
+                                  "drop_min_attempts of its actions); 0 = the share stays gate.share")
     min_attempts: int = param(60, ge=1, unit="actions", help="challenger actions before it may be promoted")
     max_attempts: int = param(800, ge=1, unit="actions",
                               help="a challenger not shown better within this many actions is dropped")
@@ -539,6 +543,9 @@ def _build(cls: type, data: dict, prefix: str, problems: list[str], source: str)
 def _check_relations(cfg: CellConfig, problems: list[str]) -> None:
     """Constraints between keys, which single-field limits cannot express."""
     _check_backend(cfg, problems)
+    if 0.0 < cfg.gate.max_share < cfg.gate.share:
+        problems.append(f"gate.max_share: got {cfg.gate.max_share!r}, expected 0 (off) or >= gate.share "
+                        f"({cfg.gate.share!r})")
     for key in ("min_attempts", "drop_min_attempts"):
         if getattr(cfg.gate, key) > cfg.gate.max_attempts:
             problems.append(f"gate.{key}: got {getattr(cfg.gate, key)}, expected <= gate.max_attempts "

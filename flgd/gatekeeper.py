@@ -41,7 +41,7 @@ from typing import Any, Callable
 
 from flgd.config import CellConfig
 from flgd.learning.agent import WeightsMailbox
-from flgd.learning.gate import GateSettings, Tally, Verdict, challenger_verdict, rollback_verdict
+from flgd.learning.gate import GateSettings, Tally, Verdict, challenger_share, challenger_verdict, rollback_verdict
 from flgd.store import Store
 
 __all__ = ["Gatekeeper", "GateError", "PolicyRecord", "gate_settings", "CREDITED_OUTCOMES"]
@@ -547,7 +547,15 @@ class Gatekeeper:
             log.warning("gate: the learner could not be reset to the champion (%s): %s", why, exc)
 
     def _apply_verdict(self, step: int) -> Verdict | None:
-        """Rollback first (checked on every cycle, with or without a challenger), then the challenger's verdict."""
+        """Rollback first (checked on every cycle, with or without a challenger), then the challenger's verdict;
+        a challenger still under test gets its share for the next decisions (``gate.max_share``)."""
+        acted = self._judge(step)
+        if self.challenger is not None and self.verdict is not None and self.verdict.kind == "testing":
+            self.agent.challenger_share = challenger_share(self.champion_during_test, self.challenger_tally,
+                                                           self.settings)
+        return acted
+
+    def _judge(self, step: int) -> Verdict | None:
         self._evaluate_only()
         rv = self.champion_verdict
         if rv is not None and rv.kind == "rollback":
@@ -581,7 +589,8 @@ class Gatekeeper:
     def status(self) -> dict:
         with self._lock:
             ch, cl, v = self.champion, self.challenger, self.verdict
-            out: dict[str, Any] = {"enabled": self.enabled, "share": self.settings.share if self.enabled else 0.0}
+            share = getattr(self.agent, "challenger_share", 0.0) if cl is not None else self.settings.share
+            out: dict[str, Any] = {"enabled": self.enabled, "share": share if self.enabled else 0.0}
             out["champion"] = None if ch is None else {
                 **ch.as_dict(), "live": self.champion_live.as_dict(), "file": str(self._path(ch)),
                 "rolled_back_automatically": self.by_promotion}

@@ -300,3 +300,21 @@ def test_a_restart_after_an_unusable_champion_never_lets_a_fresh_network_act(tmp
     for _ in range(2):  # systemd restarts the daemon after the first refusal
         with pytest.raises(GateError, match="no usable champion"):
             c.reopen()
+
+
+def test_a_challenger_doing_better_gets_a_rising_share_of_the_decisions(tmp_path):
+    c = Cell(tmp_path, _config(share=0.2, max_share=0.6, drop_min_attempts=10, min_attempts=200,
+                               promote_confidence=0.999))
+    c.hand_over(_net(2))
+    assert c.agent.challenger_share == 0.2
+    for k in range(60):
+        c.act(1, k % 2 == 0)                      # champion 50 %
+        if k % 3 == 0:
+            c.act(2, True)                        # challenger 100 %
+    assert c.gate.challenger is not None and c.gate.verdict.kind == "testing"
+    assert c.agent.challenger_share == pytest.approx(0.6)
+    assert c.gate.status()["share"] == pytest.approx(0.6)
+    # a new challenger starts again at gate.share
+    c.gate.reject(c.step, "test")
+    c.hand_over(_net(3))
+    assert c.agent.challenger_share == 0.2

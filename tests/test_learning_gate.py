@@ -8,6 +8,8 @@ with its share of moves).  The numbers the README states come from these cases.
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -40,7 +42,7 @@ def test_a_challenger_5_points_worse_is_promoted_in_at_most_5_percent_of_trials(
 def test_a_challenger_5_points_better_is_promoted_in_at_least_80_percent_within_max_attempts():
     rng = np.random.default_rng(12)
     runs = [challenger_trial(rng, 0.75, 0.80, SETTINGS) for _ in range(TRIALS)]
-    promoted = [n for kind, n in runs if kind == "promote"]
+    promoted = [n for kind, n, _ in runs if kind == "promote"]
     assert len(promoted) / TRIALS >= 0.80, len(promoted) / TRIALS
     assert np.percentile(promoted, 90) <= 600  # the stated number: 90 % of the promotions within 600 of its actions
 
@@ -60,3 +62,29 @@ def test_the_verdict_names_its_evidence():
     assert v.kind == "drop" and "40/80" in v.reason and "210/300" in v.reason
     v = challenger_verdict(Tally(30, 20, 30), Tally(5, 4, 5), SETTINGS)
     assert v.kind == "testing" and f"{SETTINGS.min_attempts - 5} more actions" in v.reason
+
+
+def test_the_challengers_share_rises_with_the_evidence_that_it_is_better_and_only_then():
+    from flgd.learning.gate import challenger_share
+
+    s = dataclasses.replace(SETTINGS, share=0.2, max_share=0.5, drop_min_attempts=40)
+    champion = Tally(400, 300, 400)                                              # 0.75
+    assert challenger_share(champion, Tally(30, 30, 30), s) == 0.2               # too few actions yet
+    assert challenger_share(champion, Tally(100, 90, 100), s) == 0.5             # clearly better: the most
+    assert challenger_share(champion, Tally(100, 60, 100), s) == 0.2             # worse: never above share
+    between = challenger_share(champion, Tally(100, 79, 100), s)                 # P(better) ~0.8
+    assert 0.2 < between < 0.5
+    # off: max_share 0 (the default) or not above share
+    assert challenger_share(champion, Tally(100, 90, 100), dataclasses.replace(s, max_share=0.0)) == 0.2
+    assert challenger_share(champion, Tally(100, 90, 100), dataclasses.replace(s, max_share=0.1)) == 0.2
+
+
+def test_with_a_rising_share_a_worse_challenger_is_still_rarely_promoted_and_a_better_one_sooner():
+    s = dataclasses.replace(SETTINGS, max_share=0.5)
+    rng = np.random.default_rng(21)
+    worse = [challenger_trial(rng, 0.75, 0.70, s)[0] for _ in range(TRIALS)]
+    assert worse.count("promote") / TRIALS <= 0.05
+    rng = np.random.default_rng(22)
+    fixed = [c for kind, _, c in (challenger_trial(rng, 0.75, 0.85, SETTINGS) for _ in range(300)) if kind == "promote"]
+    rising = [c for kind, _, c in (challenger_trial(rng, 0.75, 0.85, s) for _ in range(300)) if kind == "promote"]
+    assert np.median(rising) < 0.8 * np.median(fixed)     # cycles until a 10-point-better challenger is promoted

@@ -33,7 +33,7 @@ import math
 from dataclasses import dataclass
 
 __all__ = ["Tally", "GateSettings", "Verdict", "challenger_verdict", "rollback_verdict", "p_better",
-           "challenger_decision", "rollback_decision"]
+           "challenger_decision", "rollback_decision", "challenger_share"]
 
 
 @dataclass(frozen=True)
@@ -67,6 +67,7 @@ class Tally:
 @dataclass(frozen=True)
 class GateSettings:
     share: float = 0.2
+    max_share: float = 0.0  # 0 (or <= share): the challenger's share stays ``share``
     min_attempts: int = 60
     max_attempts: int = 800
     promote_confidence: float = 0.98
@@ -115,6 +116,24 @@ def challenger_decision(champion: Tally, challenger: Tally, s: GateSettings) -> 
     if n >= s.max_attempts:
         return "drop-timeout", p
     return "testing", p
+
+
+# P(better) at which the share starts to rise above ``share``, and at which it reaches ``max_share``
+SHARE_RISE_FROM, SHARE_RISE_TO = 0.5, 0.9
+
+
+def challenger_share(champion: Tally, challenger: Tally, s: GateSettings) -> float:
+    """The share of greedy decisions the challenger makes now.
+
+    ``share`` until the challenger has ``drop_min_attempts`` actions; then it rises linearly with P(better), from
+    ``share`` at P 0.5 to ``max_share`` at P 0.9.  Why: a challenger that is doing better gathers its evidence (and
+    its picks) sooner, while one that is not keeps costing at most ``share`` of the decisions.  Off (always
+    ``share``) when ``max_share`` is not above ``share``.
+    """
+    if s.max_share <= s.share or challenger.actions < s.drop_min_attempts:
+        return s.share
+    rise = (p_better(challenger, champion) - SHARE_RISE_FROM) / (SHARE_RISE_TO - SHARE_RISE_FROM)
+    return s.share + (s.max_share - s.share) * min(1.0, max(0.0, rise))
 
 
 def rollback_decision(live: Tally, predecessor: Tally, s: GateSettings) -> tuple[str, float]:
