@@ -207,7 +207,7 @@ COLOURS = {"shifted-frozen": (90, 90, 90), "shifted-gate": (40, 150, 40), "shift
 
 
 def plot(summary: dict, path: Path) -> None:
-    """Median grasp success per window of 100 grasps, one line per row."""
+    """Median grasp success per window of 100 grasps, one line per row (hollow: a window not judged)."""
     import cv2
     import numpy as np
 
@@ -228,8 +228,9 @@ def plot(summary: dict, path: Path) -> None:
         colour = COLOURS.get(name, (0, 0, 0))
         pts = [(int(x0 + (i + 0.5) / n * (x1 - x0)), int(y0 - (min(hi, max(lo, v)) - lo) / (hi - lo) * (y0 - y1)))
                for i, v in enumerate(r.get("windows", []))]
-        for pt in pts:
-            cv2.circle(img, pt, 4, colour, -1)
+        judged = r.get("window_judged", [True] * len(pts))
+        for pt, full in zip(pts, judged):   # a window with under half its grasps: hollow, not judged
+            cv2.circle(img, pt, 4, colour, -1 if full else 1)
         for a, b in zip(pts, pts[1:]):
             cv2.line(img, a, b, colour, 2)
         cv2.putText(img, name, (x0 + 110 * (k % 6), h - 14), cv2.FONT_HERSHEY_SIMPLEX, 0.42, colour, 1)
