@@ -24,7 +24,8 @@ rows take no settings and are shared by every tag.
 
 Reported per row, median over seeds: grasp success of every grasp the cell made per window of 100 grasps, over
 the last 200 grasps, the worst window against the frozen row of the same cell, actions until the success over the
-last 100 grasps first reached 80 % and 90 %, promotions / drops / rollbacks; and one PNG of the curves.
+last 100 grasps first reached 80 % and 90 %; promotions / drops / rollbacks summed over the seeds; and one PNG of
+the curves.  A run that is continued (cut short, then the bench run again) draws new seeds for its continuation.
 
     flgd bench finetune [--root runs/finetune] [--actions 1000] [--seeds 0 1 2] [--rows ...] [--jobs 2]
                         [--shifted FILE] [--set KEY=VALUE ...] [--tag NAME] [--out FILE.json]
@@ -40,6 +41,7 @@ import os
 import platform
 import statistics
 import subprocess
+import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -295,6 +297,7 @@ def main(argv: list[str]) -> int:
             row_config(row, args.seeds[0], args.root / "check", shifted, settings)
     except (ConfigError, OSError, ValueError) as exc:
         p.error(str(exc))
+    failed: dict[str, int] = {}
     if not args.report_only:
         common = ["--root", str(args.root), "--actions", str(args.actions), "--shifted", str(shifted)]
         if args.tag:
@@ -303,7 +306,10 @@ def main(argv: list[str]) -> int:
             common += ["--set", item]
         todo = [(run_name(r, s, args.tag), ["bench", "finetune", *common, "--worker", r, str(s)])
                 for s in args.seeds for r in args.rows if steps_done(args.root / run_name(r, s, args.tag)) < args.actions]
-        run_workers(todo, args.root, args.jobs)
+        failed = {name: code for name, code in run_workers(todo, args.root, args.jobs).items() if code != 0}
+        if failed:
+            print(f"flgd bench finetune: runs failed (see their logs in {args.root}): "
+                  + ", ".join(f"{n} (exit {c})" for n, c in failed.items()), file=sys.stderr)
     summary = summarize(args.root, args.rows, args.seeds, args.actions, args.tag)
     summary.update(settings=settings, shifted=os.path.relpath(shifted, REPO),
                    machine=f"{platform.machine()}, {os.cpu_count()} cores, {platform.python_version()}",
@@ -322,4 +328,4 @@ def main(argv: list[str]) -> int:
         if r["missing"]:
             print(f"{name:16s} missing: {', '.join(r['missing'])}")
     print(f"wrote {out} and {out.with_suffix('.png')}")
-    return 0
+    return 1 if not args.report_only and failed else 0

@@ -67,6 +67,8 @@ def main(argv: list[str]) -> int:
     args = p.parse_args(argv)
     s = gate_settings(load_config(args.config))
     if args.max_share is not None:
+        if not (args.max_share == 0 or s.share <= args.max_share < 1):
+            p.error(f"--max-share: got {args.max_share}, expected 0 (off) or gate.share ({s.share}) .. < 1")
         s = dataclasses.replace(s, max_share=args.max_share)
     rng = np.random.default_rng(args.seed)
     r0 = args.rate

@@ -302,6 +302,13 @@ class Gatekeeper:
                                 "LIMIT 1" % ", ".join("?" * len(_CROWNING)), (ch.id, *_CROWNING))
         self.by_promotion = bool(rows) and _CROWNING.get(rows[0][0], False)
         self._evaluate_only()
+        self._set_share()
+
+    def _set_share(self) -> None:
+        """The challenger under test makes its share of the next decisions (rising with ``gate.max_share``)."""
+        if self.enabled and self.challenger is not None and self.verdict is not None and self.verdict.kind == "testing":
+            self.agent.challenger_share = challenger_share(self.champion_during_test, self.challenger_tally,
+                                                           self.settings)
 
     # ------------------------------------------------------------------ changes of the acting policy
     def _act_with_champion(self, record: PolicyRecord, network: Any) -> None:
@@ -550,9 +557,7 @@ class Gatekeeper:
         """Rollback first (checked on every cycle, with or without a challenger), then the challenger's verdict;
         a challenger still under test gets its share for the next decisions (``gate.max_share``)."""
         acted = self._judge(step)
-        if self.challenger is not None and self.verdict is not None and self.verdict.kind == "testing":
-            self.agent.challenger_share = challenger_share(self.champion_during_test, self.challenger_tally,
-                                                           self.settings)
+        self._set_share()
         return acted
 
     def _judge(self, step: int) -> Verdict | None:

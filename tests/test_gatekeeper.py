@@ -314,7 +314,12 @@ def test_a_challenger_doing_better_gets_a_rising_share_of_the_decisions(tmp_path
     assert c.gate.challenger is not None and c.gate.verdict.kind == "testing"
     assert c.agent.challenger_share == pytest.approx(0.6)
     assert c.gate.status()["share"] == pytest.approx(0.6)
-    # a new challenger starts again at gate.share
+    # a restart keeps the share the evidence earned, from the first decision on
+    c.reopen()
+    assert c.gate.challenger.id == 2 and c.agent.challenger_share == pytest.approx(0.6)
+    assert c.gate.status()["share"] == pytest.approx(0.6)
+    # a new challenger starts again at gate.share; without one, the share is 0
     c.gate.reject(c.step, "test")
+    assert c.agent.challenger is None and c.agent.challenger_share == 0.0
     c.hand_over(_net(3))
     assert c.agent.challenger_share == 0.2

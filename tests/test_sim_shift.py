@@ -125,8 +125,8 @@ def test_friction_and_mass_keys_change_the_objects():
 
 
 def test_defaults_draw_the_training_cell_as_before():
-    """Scenes of seed 11 as drawn before these keys existed (commit aa59605): same objects, poses, colours,
-    masses and frictions, and the renderer looks from the configured pose."""
+    """Scenes of seed 11 as drawn before these keys existed (commit aa59605): same table shade and friction, light,
+    objects, poses, colours, masses and frictions, and the renderer looks from the configured pose."""
     before = [("triangular_prism", (-0.6107, -0.0825), (0.7184, 0.5278, 0.6787), 0.02618, 0.5696),
               ("cylinder", (-0.6775, 0.0629), (0.8894, 0.6147, 0.221), 0.03833, 0.5432),
               ("l_block", (-0.5159, 0.1096), (0.3854, 0.6204, 0.3321), 0.07023, 0.5678),
@@ -134,6 +134,12 @@ def test_defaults_draw_the_training_cell_as_before():
     with SimCell(make_config(objects=4, seed=11)) as cell:
         states = cell.object_states()
         assert np.allclose(cell._true_camera.pose, cell._camera.pose)
+        table = p.getVisualShapeData(cell._table, physicsClientId=cell._client)[0][7]
+        assert np.allclose(table[:3], (0.5956, 0.5783, 0.5346), atol=2e-4)
+        assert p.getDynamicsInfo(cell._table, -1, physicsClientId=cell._client)[1] == pytest.approx(0.6803, abs=2e-4)
+        direction, ambient, diffuse = cell._light
+        assert np.allclose(direction, (-0.1976, -0.4486, 1.0), atol=2e-4)
+        assert (ambient, diffuse) == (pytest.approx(0.7335, abs=2e-4), pytest.approx(0.336, abs=2e-4))
         assert len(states) == len(before)
         for s, (label, xy, rgb, mass, friction) in zip(states, before):
             vis = p.getVisualShapeData(s.body, physicsClientId=cell._client)[0][7]
