@@ -347,7 +347,8 @@ class SimConfig:
     table_shade: Range = param((0.25, 0.6), ge=0.0, le=1.0,
                                help="grey level range of the table top, drawn per scene")
     object_color_shift: Vec3 = param((0.0, 0.0, 0.0), ge=-1.0, le=1.0,
-                                     help="added to every object's RGB colour (0..1 per channel, then clipped)")
+                                     help="added to the RGB colour of random and packed objects (0..1 per channel, then "
+                                          "clipped); objects of a scene file keep theirs")
     light_ambient: Range = param((0.45, 0.75), ge=0.0, le=1.0, help="ambient light coefficient range, per scene")
     light_diffuse: Range = param((0.25, 0.5), ge=0.0, le=1.0, help="diffuse light coefficient range, per scene")
     object_friction: Range = param((0.4, 0.9), ge=0.0, le=2.0,
