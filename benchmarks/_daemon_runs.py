@@ -32,37 +32,21 @@ def steps_done(state_dir: Path) -> int:
         db.close()
 
 
-def resumed_config(cfg: Any, done: int) -> Any:
-    """``cfg`` for a run that continues after ``done`` actions: the simulator's and the agent's seeds are drawn from
-    (seed, done), so that the continuation meets new scenes instead of replaying the run's start (a restarted cell
-    built from the same seed repeats its first scenes and draws)."""
-    import dataclasses
-
-    import numpy as np
-
-    if done <= 0:
-        return cfg
-
-    def derived(seed: int) -> int:
-        return int(np.random.SeedSequence([int(seed), int(done)]).generate_state(1)[0] >> 1)
-
-    return dataclasses.replace(cfg, sim=dataclasses.replace(cfg.sim, seed=derived(cfg.sim.seed)),
-                               learning=dataclasses.replace(cfg.learning, seed=derived(cfg.learning.seed)))
-
-
 def run_controller(cfg: Any, state_dir: Path, actions: int) -> int:
     """One run: the daemon's Controller on ``cfg`` until ``actions`` actions are in its log (a run already begun
-    continues with seeds drawn for its continuation, ``resumed_config``)."""
+    continues: the Controller draws the seeds of its continuation, ``flgd.wiring.continuing_config``)."""
     import logging
 
     from flgd.config import dump_config
     from flgd.daemon.controller import Controller
+    from flgd.wiring import continuing_config
 
     logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(levelname)s %(message)s")
     done = steps_done(state_dir)
-    cfg = resumed_config(cfg, done)
     state_dir.mkdir(parents=True, exist_ok=True)
-    (state_dir / ("config.yaml" if done == 0 else f"config-from-{done}.yaml")).write_text(dump_config(cfg))
+    # the record of a continuation shows the seeds it runs with
+    (state_dir / ("config.yaml" if done == 0 else f"config-from-{done}.yaml")).write_text(
+        dump_config(continuing_config(cfg, done)))
     ctl = Controller(cfg, autostart=True)
     ctl.setup()
     try:

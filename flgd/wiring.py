@@ -18,9 +18,33 @@ from flgd.config import CellConfig
 from flgd.store import CheckpointDir, Store, StoreError
 
 __all__ = ["StartingNetwork", "starting_network", "fresh_network", "rebuild_replay", "build_agent_and_learner",
-           "attach_gate"]
+           "attach_gate", "continuation_seed", "continuing_config"]
 
 log = logging.getLogger("flgd")
+
+
+def continuation_seed(seed: int, step: int) -> int:
+    """The seed of a run that continues at action ``step``: drawn from (seed, step), so that a restarted daemon
+    meets new simulated scenes and makes new exploration draws instead of replaying those it began with (a cell
+    and an agent rebuilt from the configured seed deal the run's first scenes and draws again).  Step 0 keeps
+    ``seed``: a first start is reproducible from its config alone."""
+    import numpy as np
+
+    if step <= 0:
+        return int(seed)
+    return int(np.random.SeedSequence([int(seed), int(step)]).generate_state(1)[0] >> 1)
+
+
+def continuing_config(config: CellConfig, step: int) -> CellConfig:
+    """``config`` with the simulator's and the agent's seeds of a run continuing at ``step``
+    (``continuation_seed``); the same config at step 0."""
+    import dataclasses
+
+    if step <= 0:
+        return config
+    return dataclasses.replace(
+        config, sim=dataclasses.replace(config.sim, seed=continuation_seed(config.sim.seed, step)),
+        learning=dataclasses.replace(config.learning, seed=continuation_seed(config.learning.seed, step)))
 
 
 @dataclass(frozen=True)

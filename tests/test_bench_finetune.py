@@ -64,14 +64,14 @@ def test_row_configs(tmp_path):
 def test_a_resumed_run_continues_with_new_seeds_instead_of_replaying_its_start(tmp_path):
     """A cell rebuilt from the run's seed would deal the run's first scenes again (measured: actions 300-359 of a
     run extended from 300 to 1,000 repeated actions 0-59 outcome for outcome)."""
-    from benchmarks._daemon_runs import resumed_config
+    from flgd.wiring import continuing_config
 
     cfg = finetune.row_config("shifted-frozen", 100, tmp_path, finetune.SHIFTED_CONFIG, {})
-    assert resumed_config(cfg, 0) is cfg
-    later = resumed_config(cfg, 300)
+    assert continuing_config(cfg, 0) is cfg
+    later = continuing_config(cfg, 300)
     assert later.sim.seed != cfg.sim.seed and later.learning.seed != cfg.learning.seed
-    assert later.sim.seed == resumed_config(cfg, 300).sim.seed           # the same continuation every time
-    assert resumed_config(cfg, 301).sim.seed != later.sim.seed
+    assert later.sim.seed == continuing_config(cfg, 300).sim.seed           # the same continuation every time
+    assert continuing_config(cfg, 301).sim.seed != later.sim.seed
     assert later.sim.seed >= 0 and later.finetune == cfg.finetune
 
 

@@ -120,7 +120,7 @@ class Controller:
         self._restore_trainer_state()
         self._build_gate()
         try:
-            self.cell = make_cell(self.config)
+            self.cell = make_cell(self._cell_config())
         except CellFault as exc:
             raise StartupError(f"cell {self.backend!r} failed to connect: {exc}") from exc
         except (ValueError, ImportError, OSError, RuntimeError) as exc:
@@ -131,6 +131,16 @@ class Controller:
         self.learner.start()
         if self.store_problem:
             self.state.transition(State.FAULT, self.store_problem)
+
+    def _cell_config(self) -> CellConfig:
+        """The config a cell is built from now: a restarted daemon's simulated cell deals new scenes
+        (``flgd.wiring.continuing_config``), not the first ones of its run again."""
+        from flgd.wiring import continuing_config
+
+        step = self._next_step()
+        if step > 0:
+            log.info("continuing at action %d: the cell's and the agent's seeds are drawn from (seed, %d)", step, step)
+        return continuing_config(self.config, step)
 
     def _remove_trainer_state_temporaries(self) -> None:
         from flgd.training.state import remove_temporary
@@ -184,14 +194,15 @@ class Controller:
         return start.network
 
     def _build_learning(self, network: Any) -> None:
-        from flgd.wiring import build_agent_and_learner, rebuild_replay
+        from flgd.wiring import build_agent_and_learner, continuation_seed, rebuild_replay
 
         self.replay, problem = rebuild_replay(self.learn_config, self.store)
         if problem:
             self.store_problem = problem
         self.agent, self.learner = build_agent_and_learner(
             self.learn_config, network, self.replay, checkpoint_callback=self._write_checkpoint,
-            updates=self.resumed_from_updates, store=self.store, fine_tune=self.fine_tune)
+            updates=self.resumed_from_updates, store=self.store, fine_tune=self.fine_tune,
+            agent_seed=continuation_seed(self.learn_config.learning.seed, self._next_step()))
         self.learner.mailbox = None  # nothing is handed over before the gate is attached (``_build_gate``)
 
     def _build_gate(self) -> None:
@@ -849,7 +860,7 @@ class Controller:
         """Run loop: connect the new cell first; keep the old one if that fails."""
         assert self.runner is not None
         try:
-            new = make_cell(self.config, backend=name)
+            new = make_cell(self._cell_config(), backend=name)
         except Exception as exc:
             raise ProtocolError("failed", f"backend {name!r} did not connect; still on {self.backend!r}: "
                                           f"{type(exc).__name__}: {exc}") from None
