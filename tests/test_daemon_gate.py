@@ -7,6 +7,7 @@ over is known to be worse or better than the champion.  Process tests run the re
 
 from __future__ import annotations
 
+import copy
 import sqlite3
 import threading
 import time
@@ -231,9 +232,13 @@ def test_a_restarted_daemon_deals_new_scenes_instead_of_replaying_its_first_ones
         ctl.setup()
         return ctl
 
+    def draws(ctl: Controller) -> tuple:
+        """The next draws of the agent's exploration and the replay's sampling (copies: nothing is consumed)."""
+        return (copy.deepcopy(ctl.agent.rng).random(4).tolist(), copy.deepcopy(ctl.replay._rng).random(4).tolist())
+
     ctl = started("state")
     try:
-        first = scene(ctl)
+        first, first_draws = scene(ctl), draws(ctl)
         ctl.run_loop(stop_requested=lambda: ctl.runner.step >= 2)
     finally:
         ctl.shutdown()
@@ -241,10 +246,27 @@ def test_a_restarted_daemon_deals_new_scenes_instead_of_replaying_its_first_ones
     try:
         assert again.runner.step == 2
         assert scene(again) != first
+        assert draws(again)[0] != first_draws[0] and draws(again)[1] != first_draws[1]
     finally:
         again.shutdown()
     fresh = started("other")   # a first start is reproducible from the config alone
     try:
-        assert scene(fresh) == first
+        assert scene(fresh) == first and draws(fresh) == first_draws
     finally:
         fresh.shutdown()
+
+
+def test_an_action_log_that_cannot_be_read_at_start_up_is_a_startup_error_naming_it(tmp_path, monkeypatch):
+    """Not a traceback: ``flgd run`` reports a StartupError and exits with its start-up code."""
+    from flgd.daemon.controller import StartupError
+    from flgd.store import Store, StoreError
+
+    def broken(self):
+        raise StoreError("database disk image is malformed")
+
+    monkeypatch.setattr(Store, "next_step", broken)
+    ctl = Controller(load_config(write_config(tmp_path, tmp_path / "state", policy=str(SHIPPED))))
+    with pytest.raises(StartupError, match="action log .* cannot be read: database disk image is malformed"):
+        ctl.setup()
+    assert ctl.cell is None   # nothing was connected, nothing moved
+    ctl.shutdown()

@@ -114,13 +114,14 @@ class Controller:
         except OSError as exc:
             log.warning("cannot clean %s: %s", self.checkpoints.directory, exc)
         self._remove_trainer_state_temporaries()
+        step = self._start_step()
         network = self._initial_network()
         self._start_network = network
-        self._build_learning(network)
+        self._build_learning(network, step)
         self._restore_trainer_state()
         self._build_gate()
         try:
-            self.cell = make_cell(self._cell_config())
+            self.cell = make_cell(self._cell_config(step))
         except CellFault as exc:
             raise StartupError(f"cell {self.backend!r} failed to connect: {exc}") from exc
         except (ValueError, ImportError, OSError, RuntimeError) as exc:
@@ -132,14 +133,22 @@ class Controller:
         if self.store_problem:
             self.state.transition(State.FAULT, self.store_problem)
 
-    def _cell_config(self) -> CellConfig:
-        """The config a cell is built from now: a restarted daemon's simulated cell deals new scenes
+    def _start_step(self) -> int:
+        """The action this start continues at (0 on a first start, or when the store could not be opened)."""
+        try:
+            step = self._next_step()
+        except StoreError as exc:
+            raise StartupError(f"the action log in {self.state_dir} cannot be read: {exc}") from exc
+        if step > 0:
+            log.info("continuing at action %d: the cell's and the learning's random seeds are drawn from "
+                     "(seed, %d)", step, step)
+        return step
+
+    def _cell_config(self, step: int) -> CellConfig:
+        """The config a cell is built from at action ``step``: a restarted daemon's simulated cell deals new scenes
         (``flgd.wiring.continuing_config``), not the first ones of its run again."""
         from flgd.wiring import continuing_config
 
-        step = self._next_step()
-        if step > 0:
-            log.info("continuing at action %d: the cell's and the agent's seeds are drawn from (seed, %d)", step, step)
         return continuing_config(self.config, step)
 
     def _remove_trainer_state_temporaries(self) -> None:
@@ -193,16 +202,18 @@ class Controller:
             self.last_checkpoint = str(start.checkpoint)
         return start.network
 
-    def _build_learning(self, network: Any) -> None:
-        from flgd.wiring import build_agent_and_learner, continuation_seed, rebuild_replay
+    def _build_learning(self, network: Any, step: int) -> None:
+        """Replay, agent and learner for a run at action ``step``: their random draws (exploration, replay
+        sampling, mirroring) continue from seeds drawn for that action, not from the run's first ones."""
+        from flgd.wiring import build_agent_and_learner, continuing_config, rebuild_replay
 
-        self.replay, problem = rebuild_replay(self.learn_config, self.store)
+        config = continuing_config(self.learn_config, step)
+        self.replay, problem = rebuild_replay(config, self.store)
         if problem:
             self.store_problem = problem
         self.agent, self.learner = build_agent_and_learner(
-            self.learn_config, network, self.replay, checkpoint_callback=self._write_checkpoint,
-            updates=self.resumed_from_updates, store=self.store, fine_tune=self.fine_tune,
-            agent_seed=continuation_seed(self.learn_config.learning.seed, self._next_step()))
+            config, network, self.replay, checkpoint_callback=self._write_checkpoint,
+            updates=self.resumed_from_updates, store=self.store, fine_tune=self.fine_tune)
         self.learner.mailbox = None  # nothing is handed over before the gate is attached (``_build_gate``)
 
     def _build_gate(self) -> None:
@@ -680,7 +691,7 @@ class Controller:
             with self._learning_lock:
                 self.learner.stop(timeout=30.0, why="rebuilt after the store was reopened")
                 updates = self.learner.updates
-                self._build_learning(self.learner.snapshot())
+                self._build_learning(self.learner.snapshot(), self._next_step())
                 self.learner.updates = updates  # checkpoints keep counting on
                 self.runner.store, self.runner.replay, self.runner.learner = self.store, self.replay, self.learner
                 self.runner.agent = self.agent
@@ -860,7 +871,7 @@ class Controller:
         """Run loop: connect the new cell first; keep the old one if that fails."""
         assert self.runner is not None
         try:
-            new = make_cell(self._cell_config(), backend=name)
+            new = make_cell(self._cell_config(self.runner.step), backend=name)
         except Exception as exc:
             raise ProtocolError("failed", f"backend {name!r} did not connect; still on {self.backend!r}: "
                                           f"{type(exc).__name__}: {exc}") from None
