@@ -137,24 +137,16 @@ def test_the_second_cell_differs_from_the_training_cell_only_in_its_sim_section(
 
 
 def test_the_worst_window_of_a_policy_that_changed_nothing_is_below_zero_by_chance_and_less_so_with_more_seeds():
-    """The issue's "no window more than 3 points below frozen" is read against this band: with 3 seeds at the
-    second cell's ~74 % an unchanged policy's worst of 9 windows is about 6 points below frozen."""
-    few = finetune.null_worst_window([0.74] * 9, seeds=3, trials=4000)
-    many = finetune.null_worst_window([0.74] * 9, seeds=30, trials=4000)
-    assert -0.08 <= few["median"] <= -0.04 and few["p05"] < few["median"]
-    assert few["p_at_least_minus_3"] < 0.2
-    assert few["median"] < many["median"] <= -0.005
-    assert finetune.null_worst_window([], seeds=3) == {}
-
-
-def test_a_window_costs_only_when_the_pooled_grasps_show_it_beyond_the_margin():
-    def run(rates: list[float], grasps: int = 100) -> dict:
-        return {"windows": rates, "window_grasps": [grasps] * len(rates), "window_judged": [True] * len(rates)}
-
-    frozen = [run([0.80, 0.80, 0.80])] * 3
-    learned = [run([0.60, 0.78, 0.95])] * 3          # far below, within noise, above
-    assert finetune.windows_costing(learned, frozen) == [0]
-    assert finetune.p_below((60, 100), (80, 100), 0.03) > 0.99
-    assert finetune.p_below((78, 100), (80, 100), 0.03) < 0.5
-    unjudged = [dict(run([0.60, 0.78, 0.95]), window_judged=[False, True, True])] * 3
-    assert finetune.windows_costing(unjudged, frozen) == []
+    """The issue's "no window more than 3 points below frozen" is read against this band: with 3 seeds of nine
+    windows an unchanged policy's worst window is several points below frozen, more so when the frozen runs'
+    windows spread more."""
+    steady = [[0.74] * 9, [0.73, 0.75] * 4 + [0.74], [0.72, 0.76] * 4 + [0.74]]
+    spread = [[0.60, 0.88] * 4 + [0.74], [0.66, 0.82] * 4 + [0.74], [0.70, 0.78] * 4 + [0.74]]
+    narrow = finetune.null_worst_window(steady, seeds=3, windows=9, trials=4000)
+    wide = finetune.null_worst_window(spread, seeds=3, windows=9, trials=4000)
+    many = finetune.null_worst_window(spread, seeds=30, windows=9, trials=2000)
+    assert -0.04 <= narrow["median"] < 0.0
+    assert wide["median"] < narrow["median"] - 0.03 and wide["p05"] < wide["median"]
+    assert wide["p_at_least_minus_3"] < 0.3
+    assert wide["median"] < many["median"]
+    assert finetune.null_worst_window([], seeds=3, windows=9) == {}
