@@ -176,9 +176,8 @@ def null_worst_window(frozen_runs: list[list[float]], seeds: int, windows: int, 
     Why resampled and not binomial: the frozen runs' windows vary about twice as much as binomial noise at their
     rate would make them (the scenes differ), and that spread is what a learning row's windows carry too.  Windows
     are drawn independently: a run's scenes part ways from its seed's first scenes after its first different
-    action, so no lasting per-seed level is assumed.  With a
-    few seeds the minimum lies several points below zero by chance alone, so a learning row's worst window is read
-    against this band, not against zero.
+    action, so no lasting per-seed level is assumed.  With a few seeds the minimum lies several points below zero
+    by chance alone, so a learning row's worst window is read against this band, not against zero.
     """
     import numpy as np
 

@@ -36,8 +36,8 @@ def continuation_seed(seed: int, step: int) -> int:
 
 
 def continuing_config(config: CellConfig, step: int) -> CellConfig:
-    """``config`` with the simulator's and the agent's seeds of a run continuing at ``step``
-    (``continuation_seed``); the same config at step 0."""
+    """``config`` with the simulator's and the learning's (agent, replay, learner) seeds of a run continuing at
+    ``step`` (``continuation_seed``); the same config at step 0."""
     import dataclasses
 
     if step <= 0:
