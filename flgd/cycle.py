@@ -239,6 +239,15 @@ class CycleRunner:
         self._commit(finish(), None, timer)
         return finish()
 
+    def wait_for_learner(self) -> None:
+        """With ``learning.wait_for_updates``: block until the learner ran the updates scheduled so far.
+
+        The time a real cell's slow cycle gives the learner.  Called before each decision, and by the daemon
+        before the gate takes a hand-over, so that which weights act and when a challenger comes depend on
+        the number of updates, never on thread timing (a paced run is reproducible from its seeds)."""
+        if self.learner is not None and self.config.learning.wait_for_updates and hasattr(self.learner, "wait_idle"):
+            self.learner.wait_idle(LEARNER_WAIT_LIMIT)
+
     # ------------------------------------------------------------------ the cycle
     def run_once(self) -> CycleRecord:
         """One cycle.  Raises CellFault (after logging the action) and store errors."""
@@ -265,8 +274,7 @@ class CycleRunner:
             self.current = self.perceive(timer)
         state = self.current
 
-        if self.learner is not None and self.config.learning.wait_for_updates and hasattr(self.learner, "wait_idle"):
-            self.learner.wait_idle(LEARNER_WAIT_LIMIT)  # the learner time a real cell's slow cycle would give
+        self.wait_for_learner()
         with timer.phase("decide"):
             if hasattr(self.agent, "maybe_swap_weights"):
                 self.agent.maybe_swap_weights()

@@ -136,6 +136,28 @@ def test_a_better_challenger_is_promoted_and_then_acts_on_every_greedy_decision(
         "successes"]
 
 
+def test_paced_the_hand_over_of_a_cycles_updates_is_the_challenger_right_after_that_cycle(tmp_path):
+    """With ``learning.wait_for_updates`` the gate takes the hand-over a cycle's updates made right after that
+    cycle, however long the updates take: when a challenger comes (and so which policy decides what) depends on
+    the update count, not on thread timing, and a paced run is reproducible from its seeds."""
+    d = InProcess(tmp_path, SHIPPED, learning={"wait_for_updates": True},
+                  gate={"handover_every": 1, "min_attempts": 500, "max_attempts": 500, "drop_min_attempts": 500},
+                  finetune={"min_replay": 0, "updates_per_action": 1})
+    _rig(d.ctl.learner, load_policy(SHIPPED).network, seconds=1.0)  # far slower than the gate's bookkeeping
+    try:
+        d.run()
+        d.wait(lambda: any(e["kind"] == "challenger" for e in d.ctl.gate.history()), "a challenger")
+        challenger = next(e for e in d.ctl.gate.history() if e["kind"] == "challenger")
+    finally:
+        d.close()
+    db = sqlite3.connect(d.ctl.state_dir / "flgd.sqlite")
+    first = db.execute("SELECT MIN(step) FROM transitions").fetchone()[0]
+    origin = db.execute("SELECT origin FROM policies WHERE id=?", (challenger["policy"],)).fetchone()[0]
+    db.close()
+    assert origin == "learner update 1"
+    assert challenger["step"] == first + 1, challenger
+
+
 def test_a_policy_load_while_the_learner_is_in_a_long_update_never_stops_the_learner(tmp_path, monkeypatch):
     import flgd.daemon.controller as controller
 

@@ -392,6 +392,7 @@ class Controller:
         if self.gate is not None:
             from flgd.learning.policy_file import PolicyFileError
             try:
+                self.runner.wait_for_learner()  # paced: the hand-over this cycle's updates make is taken now
                 self.gate.after_cycle(record)
             except (StoreError, OSError, PolicyFileError) as exc:
                 self._fault(f"the gate could not record its decision: {exc}")
