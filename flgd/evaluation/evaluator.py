@@ -299,6 +299,7 @@ class Evaluator:
             try:
                 record = self.runner.run_once()
                 if self.gate is not None:
+                    self.runner.wait_for_learner()  # paced: this cycle's hand-over is taken now, not by timing
                     self.gate.after_cycle(record)
             except CellFault as exc:
                 end, note = "fault", str(exc)
