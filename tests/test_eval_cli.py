@@ -224,6 +224,42 @@ def test_learn_feeds_the_replay_and_no_learn_keeps_the_weights(config, tmp_path)
         assert ev.learner.updates + ev.learner.failed_updates >= 1
 
 
+def test_learn_paced_the_gate_takes_a_cycles_hand_over_right_after_that_cycle(config, tmp_path):
+    """``flgd eval --learn`` with ``learning.wait_for_updates``: as in the daemon, the gate takes the hand-over
+    a cycle's update made right after that cycle, however long the update takes, so when a challenger comes
+    depends on the update count and not on thread timing."""
+    import time
+
+    from flgd.learning.learner import UpdateStats
+
+    scene = tmp_path / "one-cube.yaml"
+    scene.write_text(ONE_CUBE)
+    spec = scene_from_argument(str(scene))
+    cfg = dataclasses.replace(
+        config, finetune=dataclasses.replace(config.finetune, min_replay=0, updates_per_action=1),
+        learning=dataclasses.replace(config.learning, wait_for_updates=True),
+        gate=dataclasses.replace(config.gate, handover_every=1, min_attempts=500, max_attempts=500,
+                                 drop_min_attempts=500))
+    other = build_network("fast", rotations=16, seed=5)
+    with Evaluator(cfg, build_network("fast", rotations=16, seed=0),
+                   EvalOptions(runs=1, max_actions=1, learn=True)) as ev:
+        learner = ev.learner
+
+        def slow_update() -> UpdateStats:   # far slower than the gate's bookkeeping after a cycle
+            with learner._update_lock:
+                time.sleep(1.5)
+                learner.online.load_state_dict(other.state_dict())
+                learner.updates += 1
+                return UpdateStats(update=learner.updates, loss=0.0, mean_abs_td=0.0, batch_size=1, beta=0.0,
+                                   seconds=1.5)
+
+        learner.update = slow_update
+        log = ev.run(spec, 1)
+        challengers = [e for e in ev.gate.history() if e["kind"] == "challenger"]
+    assert len(log.actions) == 1
+    assert len(challengers) == 1, ev.gate.history()   # unpaced, the one cycle ends before its update does
+
+
 # ----------------------------------------------------------------------------- bad input
 
 def _eval(capsys, *args: str) -> tuple[int, str]:
