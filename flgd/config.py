@@ -241,6 +241,9 @@ class LearningConfig:
     priority_beta_steps: int = param(5000, ge=1)
     priority_epsilon: float = param(0.01, gt=0.0)
     huber_delta: float = param(1.0, gt=0.0)
+    anchor_weight: float = param(0.0, ge=0.0, unit="per squared weight",
+                                 help="L2-SP: each update's loss adds this times the sum of squared differences "
+                                      "between the trained weights and the acting champion's (0 = off)")
     batchnorm: Literal["batch", "frozen"] = param(
         "batch", help="'batch': BatchNorm normalises each update's batch and moves its running statistics "
                       "(training from scratch); 'frozen': updates use and keep the network's running statistics "
@@ -271,6 +274,7 @@ class FinetuneConfig:
     max_epsilon: float = param(0.05, ge=0.0, le=1.0,
                                help="exploration continues from the policy's recorded training steps on the "
                                     "exploration schedule, never above this")
+    anchor_weight: float = param(0.0, ge=0.0, unit="per squared weight", help="see learning.anchor_weight")
 
 
 @dataclass(frozen=True)
@@ -396,7 +400,7 @@ def learner_settings(cfg: CellConfig, fine_tune: bool) -> CellConfig:
     ft = cfg.finetune
     return dataclasses.replace(cfg, learning=dataclasses.replace(
         cfg.learning, learning_rate=ft.learning_rate, updates_per_action=ft.updates_per_action,
-        batchnorm=ft.batchnorm, min_replay=ft.min_replay))
+        batchnorm=ft.batchnorm, min_replay=ft.min_replay, anchor_weight=ft.anchor_weight))
 
 
 # --------------------------------------------------------------------------- loading

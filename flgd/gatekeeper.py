@@ -137,6 +137,9 @@ class Gatekeeper:
         # called with the champion's network after a rollback or a drop as worse: the learner starts again
         # from what acts, instead of going on along the line of weights just rejected
         self.reset_learner: Callable[[Any], None] | None = None
+        # called with the champion's network whenever the acting policy changes (restore, promotion, rollback,
+        # load): the learner's L2-SP anchor (``learning.anchor_weight``) follows what acts
+        self.on_champion: Callable[[Any], None] | None = None
         self._lock = threading.RLock()
 
     # ------------------------------------------------------------------ files and records
@@ -318,6 +321,11 @@ class Gatekeeper:
         self.agent.champion_id = record.id if self.enabled else None
         # a learner update count for the cached double-DQN argmax; only the learner's own weights have one
         self.agent.weights_version = record.learner_updates if record.learner_updates is not None else -1
+        if self.on_champion is not None:
+            try:
+                self.on_champion(self.agent.network)
+            except Exception as exc:  # the anchor is a hint to the learner: acting goes on without it
+                log.warning("gate: the learner's anchor did not follow champion #%d: %s", record.id, exc)
 
     def _register_champion(self, network: Any, meta: dict, origin: str, step: int, kind: str, who: str,
                            evidence: dict) -> PolicyRecord:

@@ -159,6 +159,7 @@ def attach_gate(config: CellConfig, store: Store, agent: Any, learner: Any, stat
     from flgd.gatekeeper import Gatekeeper
 
     gate = Gatekeeper(config, store, agent, state_dir)
+    gate.on_champion = learner.set_anchor  # the learner's L2-SP anchor is what acts
     note = gate.restore(step, configured, fresh)
     offset = store.counter("exploration_offset", -1)
     if offset < 0:  # first start: exploration continues from the policy's recorded training steps

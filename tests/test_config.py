@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import subprocess
 import sys
 from pathlib import Path
@@ -155,6 +156,9 @@ def test_a_given_policy_fine_tunes_with_the_finetune_settings_and_no_policy_trai
     ft = learner_settings(cfg, True).learning
     assert (ft.learning_rate, ft.updates_per_action, ft.batchnorm, ft.min_replay) == (
         cfg.finetune.learning_rate, cfg.finetune.updates_per_action, cfg.finetune.batchnorm, cfg.finetune.min_replay)
+    anchored = dataclasses.replace(cfg, finetune=dataclasses.replace(cfg.finetune, anchor_weight=0.3))
+    assert learner_settings(anchored, True).learning.anchor_weight == 0.3
+    assert learner_settings(anchored, False).learning.anchor_weight == cfg.learning.anchor_weight
     assert ft.learning_rate != cfg.learning.learning_rate and ft.updates_per_action != cfg.learning.updates_per_action
     scratch = config_from_dict({"policy": ""})
     assert not fine_tunes(scratch)[0] and learner_settings(scratch, False) is scratch
@@ -172,6 +176,7 @@ def test_check_config_says_which_learner_settings_apply() -> None:
     ({"gate": {"min_attempts": 900, "max_attempts": 800}}, "gate.min_attempts: got 900, expected <= gate.max_attempts"),
     ({"finetune": {"batchnorm": "moving"}}, "finetune.batchnorm"),
     ({"finetune": {"max_epsilon": -0.1}}, "finetune.max_epsilon"),
+    ({"finetune": {"anchor_weight": -1}}, "finetune.anchor_weight"),
     ({"gate": {"handover_evry": 3}}, "handover_evry"),
 ])
 def test_gate_and_finetune_keys_are_checked(data: dict, needle: str) -> None:

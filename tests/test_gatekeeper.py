@@ -323,3 +323,33 @@ def test_a_challenger_doing_better_gets_a_rising_share_of_the_decisions(tmp_path
     assert c.agent.challenger is None and c.agent.challenger_share == 0.0
     c.hand_over(_net(3))
     assert c.agent.challenger_share == 0.2
+
+
+def test_the_learners_anchor_is_the_champion_from_the_start_and_follows_a_promotion(tmp_path):
+    from flgd.learning.learner import Learner
+    from flgd.learning.replay import PrioritizedReplay
+    from flgd.wiring import attach_gate
+
+    config = _config()
+    config = dataclasses.replace(config, learning=dataclasses.replace(config.learning, anchor_weight=1.0))
+    store = Store(tmp_path)
+    agent = Agent(config, _net(99), seed=0)
+    learner = Learner(config, _net(98), PrioritizedReplay.from_config(config.learning))
+    policy = _net(1)
+    gate, _ = attach_gate(config, store, agent, learner, tmp_path, 0, fine_tune=True,
+                          configured=lambda: (policy, {"training_steps": 4000}, "policy P"),
+                          fresh=lambda: (_net(7), {"training_steps": 0}, "fresh network"))
+
+    def anchored_to(net) -> bool:
+        return all(torch.equal(learner._anchor[k], p.detach()) for k, p in net.named_parameters())
+
+    assert anchored_to(policy) and not anchored_to(_net(98))  # the champion, not the net it was built on
+    c = Cell.__new__(Cell)  # drive this gate with the test cell's helpers
+    c.tmp, c.config, c.step, c.store, c.agent, c.gate = tmp_path, config, 0, store, agent, gate
+    better = _net(2)
+    c.hand_over(better)
+    assert anchored_to(policy)  # a challenger under test does not move it
+    for k in range(400):
+        if (c.act(2, True) if k % 2 else c.act(1, k % 4 == 0)) is not None:
+            break
+    assert gate.champion.id == 2 and anchored_to(better)

@@ -475,3 +475,39 @@ def test_paused_holds_the_thread_between_updates_and_it_resumes_after():
         assert lrn.running and lrn.updates >= 1  # the same thread carries on
     finally:
         lrn.stop(timeout=60)
+
+
+def _distance(net: torch.nn.Module, ref: torch.nn.Module) -> float:
+    theirs = dict(ref.named_parameters())
+    return float(sum(((p.detach() - theirs[k].detach()) ** 2).sum() for k, p in net.named_parameters()))
+
+
+def _anchored_run(anchor_weight: float) -> tuple[Learner, list]:
+    cfg = config(learning_rate=1e-3, seed=3, anchor_weight=anchor_weight)
+    replay = PrioritizedReplay.from_config(cfg.learning)
+    for i in range(6):
+        replay.add(Transition(scene(i), Action("grasp", 8 + i, 12, i), float(i % 2), scene(i + 1), False))
+    lrn = Learner(cfg, build_network("fast", 16, seed=3), replay)
+    return lrn, [lrn.update() for _ in range(8)]
+
+
+def test_the_anchor_weight_holds_the_trained_weights_near_the_weights_they_started_from():
+    start = build_network("fast", 16, seed=3)
+    free, free_stats = _anchored_run(0.0)
+    held, held_stats = _anchored_run(50.0)
+    assert all(s.anchor_penalty == 0.0 for s in free_stats)
+    assert held_stats[0].anchor_penalty == 0.0 < held_stats[-1].anchor_penalty  # it grows as the weights move
+    assert held_stats[-1].loss >= held_stats[-1].anchor_penalty  # and it is part of the loss that was minimised
+    assert 0.0 < _distance(held.online, start) < 0.5 * _distance(free.online, start)
+
+
+def test_set_anchor_moves_the_pull_to_other_weights_and_refuses_a_network_that_does_not_fit():
+    lrn, _ = _anchored_run(50.0)
+    before = float(lrn.anchor_penalty().detach())
+    other = build_network("fast", 16, seed=11)
+    lrn.set_anchor(other)
+    assert float(lrn.anchor_penalty().detach()) == pytest.approx(50.0 * _distance(lrn.online, other), rel=1e-5)
+    assert float(lrn.anchor_penalty().detach()) > 10 * before
+    with pytest.raises(ValueError, match="anchor network"):
+        lrn.set_anchor(torch.nn.Linear(2, 2))
+    assert float(lrn.anchor_penalty().detach()) == pytest.approx(50.0 * _distance(lrn.online, other), rel=1e-5)

@@ -785,6 +785,7 @@ class Controller:
                                                           f"gate could not record it: {exc}") from None
                     else:
                         self.agent.network.load_state_dict(loaded.network.state_dict())
+                        lr.set_anchor(loaded.network)  # with a gate its champion change does this
                     lr.load_weights(loaded.network, publish=False)
                     lr.reset_trainer_state()
                     owed = lr.drop_backlog()

@@ -31,7 +31,14 @@ One update (``update``):
   ``last_error`` says why (the daemon shows it in ``flgctl status``), so a
   diverging network is neither published to the agent nor checkpointed;
 * with ``mirror_probability`` p > 0 each sampled transition is trained, with
-  chance p, as its mirror image (``flgd.learning.augment``; same target).
+  chance p, as its mirror image (``flgd.learning.augment``; same target);
+* with ``anchor_weight`` a > 0 (L2-SP, Li et al. 2018) the loss adds
+  a * sum((theta - theta_anchor)^2) over the trainable weights, where the anchor is
+  the acting champion's weights (``set_anchor``: the gate calls it whenever the
+  champion changes; until then the network the learner was built on).  Why the
+  champion and not the first policy: it is the weights that proved themselves on
+  this cell, and a restart restores it from the gate's records, so the anchor
+  survives a power cut without any state of its own.
 
 Finding a' costs a forward pass over all 16 rotations of s', four times the
 rest of an update on a CPU.  With ``next_argmax_max_age`` > 0 the learner
@@ -100,6 +107,7 @@ class UpdateStats:
     seconds: float
     indices: tuple[int, ...] = ()  # replay slots of the batch
     td_errors: tuple[float, ...] = ()  # y - Q(s, a) per slot, before the step
+    anchor_penalty: float = 0.0  # the L2-SP term included in ``loss`` (0 with ``anchor_weight`` 0)
 
 
 @dataclass
@@ -185,6 +193,8 @@ class Learner:
         self._stop = False
         self._thread: threading.Thread | None = None
         self._exited = True  # the thread (if any) has left its loop; guarded by _cond
+        self._anchor: dict[str, torch.Tensor] = {}
+        self.set_anchor(network)
 
     @property
     def network(self) -> QMapNetwork:
@@ -336,6 +346,27 @@ class Learner:
         return LossTerms(loss=loss, td_errors=td, targets=ys, maps=maps, owners=owners, rotations=rots,
                          actions=actions)
 
+    def set_anchor(self, network: QMapNetwork) -> None:
+        """Pull the trained weights toward ``network``'s from the next update on (``anchor_weight``).
+
+        Safe from any thread: the copy is made here and swapped in whole, so an update in progress keeps the
+        anchor it started with.  A network whose parameters do not match the learner's raises ValueError.
+        """
+        mine = dict(self.online.named_parameters())
+        theirs = dict(network.named_parameters())
+        if set(theirs) != set(mine) or any(theirs[k].shape != mine[k].shape for k in mine):
+            raise ValueError("anchor network: its parameters do not match the learner's network")
+        self._anchor = {k: v.detach().to(self.device, copy=True) for k, v in theirs.items()}
+
+    def anchor_penalty(self) -> torch.Tensor | None:
+        """anchor_weight * sum((theta - anchor)^2) over the trainable weights; None when off."""
+        a = self.config.learning.anchor_weight
+        anchor = self._anchor
+        if a <= 0.0 or not anchor:
+            return None
+        total = sum(((p - anchor[k]) ** 2).sum() for k, p in self.online.named_parameters() if p.requires_grad)
+        return a * total
+
     def _not_finite(self, terms: LossTerms) -> str | None:
         """Why this update must not be applied (loss, TD errors or a gradient not finite), else None."""
         loss = float(terms.loss.detach())
@@ -360,6 +391,9 @@ class Learner:
             # the training-mode forward moves BatchNorm's running statistics: kept to undo a skipped update
             buffers = {name: b.detach().clone() for name, b in self.online.named_buffers()}
             terms = self.loss_terms(transitions, weights)
+            penalty = self.anchor_penalty()
+            if penalty is not None:
+                terms.loss = terms.loss + penalty
             self.optimizer.zero_grad(set_to_none=True)
             terms.loss.backward()
             why = self._not_finite(terms)
@@ -390,7 +424,8 @@ class Learner:
                                 mean_abs_td=float(np.mean(np.abs(terms.td_errors))),
                                 batch_size=len(transitions), beta=beta, seconds=time.perf_counter() - start,
                                 indices=tuple(int(i) for i in indices),
-                                td_errors=tuple(float(v) for v in terms.td_errors))
+                                td_errors=tuple(float(v) for v in terms.td_errors),
+                                anchor_penalty=0.0 if penalty is None else float(penalty.detach()))
             self.last_stats = stats
             if self.checkpoint_callback is not None and self.updates % self.config.learning.checkpoint_every == 0:
                 try:
