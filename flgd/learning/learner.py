@@ -356,7 +356,8 @@ class Learner:
         theirs = dict(network.named_parameters())
         if set(theirs) != set(mine) or any(theirs[k].shape != mine[k].shape for k in mine):
             raise ValueError("anchor network: its parameters do not match the learner's network")
-        self._anchor = {k: v.detach().to(self.device, copy=True) for k, v in theirs.items()}
+        if self.config.learning.anchor_weight > 0.0:  # off: no copy of the weights kept
+            self._anchor = {k: v.detach().to(self.device, copy=True) for k, v in theirs.items()}
 
     def anchor_penalty(self) -> torch.Tensor | None:
         """anchor_weight * sum((theta - anchor)^2) over the trainable weights; None when off."""
