@@ -168,9 +168,7 @@ def test_out_of_range_knobs_are_refused_naming_key_and_value(sim, needle):
     assert "shifted.yaml" in str(err.value)
 
 
-
-ROOT = Path(__file__).resolve().parents[1]
-SECOND_CELLS = [ROOT / "cell_config" / "sim-shifted.yaml", *sorted((ROOT / "benchmarks" / "cells").glob("*.yaml"))]
+SECOND_CELLS = [REPO / "cell_config" / "sim-shifted.yaml", *sorted((REPO / "benchmarks" / "cells").glob("*.yaml"))]
 
 
 @pytest.mark.parametrize("path", SECOND_CELLS, ids=lambda p: p.name)
@@ -179,7 +177,7 @@ def test_the_second_cells_differ_from_the_training_cell_only_in_the_simulated_wo
     the shipped ones, or a change to sim.yaml leaves the second cells measuring something else."""
     from flgd.config import config_to_dict
 
-    train = config_to_dict(load_config(ROOT / "cell_config" / "sim.yaml"))
+    train = config_to_dict(load_config(REPO / "cell_config" / "sim.yaml"))
     other = config_to_dict(load_config(path))
     differs = sorted(k for k in train if k not in ("sim", "state_dir", "name") and train[k] != other[k])
     assert differs == [], f"{path.name} differs from sim.yaml in {differs}"
