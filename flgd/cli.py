@@ -19,6 +19,7 @@ _COMMANDS: dict[str, tuple[str, str]] = {
     "eval": ("flgd.evaluation.cli:main", "evaluate a policy in simulation (VPG's metrics, scene sets, Q-maps)"),
     "train": ("flgd.training.run:main", "train a policy headless in sim_cell (resumable run directory)"),
     "pretrain": ("flgd.training.pretrain:main", "pre-train the network's perception trunk on sim ground truth"),
+    "prior-sample": ("flgd.learning.prior_sample:main", "write a prior sample (finetune.prior_sample) from a store"),
 }
 
 

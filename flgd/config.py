@@ -275,6 +275,10 @@ class FinetuneConfig:
                                help="exploration continues from the policy's recorded training steps on the "
                                     "exploration schedule, never above this")
     anchor_weight: float = param(0.0, ge=0.0, unit="per squared weight", help="see learning.anchor_weight")
+    prior_sample: str = param("", help="a prior sample file (`flgd prior-sample`: transitions of the cell the policy "
+                                       "was trained in; relative to the config file); empty = none")
+    prior_share: float = param(0.0, ge=0.0, lt=1.0, help="share of each update's batch drawn from prior_sample "
+                                                          "instead of this cell's replay (0 = off)")
 
 
 @dataclass(frozen=True)
@@ -556,6 +560,9 @@ def _check_relations(cfg: CellConfig, problems: list[str]) -> None:
             problems.append(f"gate.{key}: got {getattr(cfg.gate, key)}, expected <= gate.max_attempts "
                             f"({cfg.gate.max_attempts})")
     _check_device(cfg, problems)
+    if cfg.finetune.prior_share > 0.0 and not cfg.finetune.prior_sample:
+        problems.append(f"finetune.prior_share: got {cfg.finetune.prior_share!r} with no finetune.prior_sample, "
+                        "expected a prior sample file (`flgd prior-sample`) or prior_share 0")
     ws, sf = cfg.workspace, cfg.safety
     for name in ("x", "y", "z"):
         lo, hi = getattr(ws, name)
@@ -835,6 +842,9 @@ def load_config(path: str | os.PathLike) -> CellConfig:
         cfg = dataclasses.replace(cfg, state_dir=str((p.parent / cfg.state_dir).resolve()))
     if cfg.policy and not os.path.isabs(cfg.policy):
         cfg = dataclasses.replace(cfg, policy=str((p.parent / cfg.policy).resolve()))
+    if cfg.finetune.prior_sample and not os.path.isabs(cfg.finetune.prior_sample):
+        cfg = dataclasses.replace(cfg, finetune=dataclasses.replace(
+            cfg.finetune, prior_sample=str((p.parent / cfg.finetune.prior_sample).resolve())))
     if cfg.learning.init_trunk and not os.path.isabs(cfg.learning.init_trunk):
         cfg = dataclasses.replace(cfg, learning=dataclasses.replace(
             cfg.learning, init_trunk=str((p.parent / cfg.learning.init_trunk).resolve())))

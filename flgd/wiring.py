@@ -17,7 +17,8 @@ from typing import Any, Callable
 from flgd.config import CellConfig
 from flgd.store import CheckpointDir, Store, StoreError
 
-__all__ = ["StartingNetwork", "starting_network", "fresh_network", "rebuild_replay", "build_agent_and_learner",
+__all__ = ["StartingNetwork", "starting_network", "fresh_network", "rebuild_replay", "configured_prior",
+           "build_agent_and_learner",
            "attach_gate", "continuation_seed", "continuing_config"]
 
 log = logging.getLogger("flgd")
@@ -121,22 +122,37 @@ def rebuild_replay(config: CellConfig, store: Store | None, seed: int | None = N
     return replay, problem
 
 
+def configured_prior(config: CellConfig, rotations: int, fine_tune: bool) -> Any:
+    """The prior sample a fine-tune mixes into its batches (``finetune.prior_sample`` at ``prior_share``), or
+    None.  Loaded once, at start: raises PriorSampleError naming the file when it cannot be used."""
+    if not fine_tune or config.finetune.prior_share <= 0.0:
+        return None
+    from flgd.learning.prior_sample import load_prior_sample
+
+    prior = load_prior_sample(config.finetune.prior_sample, rotations, config.workspace.shape)
+    log.info("prior sample %s: %d transitions, %.0f %% of each batch", prior.path, len(prior),
+             100 * config.finetune.prior_share)
+    return prior
+
+
 def build_agent_and_learner(config: CellConfig, network: Any, replay: Any, *,
                             checkpoint_callback: Callable[[Any, int], None] | None, updates: int = 0,
                             agent_seed: int | None = None, store: Store | None = None,
-                            fine_tune: bool = False) -> tuple[Any, Any]:
+                            fine_tune: bool = False, prior: Any = None) -> tuple[Any, Any]:
     """The acting agent and its learner (which trains a copy of ``network`` and posts to the agent).
 
     With ``store`` the learner writes the replay priorities it sets back to it.  ``config`` is the one the
     learner runs with (``config.learner_settings`` applied); with ``fine_tune`` the agent explores at most
-    ``finetune.max_epsilon``, and with no updates per action it does not explore at all.
+    ``finetune.max_epsilon``, and with no updates per action it does not explore at all.  ``prior``
+    (``configured_prior``) is mixed into the learner's batches at ``finetune.prior_share``.
     """
     from flgd.learning.agent import Agent
     from flgd.learning.learner import Learner
 
     agent = Agent(config, network, seed=config.learning.seed if agent_seed is None else agent_seed)
     learner = Learner(config, network, replay, mailbox=agent.mailbox, checkpoint_callback=checkpoint_callback,
-                      priority_sink=None if store is None else store.save_priorities)
+                      priority_sink=None if store is None else store.save_priorities, prior=prior,
+                      prior_share=config.finetune.prior_share if prior is not None else 0.0)
     learner.updates = int(updates)
     replay.resume_annealing(int(updates))  # one batch per update: beta goes on where the run left it
     if fine_tune:

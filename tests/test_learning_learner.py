@@ -511,3 +511,51 @@ def test_set_anchor_moves_the_pull_to_other_weights_and_refuses_a_network_that_d
     with pytest.raises(ValueError, match="anchor network"):
         lrn.set_anchor(torch.nn.Linear(2, 2))
     assert float(lrn.anchor_penalty().detach()) == pytest.approx(50.0 * _distance(lrn.online, other), rel=1e-5)
+
+
+def _prior_of(transitions: list[Transition]):
+    from flgd.learning.prior_sample import PriorSample
+
+    return PriorSample("prior.npz", tuple(transitions), {})
+
+
+def _q_at(lrn: Learner, state: Heightmaps, action: Action) -> float:
+    with torch.no_grad():
+        q = q_maps(lrn.online.eval(), state, lrn.rotations).cpu().numpy()
+    lrn._training_mode()
+    return float(q[action.rotation, action.channel, action.row, action.col])
+
+
+def test_a_prior_share_trains_on_the_prior_sample_beside_the_replay_and_sets_no_priority_for_it():
+    cfg = config(batch_size=4, gamma=0.0, learning_rate=1e-3, mirror_probability=0.0)
+    own = Transition(scene(1), Action("grasp", 9, 20, 3), 0.0, None, True)
+    old = Transition(scene(2), Action("grasp", 14, 11, 5), 1.0, None, True)
+
+    def run(prior_share: float) -> tuple[Learner, list]:
+        replay = PrioritizedReplay.from_config(cfg.learning)
+        replay.add(own, tag=7)
+        lrn = learner(cfg, replay, prior=_prior_of([old]) if prior_share else None, prior_share=prior_share)
+        stats = [lrn.update() for _ in range(30)]
+        return lrn, stats
+
+    before = _q_at(learner(cfg), old.state, old.action)
+    with_prior, stats = run(0.5)
+    without, _ = run(0.0)
+    # two of each batch of 4 come from the prior sample; only the replay's two slots are prioritised
+    assert {s.prior_transitions for s in stats} == {2}
+    assert all(len(s.indices) == 2 and len(s.td_errors) == 2 for s in stats)
+    # the prior's reward of 1 is learned at its pixel; without the sample nothing pulls it there
+    assert abs(_q_at(with_prior, old.state, old.action) - 1.0) < 0.5 * abs(before - 1.0)
+    assert abs(_q_at(without, old.state, old.action) - 1.0) > 0.8 * abs(before - 1.0)
+
+
+def test_a_fractional_prior_share_holds_on_average_and_one_replayed_transition_always_stays():
+    cfg = config(batch_size=4)
+    prior = _prior_of([Transition(scene(2), Action("grasp", 14, 11, 5), 1.0, None, True)])
+    lrn = learner(cfg, prior=prior, prior_share=0.3)
+    counts = [lrn._prior_count(4) for _ in range(4000)]
+    assert set(counts) == {1, 2}
+    assert abs(np.mean(counts) - 1.2) < 0.05
+    assert learner(cfg, prior=prior, prior_share=0.9)._prior_count(4) == 3
+    with pytest.raises(ValueError, match="needs a prior sample"):
+        learner(cfg, prior_share=0.25)

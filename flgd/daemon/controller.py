@@ -84,6 +84,7 @@ class Controller:
         self.backend = config.backend
         self.agent: Any = None
         self.learner: Any = None
+        self.prior: Any = None  # the fine-tune's prior sample (finetune.prior_sample), loaded in setup
         self.gate: Any = None  # the Gatekeeper (None while the store is unusable)
         self.gate_note = ""
         self._start_network: Any = None
@@ -117,6 +118,7 @@ class Controller:
         step = self._start_step()
         network = self._initial_network()
         self._start_network = network
+        self._load_prior(network)
         self._build_learning(network, step)
         self._restore_trainer_state()
         self._build_gate()
@@ -202,6 +204,16 @@ class Controller:
             self.last_checkpoint = str(start.checkpoint)
         return start.network
 
+    def _load_prior(self, network: Any) -> None:
+        """The fine-tune's prior sample (``finetune.prior_sample``), loaded once for every learner built."""
+        from flgd.learning.prior_sample import PriorSampleError
+        from flgd.wiring import configured_prior
+
+        try:
+            self.prior = configured_prior(self.learn_config, network.rotations, self.fine_tune)
+        except PriorSampleError as exc:
+            raise StartupError(f"finetune.prior_sample: {exc}") from exc
+
     def _build_learning(self, network: Any, step: int) -> None:
         """Replay, agent and learner for a run at action ``step``: their random draws (exploration, replay
         sampling, mirroring) continue from seeds drawn for that action, not from the run's first ones."""
@@ -213,7 +225,7 @@ class Controller:
             self.store_problem = problem
         self.agent, self.learner = build_agent_and_learner(
             config, network, self.replay, checkpoint_callback=self._write_checkpoint,
-            updates=self.resumed_from_updates, store=self.store, fine_tune=self.fine_tune)
+            updates=self.resumed_from_updates, store=self.store, fine_tune=self.fine_tune, prior=self.prior)
         self.learner.mailbox = None  # nothing is handed over before the gate is attached (``_build_gate``)
 
     def _build_gate(self) -> None:

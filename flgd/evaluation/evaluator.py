@@ -191,7 +191,7 @@ class Evaluator:
         from flgd.config import learner_settings
         from flgd.learning.replay import PrioritizedReplay
         from flgd.store import Store
-        from flgd.wiring import attach_gate, build_agent_and_learner
+        from flgd.wiring import attach_gate, build_agent_and_learner, configured_prior
 
         self._learn_dir = tempfile.TemporaryDirectory(prefix="flgd-eval-learn-")
         self.config = learner_settings(self.config, True)
@@ -200,7 +200,9 @@ class Evaluator:
         self.replay = PrioritizedReplay.from_config(lc)
         self.agent, self.learner = build_agent_and_learner(self.config, network, self.replay,
                                                            checkpoint_callback=None, store=self.store,
-                                                           agent_seed=self.options.seed, fine_tune=True)
+                                                           agent_seed=self.options.seed, fine_tune=True,
+                                                           prior=configured_prior(self.config, network.rotations,
+                                                                                  True))
         policy = (network, {"training_steps": int(training_steps)}, "the evaluated policy")
         self.gate, _ = attach_gate(self.config, self.store, self.agent, self.learner, self._learn_dir.name, 0,
                                    fine_tune=True, configured=lambda: policy, fresh=lambda: policy)

@@ -38,7 +38,14 @@ One update (``update``):
   champion changes; until then the network the learner was built on).  Why the
   champion and not the first policy: it is the weights that proved themselves on
   this cell, and a restart restores it from the gate's records, so the anchor
-  survives a power cut without any state of its own.
+  survives a power cut without any state of its own;
+* with a ``prior`` sample and ``prior_share`` s > 0 (``finetune.prior_sample``,
+  ``finetune.prior_share``), s * batch_size of each batch's transitions (the
+  fraction rounded at random, so that the share holds on average; at least one
+  transition always comes from the replay) are drawn uniformly from the sample of
+  the cell the policy was trained in (``flgd.learning.prior_sample``).  They take
+  the mean importance weight of the batch's replayed ones, and their TD errors set
+  no priorities: only the replay's own transitions are prioritised.
 
 Finding a' costs a forward pass over all 16 rotations of s', four times the
 rest of an update on a CPU.  With ``next_argmax_max_age`` > 0 the learner
@@ -87,6 +94,7 @@ from flgd.perception import Heightmaps
 from flgd.learning.augment import mirror_action, mirror_heightmaps
 from flgd.learning.agent import Decision, WeightsMailbox, greedy_index
 from flgd.learning.networks import QMapNetwork, q_maps, rotated_inputs, twin_grasp_maps, unrotate_maps
+from flgd.learning.prior_sample import PriorSample
 from flgd.learning.replay import PrioritizedReplay, Transition, state_key
 
 __all__ = ["Learner", "LearnerBusy", "UpdateStats", "LossTerms", "resolve_device"]
@@ -108,6 +116,7 @@ class UpdateStats:
     indices: tuple[int, ...] = ()  # replay slots of the batch
     td_errors: tuple[float, ...] = ()  # y - Q(s, a) per slot, before the step
     anchor_penalty: float = 0.0  # the L2-SP term included in ``loss`` (0 with ``anchor_weight`` 0)
+    prior_transitions: int = 0  # of ``batch_size``, drawn from the prior sample (after the replayed ones)
 
 
 @dataclass
@@ -151,8 +160,13 @@ class Learner:
     def __init__(self, config: CellConfig, network: QMapNetwork, replay: PrioritizedReplay,
                  device: str | torch.device | None = None, mailbox: WeightsMailbox | None = None,
                  checkpoint_callback: CheckpointCallback | None = None, thread_nice: int = 10,
-                 priority_sink: PrioritySink | None = None) -> None:
+                 priority_sink: PrioritySink | None = None, prior: PriorSample | None = None,
+                 prior_share: float = 0.0) -> None:
         lc = config.learning
+        if not 0.0 <= prior_share < 1.0:
+            raise ValueError(f"prior_share: got {prior_share!r}, expected 0 <= share < 1")
+        if prior_share > 0.0 and prior is None:
+            raise ValueError(f"prior_share {prior_share!r} needs a prior sample")
         if lc.threads > 0:
             torch.set_num_threads(lc.threads)
         self.config = config
@@ -167,6 +181,9 @@ class Learner:
         self.optimizer = torch.optim.Adam(self.online.parameters(), lr=lc.learning_rate,
                                           weight_decay=lc.weight_decay)
         self._mirror_rng = np.random.default_rng([lc.seed, 0x6D69])  # its own stream: other draws unchanged
+        self.prior = prior if prior_share > 0.0 else None
+        self.prior_share = prior_share if prior is not None else 0.0
+        self._prior_rng = np.random.default_rng([lc.seed, 0x7072])  # its own stream, like mirroring's
         self.mailbox = mailbox
         self.checkpoint_callback = checkpoint_callback
         self.priority_sink = priority_sink
@@ -368,6 +385,14 @@ class Learner:
         total = sum(((p - anchor[k]) ** 2).sum() for k, p in self.online.named_parameters() if p.requires_grad)
         return a * total
 
+    def _prior_count(self, batch_size: int) -> int:
+        """How many of this batch come from the prior sample: share * size, its fraction rounded at random."""
+        if self.prior is None or batch_size < 2:
+            return 0
+        expected = self.prior_share * batch_size
+        count = int(expected) + int(self._prior_rng.random() < expected - int(expected))
+        return min(count, batch_size - 1)
+
     def _not_finite(self, terms: LossTerms) -> str | None:
         """Why this update must not be applied (loss, TD errors or a gradient not finite), else None."""
         loss = float(terms.loss.detach())
@@ -388,7 +413,12 @@ class Learner:
         with self._update_lock:
             start = time.perf_counter()
             beta = self.replay.beta
-            indices, transitions, weights = self.replay.sample(self.config.learning.batch_size)
+            size = self.config.learning.batch_size
+            from_prior = self._prior_count(size)
+            indices, transitions, weights = self.replay.sample(size - from_prior)
+            if from_prior:
+                transitions = transitions + self.prior.draw(from_prior, self._prior_rng)
+                weights = np.concatenate([weights, np.full(from_prior, weights.mean(), dtype=np.float32)])
             # the training-mode forward moves BatchNorm's running statistics: kept to undo a skipped update
             buffers = {name: b.detach().clone() for name, b in self.online.named_buffers()}
             terms = self.loss_terms(transitions, weights)
@@ -410,7 +440,7 @@ class Learner:
                 log.warning("learner: %s", self.last_error)
                 return None
             self.optimizer.step()
-            tagged = self.replay.update_priorities(indices, np.abs(terms.td_errors))
+            tagged = self.replay.update_priorities(indices, np.abs(terms.td_errors[:len(indices)]))
             if self.priority_sink is not None and tagged:
                 try:
                     self.priority_sink(tagged)
@@ -425,8 +455,9 @@ class Learner:
                                 mean_abs_td=float(np.mean(np.abs(terms.td_errors))),
                                 batch_size=len(transitions), beta=beta, seconds=time.perf_counter() - start,
                                 indices=tuple(int(i) for i in indices),
-                                td_errors=tuple(float(v) for v in terms.td_errors),
-                                anchor_penalty=0.0 if penalty is None else float(penalty.detach()))
+                                td_errors=tuple(float(v) for v in terms.td_errors[:len(indices)]),
+                                anchor_penalty=0.0 if penalty is None else float(penalty.detach()),
+                                prior_transitions=from_prior)
             self.last_stats = stats
             if self.checkpoint_callback is not None and self.updates % self.config.learning.checkpoint_every == 0:
                 try:
