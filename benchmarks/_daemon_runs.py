@@ -49,10 +49,15 @@ def run_controller(cfg: Any, state_dir: Path, actions: int) -> int:
         dump_config(continuing_config(cfg, done)))
     ctl = Controller(cfg, autostart=True)
     ctl.setup()
+    prior = ctl.learner.prior
+    if prior is not None:  # the record that the setting acted
+        print(f"prior sample {prior.path}: {len(prior)} transitions, share {ctl.learner.prior_share}", flush=True)
     try:
         ctl.run_loop(stop_requested=lambda: ctl.runner.step >= actions)
     finally:
         ctl.shutdown()
+        if prior is not None:
+            print(f"prior transitions drawn: {ctl.learner.prior_drawn} in {ctl.learner.updates} updates", flush=True)
     return 0
 
 

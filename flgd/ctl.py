@@ -213,6 +213,8 @@ def _human(command: str, reply: dict, extra: dict) -> str:
                  f"(stored {r['stored_transitions']}), from {r.get('learner_from') or '-'}, "
                  f"last checkpoint {r['last_checkpoint'] or '-'}, "
                  f"optimizer {r.get('trainer_state', '-')}",
+                 *([f"prior sample  {p['path']}: {p['transitions']} transitions, {100 * p['share']:.0f} % of each "
+                    f"batch, {p['drawn']} drawn so far"] if (p := r.get('learner_prior')) else []),
                  f"state dir     {r['state_dir']}   pid {r['pid']}"]
         if not r.get("learner_running", True):
             lines.append(f"learner       NOT RUNNING ({r.get('learner_stopped_why') or 'reason unknown'})")

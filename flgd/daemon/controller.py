@@ -580,6 +580,9 @@ class Controller:
             "learner_running": bool(lr is not None and lr.running),
             "learner_stopped_why": "" if lr is None or lr.running else getattr(lr, "stopped_why", ""),
             "learner_handovers": getattr(lr, "handovers", 0) if lr is not None else 0,
+            "learner_prior": None if getattr(lr, "prior", None) is None else {
+                "path": lr.prior.path, "transitions": len(lr.prior), "share": lr.prior_share,
+                "drawn": lr.prior_drawn},
             "learning": "finetune" if self.fine_tune else "learning",
             "learning_why": self.learning_why,
             "gate": None if self.gate is None else self.gate.status(),

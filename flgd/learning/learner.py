@@ -184,6 +184,7 @@ class Learner:
         self.prior = prior if prior_share > 0.0 else None
         self.prior_share = prior_share if prior is not None else 0.0
         self._prior_rng = np.random.default_rng([lc.seed, 0x7072])  # its own stream, like mirroring's
+        self.prior_drawn = 0  # transitions drawn from the prior sample into updates so far
         self.mailbox = mailbox
         self.checkpoint_callback = checkpoint_callback
         self.priority_sink = priority_sink
@@ -418,6 +419,7 @@ class Learner:
             indices, transitions, weights = self.replay.sample(size - from_prior)
             if from_prior:
                 transitions = transitions + self.prior.draw(from_prior, self._prior_rng)
+                self.prior_drawn += from_prior
                 weights = np.concatenate([weights, np.full(from_prior, weights.mean(), dtype=np.float32)])
             # the training-mode forward moves BatchNorm's running statistics: kept to undo a skipped update
             buffers = {name: b.detach().clone() for name, b in self.online.named_buffers()}
