@@ -46,7 +46,9 @@ def write_config(directory: Path, state_dir: Path, **sections: Any) -> Path:
     data["state_dir"] = str(state_dir)
     data["policy"] = ""
     # sim.yaml's relative paths are relative to cell_config/, not to the copy's directory
-    data["learning"]["init_trunk"] = str(load_config(REPO / "cell_config" / "sim.yaml").learning.init_trunk)
+    shipped = load_config(REPO / "cell_config" / "sim.yaml")
+    data["learning"]["init_trunk"] = str(shipped.learning.init_trunk)
+    data["finetune"]["prior_sample"] = str(shipped.finetune.prior_sample)
     data.setdefault("sim", {}).update({"objects": 3, "seed": 1})
     data.setdefault("learning", {}).update({"batch_size": 1, "checkpoint_every": 2, "threads": 1,
                                             "device": "cpu", "replay_capacity": 1000})
