@@ -559,3 +559,67 @@ def test_a_fractional_prior_share_holds_on_average_and_one_replayed_transition_a
     assert learner(cfg, prior=prior, prior_share=0.9)._prior_count(4) == 3
     with pytest.raises(ValueError, match="needs a prior sample"):
         learner(cfg, prior_share=0.25)
+
+
+def _first_batchnorm_output_means(lrn: Learner, states: list[Heightmaps]) -> tuple[np.ndarray, np.ndarray]:
+    """Per-channel mean of the first BatchNorm layer's eval-mode output over ``states`` (all rotations), and its
+    learned shift: with statistics that fit these states the two agree."""
+    from flgd.learning.networks import rotated_inputs
+
+    bn = next(m for m in lrn.online.modules() if isinstance(m, torch.nn.BatchNorm2d))
+    outs = []
+    hook = bn.register_forward_hook(lambda _m, _i, out: outs.append(out.mean(dim=(0, 2, 3))))
+    lrn.online.eval()
+    try:
+        with torch.no_grad():
+            for hm in states:
+                lrn.online(*rotated_inputs(hm, list(range(16)), 16, lrn.online.stride, lrn.device))
+    finally:
+        hook.remove()
+        lrn._training_mode()
+    return torch.stack(outs).mean(0).numpy(), bn.bias.detach().numpy()
+
+
+def test_adapted_batchnorm_statistics_fit_the_new_cells_states_and_are_handed_over():
+    cfg = config(batchnorm="adapt", batch_size=2)
+    net = build_network("fast", 16, seed=0)
+    lrn = Learner(cfg, net, PrioritizedReplay.from_config(cfg.learning))
+    # a cell that looks different: brighter colours and a raised table, as a changed camera and light would give
+    looks = [Heightmaps(np.clip(scene(k).color.astype(int) + 70, 0, 255).astype(np.uint8), scene(k).height + 0.02)
+             for k in range(6)]
+    before, shift = _first_batchnorm_output_means(lrn, looks)
+    assert np.abs(before - shift).max() > 0.5   # the training statistics do not fit this look
+    for k in range(6):
+        lrn.replay.add(Transition(looks[k], Action("grasp", 5, 5, 0), 0.0, None, True))
+    mailbox = WeightsMailbox()
+    lrn.mailbox = mailbox
+    assert lrn.publish() and lrn.batchnorm_adaptations == 1
+    after, shift = _first_batchnorm_output_means(lrn, looks)
+    assert np.abs(after - shift).max() < 0.05   # normalised again
+    posted = mailbox._weights
+    name = next(k for k in posted if k.endswith("running_mean"))
+    assert torch.equal(posted[name], lrn.online.state_dict()[name])   # what acts next carries them
+    assert not torch.equal(posted[name], net.state_dict()[name])
+
+
+def test_frozen_batchnorm_hands_over_the_statistics_it_started_with():
+    cfg = config(batchnorm="frozen", batch_size=2)
+    net = build_network("fast", 16, seed=0)
+    lrn = Learner(cfg, net, PrioritizedReplay.from_config(cfg.learning))
+    lrn.replay.add(Transition(scene(1), Action("grasp", 5, 5, 0), 0.0, None, True))
+    mailbox = WeightsMailbox()
+    lrn.mailbox = mailbox
+    lrn.publish()
+    assert lrn.batchnorm_adaptations == 0
+    assert all(torch.equal(v, net.state_dict()[k]) for k, v in mailbox._weights.items() if "running" in k)
+
+
+def test_recent_states_are_the_newest_distinct_states():
+    replay = PrioritizedReplay(capacity=4)
+    s = [scene(k) for k in range(5)]
+    for k in range(5):   # s0 falls out of the ring; s3 comes twice
+        replay.add(Transition(s[min(k, 3)], Action("grasp", 1, 1, 0), 0.0, None, True))
+    got = replay.recent_states(10)
+    assert len(got) == 3
+    assert all(np.array_equal(g.color, s[k].color) for g, k in zip(got, (3, 2, 1)))
+    assert len(replay.recent_states(2)) == 2
