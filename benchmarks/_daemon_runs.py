@@ -56,12 +56,8 @@ def run_controller(cfg: Any, state_dir: Path, actions: int) -> int:
         ctl.run_loop(stop_requested=lambda: ctl.runner.step >= actions)
     finally:
         ctl.shutdown()
-        lr = ctl.learner
         if prior is not None:
-            print(f"prior transitions drawn: {lr.prior_drawn} in {lr.updates} updates", flush=True)
-        if lr.config.learning.batchnorm == "adapt":
-            print(f"batchnorm statistics re-estimated {lr.batchnorm_adaptations} times in {lr.updates} updates",
-                  flush=True)
+            print(f"prior transitions drawn: {ctl.learner.prior_drawn} in {ctl.learner.updates} updates", flush=True)
     return 0
 
 

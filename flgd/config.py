@@ -244,12 +244,10 @@ class LearningConfig:
     anchor_weight: float = param(0.0, ge=0.0, unit="per squared weight",
                                  help="L2-SP: each update's loss adds this times the sum of squared differences "
                                       "between the trained weights and the acting champion's (0 = off)")
-    batchnorm: Literal["batch", "frozen", "adapt"] = param(
+    batchnorm: Literal["batch", "frozen"] = param(
         "batch", help="'batch': BatchNorm normalises each update's batch and moves its running statistics "
                       "(training from scratch); 'frozen': updates use and keep the network's running statistics "
-                      "(fine-tuning a trained policy, whose statistics a batch of 4 transitions would drift); "
-                      "'adapt': as frozen, and before each hand-over the statistics are estimated afresh from this "
-                      "cell's newest 100 states, all rotations (AdaBN: a cell that looks different)")
+                      "(fine-tuning a trained policy, whose statistics a batch of 4 transitions would drift)")
     checkpoint_every: int = param(100, ge=1, unit="updates")
     wait_for_updates: bool = param(False, help="each cycle waits until the learner has run the updates scheduled "
                                                "before it (gives a fast simulated cell the learner time a real cell's "
@@ -270,7 +268,7 @@ class FinetuneConfig:
 
     learning_rate: float = param(1e-5, gt=0.0)
     updates_per_action: int = param(1, ge=0)
-    batchnorm: Literal["batch", "frozen", "adapt"] = param("frozen", help="see learning.batchnorm")
+    batchnorm: Literal["batch", "frozen"] = param("frozen", help="see learning.batchnorm")
     min_replay: int = param(100, ge=0, unit="transitions",
                             help="warm-up: no update until the replay holds this many of this cell's transitions")
     max_epsilon: float = param(0.05, ge=0.0, le=1.0,

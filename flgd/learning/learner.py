@@ -25,13 +25,6 @@ One update (``update``):
   moves the running statistics 10 % towards them, and those statistics are
   what the agent acts with: in a fine-tune they drift far faster than the
   weights (frozen statistics stopped the fine-tune's flood of moves, BENCHMARKS.md);
-* with ``batchnorm: adapt`` the updates run as with ``frozen``, and before each
-  hand-over the BatchNorm statistics are estimated afresh as plain averages over
-  the newest ``ADAPT_STATES`` distinct states of this cell's replay, each through
-  all rotations (AdaBN, Li et al. 2016): a cell whose camera, light or colours
-  differ from the training cell's shifts every layer's input statistics, which
-  the weights would otherwise have to learn around; the scale and shift still
-  learn, and the gate judges the handed-over weights with their statistics;
 * an update whose loss, TD errors or gradients are not finite (NaN/Inf) is
   skipped before the optimizer step: the weights, BatchNorm statistics, Adam
   moments and priorities stay as they were, ``skipped_updates`` counts it and
@@ -108,7 +101,6 @@ __all__ = ["Learner", "LearnerBusy", "UpdateStats", "LossTerms", "resolve_device
 
 log = logging.getLogger(__name__)
 
-ADAPT_STATES = 100  # distinct states whose statistics ``batchnorm: adapt`` re-estimates BatchNorm from
 CheckpointCallback = Callable[[QMapNetwork, int], None]
 PrioritySink = Callable[[list[tuple[int, float]]], None]  # (store transition id, raw priority) pairs
 
@@ -193,7 +185,6 @@ class Learner:
         self.prior_share = prior_share if prior is not None else 0.0
         self._prior_rng = np.random.default_rng([lc.seed, 0x7072])  # its own stream, like mirroring's
         self.prior_drawn = 0  # transitions drawn from the prior sample into updates so far
-        self.batchnorm_adaptations = 0  # times ``adapt_batchnorm`` re-estimated the statistics
         self.mailbox = mailbox
         self.checkpoint_callback = checkpoint_callback
         self.priority_sink = priority_sink
@@ -233,7 +224,7 @@ class Learner:
     def _training_mode(self) -> None:
         """Online network in training mode; its BatchNorm layers in eval mode when ``batchnorm`` is frozen."""
         self.online.train()
-        if self.config.learning.batchnorm in ("frozen", "adapt"):
+        if self.config.learning.batchnorm == "frozen":
             for m in self.online.modules():
                 if isinstance(m, torch.nn.modules.batchnorm._BatchNorm):
                     m.eval()
@@ -478,38 +469,11 @@ class Learner:
                     self.last_error = f"checkpoint at update {self.updates}: {exc}"
         return stats
 
-    @torch.no_grad()
-    def adapt_batchnorm(self, states: Sequence[Heightmaps]) -> int:
-        """Set every BatchNorm layer's running statistics to plain averages over ``states``, all rotations
-        (one batch per state, as the agent forwards a state); returns the number of states used."""
-        layers = [m for m in self.online.modules() if isinstance(m, torch.nn.modules.batchnorm._BatchNorm)]
-        if not layers or not states:
-            return 0
-        momenta = [m.momentum for m in layers]
-        try:
-            for m in layers:
-                m.reset_running_stats()
-                m.momentum = None  # a cumulative average over the batches below
-                m.train()
-            everything = list(range(self.rotations))
-            for hm in states:
-                color, height = rotated_inputs(hm, everything, self.rotations, self.online.stride, self.device)
-                self.online(color, height)
-        finally:
-            for m, momentum in zip(layers, momenta):
-                m.momentum = momentum
-            self._training_mode()
-        self.batchnorm_adaptations += 1
-        return len(states)
-
     def publish(self) -> bool:
-        """Post the online weights to the mailbox (if one is attached); with ``batchnorm: adapt`` their
-        BatchNorm statistics are first estimated afresh from the replay's newest states."""
+        """Post the online weights to the mailbox (if one is attached)."""
         if self.mailbox is None:
             return False
         with self._update_lock:
-            if self.config.learning.batchnorm == "adapt":
-                self.adapt_batchnorm(self.replay.recent_states(ADAPT_STATES))
             self.mailbox.post(self.online.state_dict(), version=self.updates)
             self.handovers += 1
         return True

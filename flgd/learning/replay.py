@@ -308,21 +308,6 @@ class PrioritizedReplay:
         """Rebuild after a restart: re-add (transition, raw priority) pairs in their original order."""
         return [self.add(t, p) for t, p in items]
 
-    def recent_states(self, count: int) -> list[Heightmaps]:
-        """The states s of the newest transitions, newest first, each distinct state once, at most ``count``."""
-        with self._lock:
-            seen: set[bytes] = set()
-            out: list[Heightmaps] = []
-            for back in range(1, self._size + 1):
-                slot = self._slots[(self._next - back) % self.capacity]
-                if slot is None or slot.state in seen:
-                    continue
-                seen.add(slot.state)
-                out.append(self._states.get(slot.state))
-                if len(out) >= count:
-                    break
-            return out
-
     def tag(self, index: int) -> int | None:
         with self._lock:
             self._check_index(index)
