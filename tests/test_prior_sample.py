@@ -78,6 +78,8 @@ def _rewrite(path: Path, **changes) -> None:
     ({"reward": np.array([1, np.nan, 0, 1], np.float32)}, "reward[1] is nan"),
     ({"state": np.array([0, 1, 2])}, "key next_state has shape (4,), expected (3,)"),
     ({"states": np.zeros(10, np.uint8)}, "state_offsets do not cut 'states'"),
+    ({"primitive": np.array(["grasp", "push", "shift", "grasp"])}, "key primitive holds <U5, expected integers"),
+    ({"done": np.array([0.0, 0.0, 0.0, 1.0])}, "key done holds float64, expected booleans"),
 ])
 def test_a_sample_that_does_not_fit_is_refused_naming_the_file_and_the_key(tmp_path, changes, needle):
     path = tmp_path / "prior.npz"

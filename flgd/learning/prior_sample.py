@@ -42,6 +42,11 @@ FORMAT = "flgd-prior-sample/1"
 MAX_PRIOR_BYTES = 512 * 1024 * 1024  # a sample of a few hundred transitions is a few MB
 _PER_TRANSITION = ("state", "next_state", "primitive", "row", "col", "rotation", "reward", "done")
 _KEYS = ("format", "states", "state_offsets", "rotations", "source") + _PER_TRANSITION
+_INTEGER = ("iu", "integers")
+_DTYPES = (("format", "U", "text"), ("source", "U", "text"), ("states", "u", "bytes (uint8)"),
+           ("state_offsets", *_INTEGER), ("rotations", *_INTEGER), ("state", *_INTEGER), ("next_state", *_INTEGER),
+           ("primitive", *_INTEGER), ("row", *_INTEGER), ("col", *_INTEGER), ("rotation", *_INTEGER),
+           ("reward", "fiu", "numbers"), ("done", "b", "booleans"))
 
 
 class PriorSampleError(ValueError):
@@ -149,6 +154,9 @@ def load_prior_sample(path: str | Path, rotations: int, shape: tuple[int, int]) 
     fmt = str(a["format"]) if a["format"].ndim == 0 else repr(a["format"])
     if fmt != FORMAT:
         raise PriorSampleError(f"{where}: format is {fmt!r}, expected {FORMAT!r}")
+    for key, kinds, what in _DTYPES:
+        if a[key].dtype.kind not in kinds:
+            raise PriorSampleError(f"{where}: key {key} holds {a[key].dtype}, expected {what}")
     n = int(a["state"].shape[0]) if a["state"].ndim == 1 else -1
     for key in _PER_TRANSITION:
         if a[key].ndim != 1 or a[key].shape[0] != n:
@@ -218,14 +226,15 @@ def sample_from_store(state_dir: str | Path, count: int, seed: int = 0) -> tuple
 
     store = Store(state_dir)
     try:
-        stored = list(store.iter_transitions())
+        total = store.transition_count()
+        rng = np.random.default_rng(seed)
+        picks = set(rng.choice(total, size=min(count, total), replace=False).tolist()) if total else set()
+        # streamed: a full store holds 20,000 states, far more than need to be in memory at once
+        chosen = [st for k, st in enumerate(store.iter_transitions()) if k in picks]
     finally:
         store.close()
-    rng = np.random.default_rng(seed)
-    picks = sorted(rng.choice(len(stored), size=min(count, len(stored)), replace=False).tolist()) if stored else []
-    chosen = [stored[i] for i in picks]
     transitions = [Transition(st.state, st.action, st.reward, st.next_state, st.done) for st in chosen]
-    source = {"state_dir": Path(state_dir).name, "stored_transitions": len(stored), "count": len(chosen),
+    source = {"state_dir": Path(state_dir).name, "stored_transitions": total, "count": len(chosen),
               "seed": seed, "steps": [st.step for st in chosen]}
     return transitions, source
 
