@@ -81,7 +81,7 @@ def main(argv: list[str]) -> int:
         for _ in range(args.scenes):
             cell.make_clutter(args.count)
             hm = frame_heightmaps(cell.capture(), config.workspace, config.camera.depth_range)
-            mask = grasp_mask(np.asarray(hm.height), config.rewards)
+            mask = grasp_mask(np.asarray(hm.height), config.rewards, config.workspace.resolution)
             if mask.any():   # a scene whose blocks all fell off the table has nothing to measure
                 states.append((hm, mask))
     finally:

@@ -2,6 +2,15 @@
 
 All functions take height heightmaps (metres above the table) and the reward
 thresholds of the config, so the same numbers judge a simulated and a real cell.
+
+Objects, not pixels: a pixel counts as part of an object only when it belongs to
+a connected region (8-neighbourhood) above ``rewards.min_height`` of at least
+``rewards.min_object_area``.  A depth camera lifts single pixels of empty table
+above any fixed height threshold (a D415 in every frame); unfiltered, such a
+speck is a grasp target in rho_g, a 21 px square of push targets in rho_m, and
+121 px of "clutter change" in eta.  Every mask below goes through the one
+filter, so acting, the learner's bootstrapped targets, the move reward and the
+empty-table test can never disagree about what is an object.
 """
 
 from __future__ import annotations
@@ -14,7 +23,11 @@ import numpy as np
 from flgd.config import GripperConfig, RewardConfig
 
 __all__ = [
+    "DEFAULT_RESOLUTION",
+    "min_region_pixels",
+    "keep_regions",
     "object_mask",
+    "objects",
     "clutter_map",
     "coverage_change",
     "height_rise",
@@ -31,25 +44,58 @@ def _kernel(size: int) -> np.ndarray:
     return np.ones((size, size), dtype=np.uint8)
 
 
-def object_mask(height: np.ndarray, min_height: float) -> np.ndarray:
-    """1 where something stands higher than ``min_height`` above the table, else 0 (uint8)."""
-    return (np.nan_to_num(height, nan=0.0) > min_height).astype(np.uint8)
+# metres per heightmap pixel when a caller gives none (the config's default workspace.resolution)
+DEFAULT_RESOLUTION = 0.002
 
 
-def clutter_map(height: np.ndarray, rc: RewardConfig) -> np.ndarray:
-    """The clutter quantization map: binarised heightmap, dilated (fills gaps between neighbours)."""
-    return cv2.dilate(object_mask(height, rc.min_height), _kernel(rc.clutter_dilation))
+def min_region_pixels(rc: RewardConfig, resolution: float = DEFAULT_RESOLUTION) -> int:
+    """``rewards.min_object_area`` (mm^2) as a pixel count at ``resolution`` m/px (0 = no filter)."""
+    if rc.min_object_area <= 0:
+        return 0
+    return max(1, int(np.ceil(rc.min_object_area * 1e-6 / (resolution * resolution) - 1e-9)))
 
 
-def coverage_change(before: np.ndarray, after: np.ndarray, rc: RewardConfig) -> int:
+def keep_regions(mask: np.ndarray, min_pixels: int) -> np.ndarray:
+    """``mask`` (0/1 uint8) without its 8-connected regions of fewer than ``min_pixels`` pixels."""
+    mask = np.ascontiguousarray(mask, dtype=np.uint8)
+    if min_pixels <= 1 or not mask.any():
+        return mask
+    count, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
+    small = stats[:, cv2.CC_STAT_AREA] < min_pixels
+    small[0] = True  # label 0 is the background
+    if not small[1:].any():
+        return mask
+    return np.where(small[labels], 0, 1).astype(np.uint8)
+
+
+def object_mask(height: np.ndarray, min_height: float, min_pixels: int = 0) -> np.ndarray:
+    """1 where something stands higher than ``min_height`` above the table in a connected region of at least
+    ``min_pixels`` pixels, else 0 (uint8)."""
+    return keep_regions((np.nan_to_num(height, nan=0.0) > min_height).astype(np.uint8), min_pixels)
+
+
+def objects(height: np.ndarray, rc: RewardConfig, resolution: float = DEFAULT_RESOLUTION) -> np.ndarray:
+    """The object mask of the module doc: above ``rc.min_height`` and in a region of ``rc.min_object_area``."""
+    return object_mask(height, rc.min_height, min_region_pixels(rc, resolution))
+
+
+def clutter_map(height: np.ndarray, rc: RewardConfig, resolution: float = DEFAULT_RESOLUTION) -> np.ndarray:
+    """The clutter quantization map: the object mask, dilated (fills gaps between neighbours)."""
+    return cv2.dilate(objects(height, rc, resolution), _kernel(rc.clutter_dilation))
+
+
+def coverage_change(before: np.ndarray, after: np.ndarray, rc: RewardConfig,
+                    resolution: float = DEFAULT_RESOLUTION) -> int:
     """eta(t): change in the number of set pixels of the clutter quantization map."""
-    return int(clutter_map(after, rc).sum(dtype=np.int64)) - int(clutter_map(before, rc).sum(dtype=np.int64))
+    return (int(clutter_map(after, rc, resolution).sum(dtype=np.int64))
+            - int(clutter_map(before, rc, resolution).sum(dtype=np.int64)))
 
 
-def height_rise(before: np.ndarray, after: np.ndarray, delta: float) -> int:
-    """mu(t): the number of pixels whose height rose by more than ``delta``."""
+def height_rise(before: np.ndarray, after: np.ndarray, delta: float, min_pixels: int = 0) -> int:
+    """mu(t): the number of pixels whose height rose by more than ``delta`` (in rising regions of at least
+    ``min_pixels`` pixels: a noise speck is no rise)."""
     diff = np.nan_to_num(after, nan=0.0) - np.nan_to_num(before, nan=0.0)
-    return int(np.count_nonzero(diff > delta))
+    return int(np.count_nonzero(keep_regions((diff > delta).astype(np.uint8), min_pixels)))
 
 
 @dataclass(frozen=True)
@@ -59,10 +105,11 @@ class MoveJudgement:
     eta: int
 
 
-def judge_move(before: np.ndarray, after: np.ndarray, rc: RewardConfig) -> MoveJudgement:
+def judge_move(before: np.ndarray, after: np.ndarray, rc: RewardConfig,
+               resolution: float = DEFAULT_RESOLUTION) -> MoveJudgement:
     """r_m = move_reward (0.5) if mu > tau1 or eta > tau2, else 0."""
-    mu = height_rise(before, after, rc.delta)
-    eta = coverage_change(before, after, rc)
+    mu = height_rise(before, after, rc.delta, min_region_pixels(rc, resolution))
+    eta = coverage_change(before, after, rc, resolution)
     reward = rc.move_reward if (mu > rc.tau1 or eta > rc.tau2) else 0.0
     return MoveJudgement(reward=reward, mu=mu, eta=eta)
 
@@ -72,20 +119,22 @@ def grasp_reward(width: float, gc: GripperConfig) -> float:
     return 1.0 if np.isfinite(width) and width > gc.success_threshold else 0.0
 
 
-def grasp_mask(height: np.ndarray, rc: RewardConfig) -> np.ndarray:
-    """rho_g: where an object is (height above the workspace minimum)."""
-    return object_mask(height, rc.min_height)
+def grasp_mask(height: np.ndarray, rc: RewardConfig, resolution: float = DEFAULT_RESOLUTION) -> np.ndarray:
+    """rho_g: where an object is (the object mask)."""
+    return objects(height, rc, resolution)
 
 
-def move_mask(height: np.ndarray, rc: RewardConfig) -> np.ndarray:
+def move_mask(height: np.ndarray, rc: RewardConfig, resolution: float = DEFAULT_RESOLUTION) -> np.ndarray:
     """rho_m: rho_g dilated, so that pushes may start beside objects."""
-    return cv2.dilate(grasp_mask(height, rc), _kernel(rc.move_mask_dilation))
+    return cv2.dilate(grasp_mask(height, rc, resolution), _kernel(rc.move_mask_dilation))
 
 
-def action_masks(height: np.ndarray, rc: RewardConfig, enabled: bool = True) -> tuple[np.ndarray, np.ndarray]:
+def action_masks(height: np.ndarray, rc: RewardConfig, enabled: bool = True,
+                 resolution: float = DEFAULT_RESOLUTION) -> tuple[np.ndarray, np.ndarray]:
     """(rho_g, rho_m) as the agent acts and the learner bootstraps; all ones when ``enabled`` is off
     (the DPEN ablation).  One function, so that the two can never mask differently."""
     if enabled:
-        return grasp_mask(height, rc), move_mask(height, rc)
+        rho_g = grasp_mask(height, rc, resolution)
+        return rho_g, cv2.dilate(rho_g, _kernel(rc.move_mask_dilation))
     ones = np.ones(height.shape, dtype=np.uint8)
     return ones, ones.copy()

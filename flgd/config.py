@@ -121,6 +121,10 @@ class CameraConfig:
     temporal_filter: bool = param(False, help="real cell: librealsense temporal filter over a few "
                                               "consecutive frames per capture")
     hole_filling: bool = param(False, help="real cell: librealsense hole filling of missing depth")
+    depth_fill: Literal["lowest", "inpaint", "off"] = param(
+        "lowest", help="heightmap cells without a depth reading, every cell: lowest = the lowest valid neighbour "
+                       "(holes in objects get their height, shadows beside them the table's), inpaint = OpenCV "
+                       "inpainting, off = table height")
 
 
 @dataclass(frozen=True)
@@ -189,6 +193,9 @@ class RewardConfig:
     tau1: int = param(500, unit="px", ge=0, help="mu above this rewards a move")
     tau2: int = param(200, unit="px", ge=0, help="eta above this rewards a move")
     min_height: float = param(0.01, unit="m", gt=0.0, help="object/background height threshold")
+    min_object_area: float = param(36.0, unit="mm^2", ge=0.0, le=10000.0,
+                                   help="a connected region above min_height smaller than this is depth noise, "
+                                        "not an object (0 = every pixel counts)")
     clutter_dilation: int = param(11, unit="px", ge=1, help="kernel size of the clutter quantization map")
     move_mask_dilation: int = param(21, unit="px", ge=1, help="kernel size turning rho_g into rho_m")
     shift_height: float = param(0.01, unit="m", gt=0.0, help="a move point higher than this is a shift")
@@ -210,6 +217,18 @@ class ExplorationConfig:
     grasp_only: bool = param(False, help="never choose a move (paper's Grasping-only mode, Table II)")
     twin_grasps: bool = param(False, help="act on the mean of a grasp's two rotations (theta and theta + pi close "
                                           "the two-finger gripper the same way) instead of each alone")
+    failure_memory: bool = param(True, help="remember, per scene, where a grasp failed and where a move changed "
+                                            "nothing, and do not choose there again until the heightmap changes "
+                                            "there (false = the paper's rules alone)")
+    failure_radius: float = param(0.012, unit="m", gt=0.0, le=0.1,
+                                  help="radius of the region a failed action suppresses")
+    failure_rotations: int = param(1, ge=0, help="rotation steps either side of a failed action's that it "
+                                                 "suppresses too")
+    stuck_after: int = param(15, ge=0, unit="actions", help="actions without a successful grasp after which the "
+                                                            "cell declares itself stuck (0 = never)")
+    stuck_action: Literal["pause", "continue"] = param(
+        "pause", help="a stuck cell that cannot re-lay its own scene: pause until `flgctl start`, or record it "
+                      "and continue with a clean failure memory")
 
 
 @dataclass(frozen=True)

@@ -27,6 +27,13 @@ Outcomes of a cycle (``CycleRecord.outcome``):
     caller must not cycle on (each cycle would home the arm and capture again).
   * ``stopped``   -- ``request_stop`` interrupted the action: the arm was halted
     where it was, nothing more is sent, the action is logged and not learned from.
+  * ``stuck``     -- the agent's escalation ladder gave up on this scene
+    (``exploration.stuck_after`` actions without a successful grasp, or every
+    allowed action suppressed by the failure memory): nothing was done and no
+    step taken; ``CycleRecord.failure`` holds the evidence.  A cell that can lay
+    out a new scene did so (``CycleRecord.relaid``); on any other cell the
+    scene's memory is cleared and the caller decides whether to pause for a
+    person (``exploration.stuck_action``).
 """
 
 from __future__ import annotations
@@ -80,6 +87,7 @@ class CycleRecord:
     timings: dict[str, float] = field(default_factory=dict)
     transition_id: int | None = None
     refill_needed: bool = False      # "empty" on a cell that cannot reset its own scene
+    relaid: bool = False             # "stuck" on a cell that laid out a new scene by itself
     policy: int | None = None        # the gate's id of the policy credited (None: epsilon-random, no gate)
 
     @property
@@ -183,7 +191,7 @@ class CycleRunner:
             frame = self.cell.capture()
         with timer.phase("perceive"):
             cam = self.config.camera
-            return frame_heightmaps(frame, self.config.workspace, cam.depth_range)
+            return frame_heightmaps(frame, self.config.workspace, cam.depth_range, cam.depth_fill)
 
     def perceive_now(self) -> Heightmaps:
         """A fresh capture and its heightmaps, outside any cycle (for snapshots); keeps the cycle's state."""
@@ -214,7 +222,7 @@ class CycleRunner:
         hint = self.cell.workspace_empty_hint()
         if hint is True:
             return True
-        return not bool(grasp_mask(hm.height, self.config.rewards).any())
+        return not bool(grasp_mask(hm.height, self.config.rewards, self.config.workspace.resolution).any())
 
     def _commit(self, record: CycleRecord, transition: Any, timer: _Timer) -> None:
         t0 = time.perf_counter()
@@ -278,7 +286,19 @@ class CycleRunner:
         with timer.phase("decide"):
             if hasattr(self.agent, "maybe_swap_weights"):
                 self.agent.maybe_swap_weights()
-            decision = self.agent.decide(state, self.step)
+            stuck = _stuck_reason(self.agent)
+            decision = None if stuck else self.agent.decide(state, self.step)
+            if decision is None and not stuck:
+                stuck = _stuck_reason(self.agent)  # the decision found nothing left to try
+        if stuck:
+            record.outcome = "stuck"
+            record.failure = stuck
+            if self.cell.can_reset_scene():
+                self._reset_scene(timer)
+                record.relaid = True
+            else:
+                self._new_scene()
+            return finish()
         if decision is None:
             if self.cell.can_reset_scene():
                 self._reset_scene(timer)
@@ -312,7 +332,8 @@ class CycleRunner:
             record.reward = 0.0
             if action.primitive == "grasp":
                 record.success = False
-            self.agent.record_outcome(action, False if action.primitive == "grasp" else None)
+            _record_outcome(self.agent, action, False if action.primitive == "grasp" else None, False,
+                            state.height, record.kind)
             self._commit(finish(), _make_transition(state, action, 0.0, state, False), timer)
             return finish()
 
@@ -368,12 +389,14 @@ class CycleRunner:
                 record.success = held
                 record.reward = 1.0 if held else 0.0
             else:
-                judgement = judge_move(state.height, after.height, self.config.rewards)
+                judgement = judge_move(state.height, after.height, self.config.rewards,
+                                       self.config.workspace.resolution)
                 record.reward, record.mu, record.eta = judgement.reward, judgement.mu, judgement.eta
             if not result.completed:
                 record.failure = result.failure
             record.done = self._empty(after)
-            self.agent.record_outcome(action, record.success if action.primitive == "grasp" else None)
+            _record_outcome(self.agent, action, record.success if action.primitive == "grasp" else None,
+                            bool(record.reward), after.height, record.kind)
         record.outcome = "executed"
         transition = _make_transition(state, action, float(record.reward),
                                       None if record.done else after, record.done)
@@ -383,6 +406,18 @@ class CycleRunner:
         else:
             self.current = after
         return finish()
+
+
+def _stuck_reason(agent: Any) -> str:
+    """The agent's reason to give up on this scene ('' = none; agents without a ladder never give up)."""
+    reason = getattr(agent, "stuck_reason", None)
+    return str(reason() or "") if callable(reason) else ""
+
+
+def _record_outcome(agent: Any, action: Action, grasp_success: bool | None, move_changed: bool,
+                    height_after: np.ndarray, kind: str | None) -> None:
+    """Tell the agent what its action did, and the heightmap that was judged (for its failure memory)."""
+    agent.record_outcome(action, grasp_success, move_changed=move_changed, height_after=height_after, kind=kind)
 
 
 def _was_stopped(result: ExecutionResult) -> bool:

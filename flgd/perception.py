@@ -7,8 +7,26 @@ frames go through identical code.
 Heightmap conventions: rows follow base y and columns follow base x, both
 increasing with the coordinate; pixel (r, c) covers
 [x0 + c*res, x0 + (c+1)*res) x [y0 + r*res, y0 + (r+1)*res).  Heights are
-metres above the table (workspace.z[0]); the highest point in a cell wins;
-cells with no valid point are 0.
+metres above the table (workspace.z[0]); the highest point in a cell wins.
+
+Cells with no valid point -- a depth camera's holes: dropouts, the stereo
+shadow beside tall objects, edges where matching fails, and cells the camera
+cannot see -- are *unknown*, not table.  Left at 0 a hole inside an object
+would look like a gap the fingers fit into.  ``camera.depth_fill`` fills them
+from their valid neighbours and ``Heightmaps.filled`` marks them, so that
+pictures can show them:
+
+* ``lowest``: each hole (connected unknown cells) takes the lowest height on
+  its rim (OpenCV's connected components and a grey-level erosion; colours are
+  inpainted): a hole inside an object gets the object's height, a hole that
+  touches the table -- the shadow a tall object casts, which hides table --
+  gets the table's, as an unfilled map had it;
+* ``inpaint``: OpenCV's inpainting (the Navier-Stokes method), colour and
+  height alike: smooth ramps across holes, also across a shadow beside an object;
+* ``off``: unknown cells stay 0 (table), as before.
+
+A frame with too few valid cells to fill from (``FILL_MIN_VALID``) is left as
+it is: there is nothing trustworthy to fill from.
 """
 
 from __future__ import annotations
@@ -16,22 +34,68 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
 from flgd.config import WorkspaceConfig
 
-__all__ = ["Heightmaps", "make_heightmaps", "pixel_to_base", "base_to_pixel"]
+__all__ = ["Heightmaps", "make_heightmaps", "fill_unknown", "FILL_METHODS", "pixel_to_base", "base_to_pixel"]
 
 # Points this far below the table are still table (depth noise); lower ones are dropped.
 TABLE_TOLERANCE = 0.02
+# radius (px) of the neighbourhood an unknown cell is filled from
+FILL_RADIUS = 3
+# below this share of valid cells a heightmap is not filled (a covered lens, a camera that lost its depth)
+FILL_MIN_VALID = 0.5
+FILL_METHODS = ("lowest", "inpaint", "off")
+_NO_READING = np.float32(1.0e6)  # above any height: never the lowest neighbour
+_KERNEL3 = np.ones((3, 3), np.uint8)
 
 
 @dataclass(frozen=True)
 class Heightmaps:
-    """colour: HxWx3 uint8 RGB; height: HxW float32 metres above the table."""
+    """colour: HxWx3 uint8 RGB; height: HxW float32 metres above the table; filled: HxW bool, True where no
+    depth reading fell and the value was filled from the neighbours (None: not known, e.g. a stored state)."""
 
     color: np.ndarray
     height: np.ndarray
+    filled: np.ndarray | None = None
+
+
+def fill_unknown(color: np.ndarray, height: np.ndarray, unknown: np.ndarray,
+                 method: str = "lowest") -> tuple[np.ndarray, np.ndarray, bool]:
+    """(colour, height, filled?): ``unknown`` cells filled from their valid neighbours by ``method`` (module doc).
+
+    Returns the inputs unchanged (and False) when nothing is unknown, too little is known to fill from, or
+    ``method`` is ``off``.
+    """
+    if method not in FILL_METHODS:
+        raise ValueError(f"fill method: got {method!r}, expected one of {', '.join(FILL_METHODS)}")
+    unknown = np.asarray(unknown, dtype=bool)
+    n_unknown = int(np.count_nonzero(unknown))
+    if method == "off" or n_unknown == 0 or n_unknown > (1.0 - FILL_MIN_VALID) * unknown.size:
+        return color, height, False
+    if method == "lowest":
+        return _fill_lowest(color, height, unknown)
+    mask = unknown.astype(np.uint8)
+    height = cv2.inpaint(np.ascontiguousarray(height, dtype=np.float32), mask, FILL_RADIUS, cv2.INPAINT_NS)
+    color = cv2.inpaint(np.ascontiguousarray(color, dtype=np.uint8), mask, FILL_RADIUS, cv2.INPAINT_NS)
+    return color, np.maximum(height, 0.0), True
+
+
+def _fill_lowest(color: np.ndarray, height: np.ndarray, unknown: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
+    """Each hole (8-connected unknown cells) takes the lowest height on its rim; colours are inpainted."""
+    count, labels = cv2.connectedComponents(unknown.astype(np.uint8), connectivity=8)
+    # the rim: valid cells next to a hole; each unknown cell next to the rim sees its lowest rim neighbour
+    lowest_near = cv2.erode(np.where(unknown, _NO_READING, height).astype(np.float32), _KERNEL3)
+    touching = unknown & (lowest_near < _NO_READING)
+    rim_min = np.full(count, _NO_READING, dtype=np.float32)
+    np.minimum.at(rim_min, labels[touching], lowest_near[touching])
+    rim_min[rim_min >= _NO_READING] = 0.0  # a hole with no valid rim (cannot happen above FILL_MIN_VALID)
+    out = np.array(height, dtype=np.float32, copy=True)
+    out[unknown] = rim_min[labels[unknown]]
+    colour = cv2.inpaint(np.ascontiguousarray(color, dtype=np.uint8), unknown.astype(np.uint8), 1, cv2.INPAINT_NS)
+    return colour, out, True
 
 
 class _RayCache:
@@ -88,11 +152,12 @@ def _check_inputs(color: np.ndarray, depth: np.ndarray, intrinsics: np.ndarray, 
 
 def make_heightmaps(color: np.ndarray, depth: np.ndarray, intrinsics: np.ndarray, depth_scale: float,
                     camera_pose: np.ndarray, workspace: WorkspaceConfig,
-                    depth_range: tuple[float, float] = (0.0, np.inf)) -> Heightmaps:
+                    depth_range: tuple[float, float] = (0.0, np.inf), fill: str = "lowest") -> Heightmaps:
     """Project an RGB-D frame orthographically onto the workspace.
 
     ``depth`` is raw (uint16 units times ``depth_scale`` metres) or float metres
     with ``depth_scale`` 1.  Zero, NaN and out-of-range readings are ignored.
+    ``fill``: how cells without a reading are filled (``FILL_METHODS``, module doc); ``off``: they are 0.
     """
     _check_inputs(color, depth, intrinsics, depth_scale, camera_pose)
     h, w = depth.shape
@@ -132,7 +197,14 @@ def make_heightmaps(color: np.ndarray, depth: np.ndarray, intrinsics: np.ndarray
     color_flat = np.zeros(rows * cols, dtype=np.dtype((np.void, 3)))
     color_flat[cell[top]] = rgb[src[top]]
     color_flat = color_flat.view(np.uint8)
-    return Heightmaps(color=color_flat.reshape(rows, cols, 3), height=height.reshape(rows, cols))
+    colour_map, height_map = color_flat.reshape(rows, cols, 3), height.reshape(rows, cols)
+    if fill == "off":
+        return Heightmaps(color=colour_map, height=height_map)
+    unknown = np.ones(rows * cols, dtype=bool)
+    unknown[cell] = False
+    unknown = unknown.reshape(rows, cols)
+    colour_map, height_map, filled = fill_unknown(colour_map, height_map, unknown, fill)
+    return Heightmaps(color=colour_map, height=height_map, filled=unknown if filled else np.zeros_like(unknown))
 
 
 def pixel_to_base(row: float, col: float, height: float, workspace: WorkspaceConfig) -> tuple[float, float, float]:
@@ -149,7 +221,8 @@ def base_to_pixel(x: float, y: float, workspace: WorkspaceConfig) -> tuple[int, 
     return (int(np.floor((y - workspace.y[0]) / res)), int(np.floor((x - workspace.x[0]) / res)))
 
 
-def frame_heightmaps(frame, workspace: WorkspaceConfig, depth_range: tuple[float, float]) -> Heightmaps:
-    """Heightmaps of a ``flgd.cell.Frame``."""
+def frame_heightmaps(frame, workspace: WorkspaceConfig, depth_range: tuple[float, float],
+                     fill: str = "lowest") -> Heightmaps:
+    """Heightmaps of a ``flgd.cell.Frame`` (``fill``: see ``make_heightmaps``)."""
     return make_heightmaps(frame.color, frame.depth, frame.intrinsics, frame.depth_scale,
-                           frame.camera_pose, workspace, depth_range)
+                           frame.camera_pose, workspace, depth_range, fill)

@@ -71,11 +71,11 @@ def test_mu_alone_triggers_the_move_reward() -> None:
 
 
 def test_clutter_map_is_binarised_then_dilated() -> None:
-    hm = heightmap_with([(50, 50, 1, 1, 0.02), (60, 60, 1, 1, RC.min_height / 2)])
+    hm = heightmap_with([(50, 50, 4, 4, 0.02), (70, 70, 4, 4, RC.min_height / 2)])
     cm = clutter_map(hm, RC)
     k = RC.clutter_dilation
-    assert cm.sum() == k * k  # only the pixel above min_height, grown to a k x k square
-    assert cm[50, 50] == 1 and cm[60, 60] == 0
+    assert cm.sum() == (4 + k - 1) ** 2  # only the block above min_height, grown by the k x k kernel
+    assert cm[50, 50] == 1 and cm[71, 71] == 0
 
 
 def test_masks() -> None:
@@ -92,3 +92,64 @@ def test_masks() -> None:
                                             (float("nan"), 0.0)])
 def test_grasp_reward_from_width(width: float, expected: float) -> None:
     assert grasp_reward(width, GripperConfig(success_threshold=0.005)) == expected
+
+
+# --- objects, not pixels (rewards.min_object_area) ---------------------------------------------------------------
+
+def _specks(n: int, seed: int = 0, size: int = 224, height: float = 0.015) -> np.ndarray:
+    """``n`` single-pixel spikes above min_height on an empty table, none touching another."""
+    rng = np.random.default_rng(seed)
+    hm = np.zeros((size, size), np.float32)
+    placed = 0
+    while placed < n:
+        r, c = (int(v) for v in rng.integers(2, size - 2, 2))
+        if hm[r - 1:r + 2, c - 1:c + 2].any():
+            continue
+        hm[r, c] = height
+        placed += 1
+    return hm
+
+
+def test_scattered_one_pixel_spikes_on_an_empty_table_give_empty_masks() -> None:
+    hm = _specks(200)
+    assert grasp_mask(hm, RC).sum() == 0
+    assert move_mask(hm, RC).sum() == 0
+    assert clutter_map(hm, RC).sum() == 0
+    # the filter is what empties them: every speck is an "object" with it off
+    off = RewardConfig(min_object_area=0.0)
+    assert grasp_mask(hm, off).sum() == 200 and move_mask(hm, off).sum() > 200 * 100
+
+
+def test_a_blocks_masks_are_unchanged_by_the_filter_even_with_specks_around_it() -> None:
+    block = heightmap_with([(100, 100, 12, 15, 0.03), (30, 150, 4, 3, 0.02)])  # a block, and a 4 x 3 px bar
+    off = RewardConfig(min_object_area=0.0)
+    for f in (grasp_mask, move_mask, clutter_map):
+        assert np.array_equal(f(block, RC), f(block, off)), f.__name__
+    specks = _specks(150, seed=1)
+    specks[95:118, 95:120] = 0   # none touching the block (a speck on its edge is part of it)
+    specks[25:39, 145:158] = 0
+    noisy = np.maximum(block, specks)
+    assert np.array_equal(grasp_mask(noisy, RC), grasp_mask(block, off))
+    assert np.array_equal(move_mask(noisy, RC), move_mask(block, off))
+
+
+def test_the_filter_is_sized_in_square_millimetres_at_the_heightmap_resolution() -> None:
+    from flgd.clutter import min_region_pixels
+
+    rc = RewardConfig(min_object_area=36.0)
+    assert min_region_pixels(rc, 0.002) == 9      # 2 mm pixels: 3 x 3 px
+    assert min_region_pixels(rc, 0.001) == 36     # 1 mm pixels
+    assert min_region_pixels(RewardConfig(min_object_area=0.0), 0.002) == 0
+    two_by_two = heightmap_with([(50, 50, 2, 2, 0.02)])   # 16 mm^2 at 2 mm/px: noise
+    three_by_three = heightmap_with([(50, 50, 3, 3, 0.02)])
+    assert grasp_mask(two_by_two, rc, 0.002).sum() == 0 and grasp_mask(three_by_three, rc, 0.002).sum() == 9
+    assert grasp_mask(two_by_two, rc, 0.001).sum() == 0 and grasp_mask(three_by_three, rc, 0.001).sum() == 0
+
+
+def test_new_specks_are_no_clutter_change_and_no_height_rise() -> None:
+    before = heightmap_with([(100, 100, 25, 25, 0.05)])
+    after = np.maximum(before, _specks(40, seed=2))
+    judged = judge_move(before, after, RC)
+    assert judged.eta == 0 and judged.mu == 0 and judged.reward == 0.0
+    off = judge_move(before, after, RewardConfig(min_object_area=0.0))
+    assert off.eta > RC.tau2 and off.reward == RC.move_reward   # unfiltered, noise alone "moved the clutter"

@@ -101,7 +101,7 @@ class ScriptedAgent:
             d = dataclasses.replace(d, action=self.script[step](heightmaps), rule="scripted")
         return d
 
-    def record_outcome(self, action, grasp_success):
+    def record_outcome(self, action, grasp_success, **outcome):
         self.agent.record_outcome(action, grasp_success)
 
     def maybe_swap_weights(self):

@@ -134,7 +134,7 @@ class _GraspTheEmptyCorner:
         ones = np.ones((h, w), np.uint8)
         return Decision(Action("grasp", 20, 20, 0, self.rotations), q, ones, ones, 0.0, "greedy", 0.0)
 
-    def record_outcome(self, action, success) -> None:
+    def record_outcome(self, action, success, **outcome) -> None:
         pass
 
     def reset_episode(self) -> None:

@@ -82,7 +82,7 @@ def test_greedy_takes_the_higher_of_the_best_grasp_and_the_best_move_and_names_p
 
 def test_anti_repeat_fires_exactly_when_the_chosen_pixel_repeats_and_picks_among_the_top_m():
     height = scene_height()
-    a = agent(config(top_m=3))
+    a = agent(config(top_m=3, failure_memory=False))  # the paper's rule: only the pixel itself is excluded
     q = np.zeros((R, 2, N, N), np.float32)
     q[0, 0, 10, 10] = 1.0
     q[1, 0, 10, 10] = 0.95  # same pixel, other rotation: excluded too

@@ -66,7 +66,7 @@ def test_boxes_heights_and_footprints(tilt: float) -> None:
     assert np.abs(table).max() <= 0.002
 
 
-def test_invalid_depth_is_ignored_and_empty_cells_are_zero() -> None:
+def test_invalid_depth_is_ignored_and_unfilled_empty_cells_are_zero() -> None:
     k = intrinsics_matrix()
     pose = camera_looking_down(-0.5, 0.0, 0.70)
     box = Box(-0.5, 0.0, 0.06, 0.06, 0.05)
@@ -76,11 +76,37 @@ def test_invalid_depth_is_ignored_and_empty_cells_are_zero() -> None:
     depth_f[200:280, 280:360] = 0.0
     depth_f[230:240, 300:340] = np.nan
     depth_f[250:255, 300:340] = 5.0
-    hm = make_heightmaps(color, depth_f, k, 1.0, pose, WS, depth_range=(0.2, 1.5))
+    hm = make_heightmaps(color, depth_f, k, 1.0, pose, WS, depth_range=(0.2, 1.5), fill="off")
     assert np.isfinite(hm.height).all()
     assert hm.height.max() <= box.height + 0.002
     r, c = base_to_pixel(-0.5, 0.0, WS)
-    assert hm.height[r, c] == 0.0 and (hm.color[r, c] == 0).all()
+    assert hm.height[r, c] == 0.0 and (hm.color[r, c] == 0).all() and hm.filled is None
+    # filled, the hole (which reaches the table around the box) takes the table's height, and is marked
+    filled = make_heightmaps(color, depth_f, k, 1.0, pose, WS, depth_range=(0.2, 1.5))
+    assert filled.height[r, c] == 0.0 and filled.filled[r, c]
+
+
+@pytest.mark.parametrize("method", ["lowest", "inpaint"])
+def test_holes_inside_a_block_get_the_blocks_height_and_are_marked(method: str) -> None:
+    k = intrinsics_matrix()
+    pose = camera_looking_down(-0.5, 0.0, 0.70)
+    box = Box(-0.5, 0.0, 0.08, 0.08, 0.05, color=(200, 60, 30))
+    color, depth = render([box], pose, k)
+    holed = depth.copy()
+    rng = np.random.default_rng(3)
+    holes = np.zeros(depth.shape, bool)
+    holes[225:255, 305:335] = rng.random((30, 30)) < 0.3   # dropouts scattered over the top face
+    holes[236:244, 316:324] = True                         # and one larger hole in its middle
+    holed[holes] = 0
+    hm = make_heightmaps(color, holed, k, 0.001, pose, WS, fill=method)
+    plain = make_heightmaps(color, holed, k, 0.001, pose, WS, fill="off")
+    r, c = base_to_pixel(-0.5, 0.0, WS)
+    assert plain.height[r, c] == 0.0, "the hole is there without filling"
+    top = true_footprint(box)
+    top = cv2.erode(top.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
+    assert np.abs(hm.height[top] - box.height).max() <= 0.002
+    assert (hm.color[top] == np.array(box.color, np.uint8)).all()
+    assert hm.filled[r, c] and hm.filled[top].sum() == (plain.height[top] < 0.01).sum()
 
 
 def test_highest_point_wins_each_cell() -> None:

@@ -95,6 +95,7 @@ class Controller:
         self.trainer_state = "fresh"  # what the learner's target network and Adam moments started from
         self.last_checkpoint: str = ""
         self.last_record: CycleRecord | None = None
+        self.last_stuck: dict[str, Any] | None = None  # the newest time the cell declared itself stuck
         self.cycle_in_flight = False
         self._learning_problem = ""
         self._learning_lock = threading.Lock()  # a policy load and a learner rebuild never interleave
@@ -419,7 +420,29 @@ class Controller:
             self._event("scene", "workspace empty: new scene")
         elif record.outcome == "discarded":
             self._event("discarded", f"step {record.step}: {record.failure}")
+        elif record.outcome == "stuck":
+            self._on_stuck(record)
         self.notifier.status(self.status_text())
+
+    def _on_stuck(self, record: Any) -> None:
+        """The agent gave up on this scene: say so (event, status, metric), and on a cell that cannot re-lay
+        its own scene pause for a person unless ``exploration.stuck_action`` is ``continue``."""
+        if record.relaid:
+            what = "the scene was laid out anew"
+        elif self.config.exploration.stuck_action == "pause":
+            what = "paused: clear or rearrange the table, then flgctl start"
+        else:
+            what = "continuing with a clean failure memory (exploration.stuck_action: continue)"
+        message = f"stuck after step {self.runner.step - 1 if self.runner else '?'}: {record.failure}; {what}"
+        self.last_stuck = {"time": record.time, "reason": record.failure, "relaid": record.relaid, "action": what}
+        log.warning("%s", message)
+        self._event("stuck", message)
+        if not record.relaid and self.config.exploration.stuck_action == "pause":
+            try:
+                self.state.transition(State.PAUSED, f"stuck: {record.failure}; flgctl start resumes",
+                                      allowed_from=frozenset({State.RUNNING}))
+            except IllegalTransition:
+                pass  # paused or stopping meanwhile: either way no further cycle runs
 
     def _wait_for_refill(self) -> None:
         """PAUSED until the operator refilled the table: a real cell cannot do it, so cycling on would
@@ -594,6 +617,9 @@ class Controller:
             "last_checkpoint": self.last_checkpoint,
             "store_problem": self.store_problem,
             "last_cycle": last,
+            "last_stuck": self.last_stuck,
+            "failure_memory": (self.agent.memory.status() if getattr(self.agent, "memory", None) is not None
+                               else None),
             **{k: v for k, v in self.summary().items()},
         }
 
@@ -926,7 +952,8 @@ class Controller:
         image = qmap_picture(hm.color, hm.height, decision.q_maps, decision.grasp_mask, decision.move_mask,
                              decision.action, caption=f"{note}: step {step}, rule {decision.rule}, "
                                                   f"Q {decision.q_value:.3f}",
-                             glyph=ActionGlyph.from_config(self.config))
+                             glyph=ActionGlyph.from_config(self.config), filled=hm.filled,
+                             suppressed=decision.suppressed)
         return {"png_base64": base64.b64encode(encode_png(image)).decode("ascii"), "source": note, "step": step,
                 "action": dataclasses.asdict(decision.action), "q_value": decision.q_value}
 
@@ -948,7 +975,8 @@ class Controller:
             action = greedy_action(q, gmask, mmask, hm.height, self.config.rewards.shift_height)
         note = "fresh capture, greedy action (not executed)"
         image = qmap_picture(hm.color, hm.height, q, gmask, mmask, action, caption=note,
-                             glyph=ActionGlyph.from_config(self.config))
+                             glyph=ActionGlyph.from_config(self.config), filled=hm.filled,
+                             suppressed=self.agent.memory.footprint() if self.agent.memory.entries else None)
         return {"png_base64": base64.b64encode(encode_png(image)).decode("ascii"), "source": note,
                 "action": None if action is None else dataclasses.asdict(action),
                 "q_value": None if action is None else float(q[action.rotation, action.channel, action.row,

@@ -53,6 +53,8 @@ def compute_stats(store: Store) -> dict[str, Any]:
                                      "AND primitive='grasp' AND contact_stop_mm IS NOT NULL")]
     cycle_time = _cycle_time(store)
     faults = q("SELECT COUNT(*) FROM events WHERE kind='fault'")[0][0]
+    stuck = q("SELECT COUNT(*) FROM events WHERE kind='stuck'")[0][0]
+    since_pick = _actions_since_pick(store)
     cols = ", ".join(f"t_{p}" for p in TIMING_PHASES)
     recent = q(f"SELECT {cols}, duration FROM actions ORDER BY step DESC LIMIT ?", (TIMING_WINDOW,))
     timing: dict[str, float | None] = {}
@@ -80,6 +82,8 @@ def compute_stats(store: Store) -> dict[str, Any]:
         "contact_stop_share": (len(stopped_short) / attempts) if attempts else None,
         "contact_stop_mm_median": statistics.median(stopped_short) if stopped_short else None,
         "faults": faults,
+        "stuck_events": stuck,
+        "actions_since_pick": since_pick,
         "cycle_time_total": cycle_time,
         "timing_median": timing,
         "timing_window": min(len(recent), TIMING_WINDOW),
@@ -95,6 +99,13 @@ def status_summary(store: Store) -> dict[str, Any]:
     successes = q("SELECT COALESCE(SUM(success), 0) FROM actions WHERE outcome='executed' AND primitive='grasp'")[0][0]
     return {"cycles": cycles, "grasp_success_last_50": _rate(rows),
             "picks_per_hour": _picks_per_hour(successes, _cycle_time(store))}
+
+
+def _actions_since_pick(store: Store) -> int:
+    """Decided actions (executed or refused) logged after the newest successful grasp: the loop a person
+    should hear about when it grows (docs/metrics.md's alert)."""
+    return store.query("SELECT COUNT(*) FROM actions WHERE outcome IN ('executed', 'refused') AND step > "
+                       "(SELECT COALESCE(MAX(step), -1) FROM actions WHERE success=1)")[0][0]
 
 
 def _cycle_time(store: Store) -> float:
@@ -130,6 +141,8 @@ def format_stats(s: dict[str, Any]) -> str:
         f"{_num(s['contact_stop_mm_median'], '{:.1f}')} mm short of the planned depth",
         f"plans refused        {s['plans_refused']}",
         f"faults               {s['faults']}",
+        f"stuck                {s['stuck_events']} times declared; {s['actions_since_pick']} actions since the "
+        f"last successful grasp",
         f"cycle time (median of last {s['timing_window']}):",
     ]
     for phase in (*TIMING_PHASES, "cycle", "controller"):

@@ -148,6 +148,10 @@ def cell_metric_families(controller: Any, state_name: Callable[[], str],
     yield fam
     yield _counter("flgd_plans_refused", "plans the safety envelope refused (never sent to the cell)",
                    stats["plans_refused"])
+    yield _counter("flgd_stuck", "times the cell declared itself stuck (exploration.stuck_after actions without a "
+                                 "successful grasp, or nothing left to try)", stats["stuck_events"])
+    yield GaugeMetricFamily("flgd_actions_since_pick", "actions decided since the last successful grasp",
+                            value=float(stats["actions_since_pick"]))
     fam = HistogramMetricFamily("flgd_cycle_phase_seconds", "duration of each phase of a cycle, and of the "
                                                             "whole cycle (phase=\"cycle\")", labels=["phase"])
     for phase, (counts, total, n) in phases.items():

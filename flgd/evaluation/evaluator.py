@@ -7,6 +7,9 @@ clutter), forget the agent's episode state, then cycle until the run ends:
 * ``nothing-graspable`` -- objects are left but none shows in the grasp mask;
 * ``failures``          -- more than ``failure_limit`` consecutive failed actions
   (VPG's test rule; see ``flgd.evaluation.metrics``);
+* ``stuck``             -- the cell declared itself stuck (the agent's escalation
+  ladder, ``exploration.stuck_after``): counted, not completed -- the daemon's
+  simulated cell would re-lay the scene here;
 * ``action-limit``      -- ``max_actions`` actions (default: 10 per object, at least 30;
   a safety net for policies that keep moving the clutter around);
 * ``unstable`` / ``fault`` -- the simulator gave up (not counted in the rates).
@@ -318,7 +321,9 @@ class Evaluator:
                 streak = 0 if entry.success else streak + 1
                 if self.options.save_qmaps is not None:
                     self._save_qmap(spec, number, len(actions), record)
-            if record.outcome == "discarded":
+            if record.outcome == "stuck":
+                end, note = "stuck", record.failure
+            elif record.outcome == "discarded":
                 end, note = "unstable", record.failure
             elif record.outcome == "stopped":
                 end, note = "fault", record.failure
@@ -345,5 +350,6 @@ class Evaluator:
         caption = (f"{spec.name} run {run} action {number}: {record.kind} -> {_result_text(record)}"
                    f"   | rule {decision.rule}, eps {decision.epsilon:.2f}")
         image = qmap_picture(hm.color, hm.height, decision.q_maps, decision.grasp_mask, decision.move_mask,
-                             decision.action, caption=caption, glyph=ActionGlyph.from_config(self.config))
+                             decision.action, caption=caption, glyph=ActionGlyph.from_config(self.config),
+                             filled=hm.filled, suppressed=decision.suppressed)
         write_png(folder / f"action{number:03d}-{record.kind}.png", image)

@@ -20,6 +20,14 @@ A *run* is one attempt to clear one scene.  Definitions:
   not complete has no efficiency).
 * **moves**: executed pushes and shifts, by kind; **actions** counts every
   decided action (executed or refused).
+* **picks per action**: successful grasps / actions, pooled over the counted
+  runs -- beside grasp success per grasp, since a run that spends 150 actions
+  pushing can keep a good rate per grasp.
+* **loops**: the longest failure streak (consecutive failed actions), the
+  actions spent in streaks of at least ``LONG_STREAK`` (5), and the runs that
+  ended because the cell declared itself **stuck** (``exploration.stuck_after``
+  actions without a successful grasp, or nothing left to try): such a run is
+  counted and not completed; in the daemon the simulated cell re-lays its scene.
 """
 
 from __future__ import annotations
@@ -28,12 +36,13 @@ import statistics
 from dataclasses import dataclass, field
 from typing import Any, Iterable, Sequence
 
-__all__ = ["FAILURE_LIMIT", "ABORTED_ENDS", "RUN_ENDS", "ActionEntry", "RunLog", "RunResult", "Summary",
-           "longest_failure_streak", "run_result", "summarize"]
+__all__ = ["FAILURE_LIMIT", "LONG_STREAK", "ABORTED_ENDS", "RUN_ENDS", "ActionEntry", "RunLog", "RunResult", "Summary",
+           "longest_failure_streak", "actions_in_long_streaks", "run_result", "summarize"]
 
 FAILURE_LIMIT = 10
+LONG_STREAK = 5   # a failure streak this long is a loop worth counting
 # why a run stopped
-RUN_ENDS = ("cleared", "failures", "action-limit", "nothing-graspable", "unstable", "fault")
+RUN_ENDS = ("cleared", "failures", "action-limit", "nothing-graspable", "stuck", "unstable", "fault")
 ABORTED_ENDS = ("unstable", "fault")   # the simulator's fault, not the policy's: not counted
 _KINDS = ("grasp", "push", "shift")
 
@@ -92,6 +101,18 @@ def longest_failure_streak(actions: Iterable[ActionEntry]) -> int:
     return longest
 
 
+def actions_in_long_streaks(actions: Iterable[ActionEntry], at_least: int = LONG_STREAK) -> int:
+    """The failed actions that belong to streaks of at least ``at_least`` consecutive failures."""
+    total = streak = 0
+    for a in actions:
+        if a.success:
+            total += streak if streak >= at_least else 0
+            streak = 0
+        else:
+            streak += 1
+    return total + (streak if streak >= at_least else 0)
+
+
 @dataclass(frozen=True)
 class RunResult:
     completed: bool
@@ -103,6 +124,8 @@ class RunResult:
     failure_streak: int
     grasp_success: float | None  # per run
     action_efficiency: float | None  # objects / actions, completed runs only
+    streak_actions: int = 0      # failed actions in streaks of >= LONG_STREAK
+    stuck: bool = False          # the cell declared itself stuck in this run
 
 
 def run_result(run: RunLog, failure_limit: int = FAILURE_LIMIT) -> RunResult:
@@ -124,6 +147,8 @@ def run_result(run: RunLog, failure_limit: int = FAILURE_LIMIT) -> RunResult:
         failure_streak=streak,
         grasp_success=(successes / len(grasps)) if grasps else None,
         action_efficiency=(run.objects / len(acts)) if completed and acts else None,
+        streak_actions=actions_in_long_streaks(acts),
+        stuck=run.end == "stuck",
     )
 
 
@@ -149,6 +174,10 @@ class Summary:
     objects_lost: int
     ends: dict[str, int] = field(default_factory=dict)
     aborted: int = 0
+    picks_per_action: float | None = None   # successful grasps / actions, pooled over counted runs
+    longest_failure_streak: int = 0         # over the counted runs
+    streak_actions: int = 0                 # failed actions in streaks of >= LONG_STREAK, summed
+    stuck_runs: int = 0                     # runs that ended with the cell declaring itself stuck
 
     def as_dict(self) -> dict[str, Any]:
         return {k: (dict(v) if isinstance(v, dict) else v) for k, v in self.__dict__.items()}
@@ -187,4 +216,9 @@ def summarize(runs: Sequence[RunLog], failure_limit: int = FAILURE_LIMIT) -> Sum
         objects_lost=sum(r.objects_lost for r in counted),
         ends=ends,
         aborted=len(runs) - len(counted),
+        picks_per_action=(successes / sum(res.actions for res in results)) if any(r.actions for r in results)
+        else None,
+        longest_failure_streak=max((res.failure_streak for res in results), default=0),
+        streak_actions=sum(res.streak_actions for res in results),
+        stuck_runs=sum(1 for res in results if res.stuck),
     )

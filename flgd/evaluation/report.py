@@ -44,7 +44,8 @@ def _run_row(log: RunLog, failure_limit: int) -> dict[str, Any]:
     return {"run": log.run, "objects": log.objects, "actions": res.actions, "grasp_attempts": res.grasp_attempts,
             "grasp_successes": res.grasp_successes, "push": res.moves["push"], "shift": res.moves["shift"],
             "refused": res.refused, "objects_grasped": log.objects_grasped, "objects_left": log.objects_left,
-            "objects_lost": log.objects_lost, "longest_failure_streak": res.failure_streak, "end": log.end,
+            "objects_lost": log.objects_lost, "longest_failure_streak": res.failure_streak,
+            "streak_actions": res.streak_actions, "end": log.end,
             "completed": res.completed, "seconds": round(log.seconds, 3), "note": log.note}
 
 
@@ -112,18 +113,25 @@ def _pct(v: float | None) -> str:
     return "-" if v is None else f"{100.0 * v:.1f}%"
 
 
+def _ratio(v: float | None) -> str:
+    return "-" if v is None else f"{v:.2f}"
+
+
 def _num(v: float | None) -> str:
     return "-" if v is None else f"{v:.1f}"
 
 
 _COLUMNS = (("scene", "<"), ("runs", ">"), ("aborted", ">"), ("complete", ">"), ("grasp ok", ">"), ("grasps", ">"),
-            ("act.eff", ">"), ("actions/run", ">"), ("push", ">"), ("shift", ">"), ("lost", ">"), ("ends", "<"))
+            ("picks/act", ">"), ("act.eff", ">"), ("actions/run", ">"), ("streak", ">"), ("in>=5", ">"),
+            ("stuck", ">"), ("push", ">"), ("shift", ">"), ("lost", ">"), ("ends", "<"))
 
 
 def _row(name: str, s: dict[str, Any]) -> list[str]:
     ends = ", ".join(f"{k} {v}" for k, v in sorted(s["ends"].items()))
     return [name, str(s["runs"]), str(s.get("aborted", 0)), _pct(s["completion"]), _pct(s["grasp_success"]),
-            f"{s['grasp_successes']}/{s['grasp_attempts']}", _pct(s["action_efficiency"]), _num(s["mean_actions"]),
+            f"{s['grasp_successes']}/{s['grasp_attempts']}", _ratio(s.get("picks_per_action")),
+            _pct(s["action_efficiency"]), _num(s["mean_actions"]), str(s.get("longest_failure_streak", "-")),
+            str(s.get("streak_actions", "-")), str(s.get("stuck_runs", "-")),
             str(s["moves"]["push"]), str(s["moves"]["shift"]), str(s["objects_lost"]), ends]
 
 
@@ -150,7 +158,9 @@ def format_table(report: dict[str, Any]) -> str:
            "complete: cleared without more than "
            f"{opts.get('failure_limit', FAILURE_LIMIT)} consecutive failed actions, over the runs not aborted "
            "(aborted: the simulator gave up, the run is in no rate); grasp ok: successful/attempted "
-           "grasps; act.eff: objects/actions over completed runs; lost: objects that left the workspace other than in the gripper (pushed off, or dropped on the way out)",
+           "grasps; picks/act: successful grasps/actions; act.eff: objects/actions over completed runs; streak: longest "
+           "run of consecutive failed actions; in>=5: failed actions in streaks of 5 or more; stuck: runs the cell "
+           "gave up (exploration.stuck_after); lost: objects that left the workspace other than in the gripper (pushed off, or dropped on the way out)",
            *([note] if note else [])]
     return "\n".join(out)
 

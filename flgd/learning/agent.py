@@ -16,7 +16,26 @@ One decision, in this order:
 5. ``anti-repeat``: if a greedy choice (rule 1, 3 or 4) lands on the same
    primitive channel and pixel as the previous step, the action is drawn
    uniformly from the top ``top_m`` actions of that channel that are not at
-   that pixel (the paper: "the action in the previous step will not be chosen").
+   that pixel (the paper: "the action in the previous step will not be chosen";
+   with the failure memory on, not within ``failure_radius`` of it).
+
+Failure memory (``exploration.failure_memory``, flgd/learning/failure_memory.py):
+the regions where a grasp failed or a move changed nothing in this scene are
+-inf for rules 1, 3, 4 and 5, as the masks are, until the heightmap changes
+there.  It is the escalation ladder's memory too:
+
+* rung 1 -- after ``failed_grasps_trigger`` failed grasps, the best move (rule 1);
+* rung 2 -- when rule 1 fires again before any grasp succeeded, the best move
+  that starts near the newest failed grasp (``ladder-move``): a move that
+  changes the region that keeps failing;
+* rung 3 -- ``stuck_after`` actions without a successful grasp, or nothing left
+  that is not suppressed: ``stuck_reason()`` says why, and the cycle declares the
+  cell stuck instead of acting (flgd/cycle.py).
+
+``Decision.greedy`` stays the masked argmax without the memory: it is the a' of
+the learner's double-DQN target, and the memory is the episode's, not the
+value function's.  ``exploration.failure_memory: false`` is the paper's rules
+alone; the stuck count runs either way.
 
 Masks are applied by setting Q to -inf outside them, not by the paper's literal
 Hadamard product rho o Q: with a 0/1 mask a multiplication leaves 0 outside
@@ -54,11 +73,14 @@ from flgd.clutter import action_masks, grasp_mask
 from flgd.config import CellConfig
 from flgd.perception import Heightmaps
 
+from flgd.learning.failure_memory import FailureMemory
 from flgd.learning.networks import QMapNetwork, q_maps, twin_grasp_maps
 
 __all__ = ["Decision", "Agent", "WeightsMailbox", "RULES", "epsilon_at", "masked_maps", "greedy_index"]
 
-RULES: tuple[str, ...] = ("greedy", "epsilon", "anti-repeat", "two-failures", "curriculum")
+RULES: tuple[str, ...] = ("greedy", "epsilon", "anti-repeat", "two-failures", "ladder-move", "curriculum")
+# how far beyond the failed region a rung-2 move may start (m): close enough that its push reaches the region
+LADDER_REACH = 0.02
 
 
 @dataclass(frozen=True)
@@ -74,6 +96,7 @@ class Decision:
     role: str = "champion"  # which network's Q-maps these are: champion or challenger
     policy_id: int | None = None  # the gate's id of the policy credited with the outcome; None for epsilon
     weights_version: int = -1  # learner update count of the deciding network's weights (-1 unknown)
+    suppressed: np.ndarray | None = None  # uint8 [H,W]: where the failure memory forbade actions (None: off)
 
 
 class WeightsMailbox:
@@ -165,6 +188,11 @@ class Agent:
         self._assign_rng = np.random.default_rng([int(seed), 0x6761])
         self.exploration_offset = 0
         self.max_epsilon = 1.0
+        ex = config.exploration
+        self.memory = FailureMemory(self.rotations, ex.failure_radius / config.workspace.resolution,
+                                    ex.failure_rotations, config.rewards.delta)
+        self.forced_moves = 0       # two-failures moves since the last successful grasp (the ladder's rung)
+        self._exhausted = ""        # why the last decision found nothing left to try
 
     # ------------------------------------------------------------------ weights
 
@@ -196,7 +224,18 @@ class Agent:
 
     def masks(self, height: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(rho_g, rho_m) for ``height``; all ones for the DPEN ablation (object presence still checked)."""
-        return action_masks(height, self.config.rewards, self.config.exploration.masks)
+        return action_masks(height, self.config.rewards, self.config.exploration.masks,
+                            self.config.workspace.resolution)
+
+    def stuck_reason(self) -> str:
+        """Why the cell should stop trying in this scene ('' = it should not): ``stuck_after`` actions without
+        a successful grasp, or a last decision that found every allowed action suppressed."""
+        ex = self.config.exploration
+        mem = self.memory
+        if ex.stuck_after > 0 and mem.since_success >= ex.stuck_after:
+            return (f"{mem.since_success} actions without a successful grasp (exploration.stuck_after "
+                    f"{ex.stuck_after}); {len(mem.entries)} failed regions suppressed")
+        return self._exhausted
 
     def q_maps(self, heightmaps: Heightmaps, network: QMapNetwork | None = None) -> np.ndarray:
         """All-rotation Q-maps [R,2,H,W] float32 of ``network`` (default: the champion; grasp twins averaged
@@ -210,7 +249,7 @@ class Agent:
         """The next action for ``heightmaps`` at training step ``step``; None when nothing is on the table."""
         self.maybe_swap_weights()
         height = np.nan_to_num(np.asarray(heightmaps.height, dtype=np.float32), nan=0.0)
-        if not grasp_mask(height, self.config.rewards).any():
+        if not grasp_mask(height, self.config.rewards, self.config.workspace.resolution).any():
             return None
         challenger = self.challenger
         by_challenger = challenger is not None and self._assign_rng.random() < self.challenger_share
@@ -220,7 +259,7 @@ class Agent:
             return None
         role = "challenger" if by_challenger else "champion"
         policy = self.challenger_id if by_challenger else self.champion_id
-        credited = decision.rule not in ("epsilon", "two-failures")
+        credited = decision.rule not in ("epsilon", "two-failures", "ladder-move")
         return dataclasses.replace(decision, role=role, policy_id=policy if credited else None,
                                    weights_version=self.challenger_version if by_challenger
                                    else self.weights_version)
@@ -238,12 +277,38 @@ class Agent:
         masked = masked_maps(q, gmask, mmask)
         if ex.grasp_only:
             masked[:, 1] = -np.inf
+        greedy = _argmax_allowed(masked)
+        suppressed = None
+        self._exhausted = ""
+        if ex.failure_memory:
+            self.memory.release_changed(height)
+            if self.memory.entries:
+                masked[self.memory.suppressed()] = -np.inf
+                if not np.isfinite(masked).any():
+                    self._exhausted = (f"every allowed action lies in one of the {len(self.memory.entries)} "
+                                       "regions where an action failed in this scene")
+                    return None
+            suppressed = self.memory.footprint()
         eps = self.epsilon(step)
         greedy_choice = True
+        has_grasp = bool(np.isfinite(masked[:, 0]).any())
+        has_move = bool(np.isfinite(masked[:, 1]).any())
 
-        if self.failed_grasps >= ex.failed_grasps_trigger and not ex.grasp_only:
-            channel, rule = 1, "two-failures"
+        if (self.failed_grasps >= ex.failed_grasps_trigger or not has_grasp) and not ex.grasp_only and has_move:
+            channel, rule = 1, ("two-failures" if has_grasp else "ladder-move")
             index = self._best(masked, 1)
+            target = self.memory.last_failed_grasp if ex.failure_memory else None
+            if self.forced_moves >= 1 and target is not None:
+                reach = (ex.failure_radius + LADDER_REACH) / self.config.workspace.resolution
+                near = np.where(self.memory.near(target.row, target.col, reach, height.shape)[None], masked[:, 1],
+                                -np.inf)
+                if np.isfinite(near).any():
+                    rot, row, col = np.unravel_index(int(np.argmax(near)), near.shape)
+                    index, rule = (int(rot), 1, int(row), int(col)), "ladder-move"
+            self.forced_moves += 1
+        elif not has_grasp:  # grasp-only and every grasp suppressed
+            self._exhausted = "every grasp lies in a region where a grasp failed in this scene (grasp-only)"
+            return None
         elif self.rng.random() < eps:
             channel, rule = (0 if ex.grasp_only else int(self.rng.integers(2))), "epsilon"
             index = self._random_inside(gmask if channel == 0 else mmask, channel)
@@ -254,14 +319,17 @@ class Agent:
             index = best_move if channel else best_grasp
             rule = "greedy"
 
-        if channel == 1 and rule != "two-failures" and step < ex.curriculum_steps \
-                and self.rng.random() >= ex.curriculum_move_probability:
+        if channel == 1 and rule not in ("two-failures", "ladder-move") and step < ex.curriculum_steps \
+                and has_grasp and self.rng.random() >= ex.curriculum_move_probability:
             channel, rule, index = 0, "curriculum", self._best(masked, 0)
             greedy_choice = True
 
         if greedy_choice and self._repeats(channel, index):
             index = self._top_m_excluding(masked, channel, (index[2], index[3]))
             rule = "anti-repeat"
+        if not np.isfinite(masked[index]):  # epsilon drew a suppressed pixel: the best allowed action instead
+            channel = channel if (has_grasp, has_move)[channel] else 1 - channel
+            index = self._best(masked, channel)
 
         rot, _, row, col = (int(v) for v in index)
         primitive = "grasp" if channel == 0 else self._move_kind(float(height[row, col]))
@@ -269,26 +337,42 @@ class Agent:
         self.previous = action
         return Decision(action=action, q_maps=q, grasp_mask=gmask, move_mask=mmask,
                         q_value=float(q[rot, channel, row, col]), rule=rule, epsilon=eps,
-                        greedy=_argmax_allowed(masked))
+                        greedy=greedy, suppressed=suppressed)
 
-    def record_outcome(self, action: Action, grasp_success: bool | None) -> None:
-        """Feed the executed action's result: grasp streaks for rule 1, location for rule 5.
+    def record_outcome(self, action: Action, grasp_success: bool | None, *, move_changed: bool | None = None,
+                       height_after: np.ndarray | None = None, kind: str | None = None) -> None:
+        """Feed the executed action's result: grasp streaks for rule 1, location for rule 5, the failure memory.
 
         ``grasp_success`` is None for moves (and for a grasp whose result is
         unknown, which leaves the streak unchanged).  A move ends the streak.
+        ``move_changed`` (a move's reward > 0) and ``height_after`` (the
+        heightmap the outcome was judged on) feed the failure memory; without
+        ``height_after`` a failure is counted but no region is suppressed.
         """
         self.previous = action
         if action.is_move:
             self.failed_grasps = 0
         elif grasp_success is True:
             self.failed_grasps = 0
+            self.forced_moves = 0
         elif grasp_success is False:
             self.failed_grasps += 1
+        if action.is_move:
+            success = bool(move_changed)
+        elif grasp_success is None:
+            return
+        else:
+            success = bool(grasp_success)
+        self.memory.record(action, kind or action.primitive, success,
+                           height_after if self.config.exploration.failure_memory else None)
 
     def reset_episode(self) -> None:
-        """Forget the streak and the previous location (new scene)."""
+        """Forget the streak, the previous location and the failure memory (new scene)."""
         self.failed_grasps = 0
+        self.forced_moves = 0
         self.previous = None
+        self.memory.clear()
+        self._exhausted = ""
 
     # ------------------------------------------------------------------ helpers
 
@@ -312,7 +396,10 @@ class Agent:
 
     def _top_m_excluding(self, masked: np.ndarray, channel: int, pixel: tuple[int, int]) -> tuple[int, int, int, int]:
         values = masked[:, channel].copy()
-        values[:, pixel[0], pixel[1]] = -np.inf
+        if self.config.exploration.failure_memory:  # not the same action a few millimetres away either
+            values[:, self.memory.near(pixel[0], pixel[1], self.memory.radius_px, values.shape[1:])] = -np.inf
+        else:
+            values[:, pixel[0], pixel[1]] = -np.inf
         flat = values.reshape(-1)
         finite = int(np.count_nonzero(np.isfinite(flat)))
         if finite == 0:  # the previous pixel is the only candidate left: keep it

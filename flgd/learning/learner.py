@@ -230,7 +230,8 @@ class Learner:
                     m.eval()
 
     def _masks(self, height: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        return action_masks(height, self.config.rewards, self.config.exploration.masks)
+        return action_masks(height, self.config.rewards, self.config.exploration.masks,
+                            self.config.workspace.resolution)
 
     def note_decision(self, state: Heightmaps, decision: Decision, weights_version: int) -> None:
         """Remember the greedy a' the agent found on ``state`` with weights ``weights_version`` (an update count).

@@ -70,9 +70,10 @@ def collect_frames(cell: Any, workspace: Any, depth_range: tuple[float, float], 
             for k, body in enumerate(uniq, start=1):
                 index[ids == body] = k
             hm = make_heightmaps(frame.color, frame.depth, frame.intrinsics, frame.depth_scale, frame.camera_pose,
-                                 workspace, depth_range)
+                                 workspace, depth_range, cell.config.camera.depth_fill)
+            # labels are never filled: an unseen cell has no body id
             lab = make_heightmaps(np.repeat(index[:, :, None], 3, axis=2), frame.depth, frame.intrinsics,
-                                  frame.depth_scale, frame.camera_pose, workspace, depth_range)
+                                  frame.depth_scale, frame.camera_pose, workspace, depth_range, fill="off")
             colors.append(hm.color)
             heights.append(hm.height.astype(np.float16))
             labels.append(lab.color[:, :, 0].copy())
