@@ -121,10 +121,10 @@ class CameraConfig:
     temporal_filter: bool = param(False, help="real cell: librealsense temporal filter over a few "
                                               "consecutive frames per capture")
     hole_filling: bool = param(False, help="real cell: librealsense hole filling of missing depth")
-    depth_fill: Literal["lowest", "inpaint", "off"] = param(
+    depth_fill: Literal["lowest", "inpaint", "none"] = param(
         "lowest", help="heightmap cells without a depth reading, every cell: lowest = the lowest valid neighbour "
                        "(holes in objects get their height, shadows beside them the table's), inpaint = OpenCV "
-                       "inpainting, off = table height")
+                       "inpainting, none = table height (unfilled)")
 
 
 @dataclass(frozen=True)

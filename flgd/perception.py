@@ -23,7 +23,7 @@ pictures can show them:
   gets the table's, as an unfilled map had it;
 * ``inpaint``: OpenCV's inpainting (the Navier-Stokes method), colour and
   height alike: smooth ramps across holes, also across a shadow beside an object;
-* ``off``: unknown cells stay 0 (table), as before.
+* ``none``: unknown cells stay 0 (table), unfilled.
 
 A frame with too few valid cells to fill from (``FILL_MIN_VALID``) is left as
 it is: there is nothing trustworthy to fill from.
@@ -47,7 +47,7 @@ TABLE_TOLERANCE = 0.02
 FILL_RADIUS = 3
 # below this share of valid cells a heightmap is not filled (a covered lens, a camera that lost its depth)
 FILL_MIN_VALID = 0.5
-FILL_METHODS = ("lowest", "inpaint", "off")
+FILL_METHODS = ("lowest", "inpaint", "none")
 _NO_READING = np.float32(1.0e6)  # above any height: never the lowest neighbour
 _KERNEL3 = np.ones((3, 3), np.uint8)
 
@@ -67,13 +67,13 @@ def fill_unknown(color: np.ndarray, height: np.ndarray, unknown: np.ndarray,
     """(colour, height, filled?): ``unknown`` cells filled from their valid neighbours by ``method`` (module doc).
 
     Returns the inputs unchanged (and False) when nothing is unknown, too little is known to fill from, or
-    ``method`` is ``off``.
+    ``method`` is ``none``.
     """
     if method not in FILL_METHODS:
         raise ValueError(f"fill method: got {method!r}, expected one of {', '.join(FILL_METHODS)}")
     unknown = np.asarray(unknown, dtype=bool)
     n_unknown = int(np.count_nonzero(unknown))
-    if method == "off" or n_unknown == 0 or n_unknown > (1.0 - FILL_MIN_VALID) * unknown.size:
+    if method == "none" or n_unknown == 0 or n_unknown > (1.0 - FILL_MIN_VALID) * unknown.size:
         return color, height, False
     if method == "lowest":
         return _fill_lowest(color, height, unknown)
@@ -157,7 +157,7 @@ def make_heightmaps(color: np.ndarray, depth: np.ndarray, intrinsics: np.ndarray
 
     ``depth`` is raw (uint16 units times ``depth_scale`` metres) or float metres
     with ``depth_scale`` 1.  Zero, NaN and out-of-range readings are ignored.
-    ``fill``: how cells without a reading are filled (``FILL_METHODS``, module doc); ``off``: they are 0.
+    ``fill``: how cells without a reading are filled (``FILL_METHODS``, module doc); ``none``: they are 0.
     """
     _check_inputs(color, depth, intrinsics, depth_scale, camera_pose)
     h, w = depth.shape
@@ -198,7 +198,7 @@ def make_heightmaps(color: np.ndarray, depth: np.ndarray, intrinsics: np.ndarray
     color_flat[cell[top]] = rgb[src[top]]
     color_flat = color_flat.view(np.uint8)
     colour_map, height_map = color_flat.reshape(rows, cols, 3), height.reshape(rows, cols)
-    if fill == "off":
+    if fill == "none":
         return Heightmaps(color=colour_map, height=height_map)
     unknown = np.ones(rows * cols, dtype=bool)
     unknown[cell] = False

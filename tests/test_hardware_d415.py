@@ -205,8 +205,8 @@ def test_depth_from_a_separate_imager_is_aligned_to_colour():
         got = cam.capture()
     assert not np.array_equal(got.depth, depth_frame.depth), "depth must have been re-projected"
     # unfilled: the occlusion seams stay 0 in both instead of being filled from neighbours that differ
-    a = frame_heightmaps(color_frame, cfg.workspace, cfg.camera.depth_range, fill="off").height
-    b = frame_heightmaps(got, cfg.workspace, cfg.camera.depth_range, fill="off").height
+    a = frame_heightmaps(color_frame, cfg.workspace, cfg.camera.depth_range, fill="none").height
+    b = frame_heightmaps(got, cfg.workspace, cfg.camera.depth_range, fill="none").height
     close = np.abs(a - b) <= 0.001
     # Re-projection leaves a few cells at object edges (occlusion seams) different; nothing else.
     assert close.mean() > 0.995, f"only {close.mean():.4f} of the heightmap matches within 1 mm"

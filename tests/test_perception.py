@@ -76,7 +76,7 @@ def test_invalid_depth_is_ignored_and_unfilled_empty_cells_are_zero() -> None:
     depth_f[200:280, 280:360] = 0.0
     depth_f[230:240, 300:340] = np.nan
     depth_f[250:255, 300:340] = 5.0
-    hm = make_heightmaps(color, depth_f, k, 1.0, pose, WS, depth_range=(0.2, 1.5), fill="off")
+    hm = make_heightmaps(color, depth_f, k, 1.0, pose, WS, depth_range=(0.2, 1.5), fill="none")
     assert np.isfinite(hm.height).all()
     assert hm.height.max() <= box.height + 0.002
     r, c = base_to_pixel(-0.5, 0.0, WS)
@@ -99,7 +99,7 @@ def test_holes_inside_a_block_get_the_blocks_height_and_are_marked(method: str) 
     holes[236:244, 316:324] = True                         # and one larger hole in its middle
     holed[holes] = 0
     hm = make_heightmaps(color, holed, k, 0.001, pose, WS, fill=method)
-    plain = make_heightmaps(color, holed, k, 0.001, pose, WS, fill="off")
+    plain = make_heightmaps(color, holed, k, 0.001, pose, WS, fill="none")
     r, c = base_to_pixel(-0.5, 0.0, WS)
     assert plain.height[r, c] == 0.0, "the hole is there without filling"
     top = true_footprint(box)

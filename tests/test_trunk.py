@@ -81,7 +81,7 @@ def test_labels_line_up_with_the_objects_and_follow_a_removal():
                              depth_range)
         index = np.where(ids == a, 1, np.where(ids == b, 2, 0)).astype(np.uint8)
         lab = make_heightmaps(np.repeat(index[:, :, None], 3, 2), frame.depth, frame.intrinsics,
-                              frame.depth_scale, frame.camera_pose, ws, depth_range, fill="off").color[:, :, 0]
+                              frame.depth_scale, frame.camera_pose, ws, depth_range, fill="none").color[:, :, 0]
         ra, ca = base_to_pixel(-0.55, -0.05, ws)
         rb, cb = base_to_pixel(-0.45, 0.08, ws)
         assert lab[ra, ca] == 1 and lab[rb, cb] == 2

@@ -73,7 +73,7 @@ def collect_frames(cell: Any, workspace: Any, depth_range: tuple[float, float], 
                                  workspace, depth_range, cell.config.camera.depth_fill)
             # labels are never filled: an unseen cell has no body id
             lab = make_heightmaps(np.repeat(index[:, :, None], 3, axis=2), frame.depth, frame.intrinsics,
-                                  frame.depth_scale, frame.camera_pose, workspace, depth_range, fill="off")
+                                  frame.depth_scale, frame.camera_pose, workspace, depth_range, fill="none")
             colors.append(hm.color)
             heights.append(hm.height.astype(np.float16))
             labels.append(lab.color[:, :, 0].copy())
