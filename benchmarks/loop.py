@@ -77,14 +77,13 @@ def run_one(config: Any, policy: Path, objects: str, count: int, runs: int, seed
     from flgd.evaluation.scene_sets import clutter_scene
     from flgd.learning.policy_file import load_policy
 
-    network, _ = load_policy(policy)
+    network = load_policy(policy).network
     spec = clutter_scene(objects, count)
     with Evaluator(config, network, EvalOptions(runs=runs, seed=seed)) as ev:
         results = ev.evaluate([spec])
     rows = []
     for log in results[0][1]:
         row = _run_row(log, 10)
-        row["grasp_successes"] = row["grasp_successes"]
         rows.append(row)
     return rows
 
