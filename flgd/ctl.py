@@ -229,6 +229,14 @@ def _human(command: str, reply: dict, extra: dict) -> str:
         if last:
             lines.append(f"last cycle    step {last['step']} {last['outcome']} {last['kind'] or ''} "
                          f"reward {last['reward']} ({last['duration']:.2f} s)")
+        memory = r.get("failure_memory")
+        if memory:
+            lines.append(f"this scene    {memory['actions_since_success']} actions since the last successful grasp, "
+                         f"{memory['suppressed_regions']} failed regions avoided")
+        stuck = r.get("last_stuck")
+        if stuck:
+            when = _dt.datetime.fromtimestamp(stuck["time"]).strftime("%Y-%m-%d %H:%M:%S")
+            lines.append(f"last stuck    {when}: {stuck['reason']}; {stuck['action']}")
         return "\n".join(lines)
     if command == "stats":
         from flgd.daemon.metrics import format_stats

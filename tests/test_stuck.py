@@ -155,6 +155,9 @@ def test_the_real_cell_pauses_when_stuck_and_says_why_in_status_events_and_metri
     assert status["last_stuck"]["reason"].startswith("4 actions") and not status["last_stuck"]["relaid"]
     assert status["failure_memory"]["actions_since_success"] == 0, "the scene's memory was cleared"
     assert "stuck" in c.status_text()
+    from flgd.ctl import _human
+    text = _human("status", {"result": status}, {})   # what `flgctl status` prints
+    assert "last stuck" in text and "4 actions without a successful grasp" in text and "flgctl start" in text
     events = [e for e in c.store.events() if e["kind"] == "stuck"]
     assert len(events) == 1 and "paused" in events[0]["message"]
     stats = compute_stats(c.store)
