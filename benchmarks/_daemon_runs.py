@@ -110,6 +110,32 @@ def gate_counts(state_dir: Path) -> dict:
     return out
 
 
+def loop_counts(state_dir: Path, rows: list[tuple]) -> dict:
+    """Picks per action, the longest failure streak, actions in streaks of >= 5 and the times the cell declared
+    itself stuck (re-laying its scene) in a run: the loops a rate per grasp hides."""
+    from flgd.evaluation.metrics import LONG_STREAK
+
+    decided = [r for r in rows if r[5] in ("executed", "refused")]
+    db = sqlite3.connect(state_dir / "flgd.sqlite")
+    try:
+        succeeded = {int(step) for step, in db.execute("SELECT step FROM actions WHERE reward > 0")}
+        stuck = db.execute("SELECT COUNT(*) FROM events WHERE kind='stuck'").fetchone()[0]
+    finally:
+        db.close()
+    picks = sum(1 for r in decided if r[1] == "grasp" and r[2] == 1)
+    longest = streak = in_long = 0
+    for r in decided:
+        if r[0] in succeeded:
+            in_long += streak if streak >= LONG_STREAK else 0
+            streak = 0
+        else:
+            streak += 1
+            longest = max(longest, streak)
+    in_long += streak if streak >= LONG_STREAK else 0
+    return {"picks_per_action": picks / len(decided) if decided else None, "longest_failure_streak": longest,
+            "streak_actions": in_long, "stuck": int(stuck)}
+
+
 def grasp_outcomes(rows: list[tuple], greedy_only: bool = False) -> list[int]:
     """1/0 per grasp the cell made, in order (ε-random ones left out with ``greedy_only``)."""
     return [int(s == 1) for _, prim, s, rule, _, outcome in rows

@@ -26,7 +26,9 @@ Reported per row, median over seeds: grasp success of every grasp the cell made 
 the last 200 grasps, the worst window against the frozen row of the same cell (beside what that worst window
 looks like by chance when learning changes nothing: with a few seeds it lies several points below zero), the
 actions until the success over the last 100 grasps first reached 80 % and 90 %; promotions / drops / rollbacks
-summed over the seeds; and one PNG of the curves.  A run that is continued (cut short, then the bench run again)
+summed over the seeds; picks per action (successful grasps / actions), the longest failure streak, the failed
+actions in streaks of >= 5 and the times the cell declared itself stuck and laid out a new scene; and one PNG of
+the curves.  A run that is continued (cut short, then the bench run again)
 draws new seeds for its continuation.
 
     flgd bench finetune [--root runs/finetune] [--actions 1000] [--seeds 0 1 2] [--rows ...] [--jobs 2]
@@ -50,8 +52,8 @@ from typing import Any
 
 import yaml
 
-from benchmarks._daemon_runs import (REPO, action_rows, gate_counts, grasp_outcomes, grasp_steps, run_controller,
-                                     run_workers, steps_done)
+from benchmarks._daemon_runs import (REPO, action_rows, gate_counts, grasp_outcomes, grasp_steps, loop_counts,
+                                     run_controller, run_workers, steps_done)
 
 TRAIN_CONFIG = REPO / "cell_config" / "sim.yaml"
 SHIFTED_CONFIG = REPO / "cell_config" / "sim-shifted.yaml"
@@ -165,7 +167,8 @@ def seed_summary(state_dir: Path, actions: int) -> dict:
             "windows": windows, "window_judged": full,
             **{f"actions_to_{int(100 * lv)}": actions_to_level(grasps, steps, lv) for lv in LEVELS},
             "moves": sum(1 for r in rows if r[1] not in (None, "grasp")),
-            "epsilon_actions": sum(1 for r in rows if r[3] == "epsilon"), **gate_counts(state_dir)}
+            "epsilon_actions": sum(1 for r in rows if r[3] == "epsilon"), **gate_counts(state_dir),
+            **loop_counts(state_dir, rows)}
 
 
 def null_worst_window(frozen_runs: list[list[float]], seeds: int, windows: int, trials: int = 20000) -> dict:
@@ -212,6 +215,10 @@ def summarize(root: Path, rows: list[str], seeds: list[int], actions: int, tag: 
             r["last_200"] = statistics.median(s["last_200"] for s in runs)
             r["success"] = statistics.median(s["success"] for s in runs)
             r["greedy_success"] = statistics.median(s["greedy_success"] for s in runs)
+            r["picks_per_action"] = statistics.median(s["picks_per_action"] or 0.0 for s in runs)
+            r["longest_failure_streak"] = max(s["longest_failure_streak"] for s in runs)
+            r["streak_actions"] = statistics.median(s["streak_actions"] for s in runs)
+            r["stuck"] = sum(s["stuck"] for s in runs)
             for lv in LEVELS:
                 key = f"actions_to_{int(100 * lv)}"
                 r[key] = _median_or_none([s[key] for s in runs])
@@ -357,6 +364,9 @@ def main(argv: list[str]) -> int:
             print(f"{name:16s} last 200 {_pct(r['last_200'])}  to 80% {r['actions_to_80']}  to 90% "
                   f"{r['actions_to_90']}  worst vs frozen "
                   f"{'-' if worst is None else f'{100 * worst:+.1f}'}{band}  gate {r['gate']}  windows {wins}")
+            print(f"{'':16s} all grasps {_pct(r['success'])}, picks/action {r['picks_per_action']:.2f}, longest "
+                  f"failure streak {r['longest_failure_streak']}, in streaks >= 5 {r['streak_actions']:g} "
+                  f"(median), stuck {r['stuck']}")
         if r["missing"]:
             print(f"{name:16s} missing: {', '.join(r['missing'])}")
     print(f"wrote {out} and {out.with_suffix('.png')}")

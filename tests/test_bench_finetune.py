@@ -150,3 +150,21 @@ def test_the_worst_window_of_a_policy_that_changed_nothing_is_below_zero_by_chan
     assert wide["p_at_least_minus_3"] < 0.3
     assert wide["median"] < many["median"]
     assert finetune.null_worst_window([], seeds=3, windows=9) == {}
+
+
+def test_loop_counts_read_picks_per_action_streaks_and_stuck_events_from_a_runs_store(tmp_path):
+    from benchmarks._daemon_runs import action_rows, loop_counts
+    from flgd.store import Store
+
+    store = Store(tmp_path)
+    # grasp ok, 6 failed actions (a push that changed nothing among them), a push that moved the clutter, a pick
+    kinds = [("grasp", 1.0), *[("grasp", 0.0)] * 4, ("push", 0.0), ("grasp", 0.0), ("push", 0.5), ("grasp", 1.0)]
+    for step, (prim, reward) in enumerate(kinds):
+        store.commit_cycle({"step": step, "time": float(step), "backend": "sim", "outcome": "executed",
+                            "primitive": prim, "kind": prim, "row": 1, "col": 1, "rotation": 0, "reward": reward,
+                            "success": int(reward > 0) if prim == "grasp" else None, "rule": "greedy",
+                            "done": 0, "duration": 1.0}, None)
+    store.record_event("stuck", "stuck after step 6: ...; the scene was laid out anew")
+    store.close()
+    got = loop_counts(tmp_path, action_rows(tmp_path, 100))
+    assert got == {"picks_per_action": 2 / 9, "longest_failure_streak": 6, "streak_actions": 6, "stuck": 1}
