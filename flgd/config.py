@@ -193,7 +193,7 @@ class RewardConfig:
     tau1: int = param(500, unit="px", ge=0, help="mu above this rewards a move")
     tau2: int = param(200, unit="px", ge=0, help="eta above this rewards a move")
     min_height: float = param(0.01, unit="m", gt=0.0, help="object/background height threshold")
-    min_object_area: float = param(36.0, unit="mm^2", ge=0.0, le=10000.0,
+    min_object_area: float = param(100.0, unit="mm^2", ge=0.0, le=10000.0,
                                    help="a connected region above min_height smaller than this is depth noise, "
                                         "not an object (0 = every pixel counts)")
     clutter_dilation: int = param(11, unit="px", ge=1, help="kernel size of the clutter quantization map")
@@ -371,6 +371,11 @@ class SimConfig:
     depth_edge_holes: float = param(0.5, ge=0.0, le=1.0,
                                     help="chance that a pixel at a depth edge (a step > 8 mm to a neighbour) has "
                                          "no reading, as stereo matching fails there (with depth_noise on)")
+    depth_outliers: float = param(0.0, ge=0.0, le=0.1,
+                                  help="share of valid pixels with a gross depth error, uniform in +-3 cm (flying "
+                                       "pixels, speckle) (with depth_noise on)")
+    stereo_shadow: bool = param(False, help="no depth reading where a nearer surface hides a pixel from the D415's "
+                                            "right imager, 55 mm beside the left (with depth_noise on)")
     table_shade: Range = param((0.25, 0.6), ge=0.0, le=1.0,
                                help="grey level range of the table top, drawn per scene")
     object_color_shift: Vec3 = param((0.0, 0.0, 0.0), ge=-1.0, le=1.0,

@@ -255,7 +255,8 @@ class SimCell(Cell):
                                              diffuse=diffuse)
                 labels = None
             if self.config.sim.depth_noise:
-                depth = simcam.add_depth_noise(depth, self._noise_rng, self._depth_noise)
+                depth = simcam.add_depth_noise(depth, self._noise_rng, self._depth_noise,
+                                               fx=float(self._true_camera.intrinsics[0, 0]))
             raw = simcam.to_raw_depth(depth, cfg.depth_scale, cfg.depth_range)
             return Frame(color=color, depth=raw, depth_scale=cfg.depth_scale,
                          intrinsics=self._camera.intrinsics.copy(), camera_pose=self._camera.pose.copy(),

@@ -71,10 +71,10 @@ def test_mu_alone_triggers_the_move_reward() -> None:
 
 
 def test_clutter_map_is_binarised_then_dilated() -> None:
-    hm = heightmap_with([(50, 50, 4, 4, 0.02), (70, 70, 4, 4, RC.min_height / 2)])
+    hm = heightmap_with([(50, 50, 6, 6, 0.02), (70, 70, 6, 6, RC.min_height / 2)])
     cm = clutter_map(hm, RC)
     k = RC.clutter_dilation
-    assert cm.sum() == (4 + k - 1) ** 2  # only the block above min_height, grown by the k x k kernel
+    assert cm.sum() == (6 + k - 1) ** 2  # only the block above min_height, grown by the k x k kernel
     assert cm[50, 50] == 1 and cm[71, 71] == 0
 
 
@@ -121,13 +121,13 @@ def test_scattered_one_pixel_spikes_on_an_empty_table_give_empty_masks() -> None
 
 
 def test_a_blocks_masks_are_unchanged_by_the_filter_even_with_specks_around_it() -> None:
-    block = heightmap_with([(100, 100, 12, 15, 0.03), (30, 150, 4, 3, 0.02)])  # a block, and a 4 x 3 px bar
+    block = heightmap_with([(100, 100, 12, 15, 0.03), (30, 150, 5, 6, 0.02)])  # a block, and a 1 x 1.2 cm bar
     off = RewardConfig(min_object_area=0.0)
     for f in (grasp_mask, move_mask, clutter_map):
         assert np.array_equal(f(block, RC), f(block, off)), f.__name__
     specks = _specks(150, seed=1)
     specks[95:118, 95:120] = 0   # none touching the block (a speck on its edge is part of it)
-    specks[25:39, 145:158] = 0
+    specks[25:40, 145:160] = 0
     noisy = np.maximum(block, specks)
     assert np.array_equal(grasp_mask(noisy, RC), grasp_mask(block, off))
     assert np.array_equal(move_mask(noisy, RC), move_mask(block, off))

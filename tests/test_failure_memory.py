@@ -156,7 +156,7 @@ def test_the_ladder_moves_near_the_failed_grasp_then_declares_the_cell_stuck():
 
 def test_when_every_allowed_action_failed_the_agent_says_so_instead_of_repeating():
     h = np.zeros((N, N), np.float32)
-    h[30:34, 30:34] = 0.04           # one small object
+    h[30:36, 30:36] = 0.04           # one small object (1.2 cm square)
     a = agent(failure_radius=0.1, failure_rotations=8, stuck_after=0, failed_grasps_trigger=100)
     q = peaked_q(32, 32)
     d = a.select(q, h, 0)
