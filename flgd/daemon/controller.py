@@ -976,7 +976,7 @@ class Controller:
         note = "fresh capture, greedy action (not executed)"
         image = qmap_picture(hm.color, hm.height, q, gmask, mmask, action, caption=note,
                              glyph=ActionGlyph.from_config(self.config), filled=hm.filled,
-                             suppressed=self.agent.memory.footprint() if self.agent.memory.entries else None)
+                             suppressed=self.agent.memory.footprint() if self.agent.memory.enforced else None)
         return {"png_base64": base64.b64encode(encode_png(image)).decode("ascii"), "source": note,
                 "action": None if action is None else dataclasses.asdict(action),
                 "q_value": None if action is None else float(q[action.rotation, action.channel, action.row,

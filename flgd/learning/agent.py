@@ -190,7 +190,7 @@ class Agent:
         self.max_epsilon = 1.0
         ex = config.exploration
         self.memory = FailureMemory(self.rotations, ex.failure_radius / config.workspace.resolution,
-                                    ex.failure_rotations, config.rewards.delta)
+                                    ex.failure_rotations, config.rewards.delta, ex.failure_retries)
         self.forced_moves = 0       # two-failures moves since the last successful grasp (the ladder's rung)
         self._exhausted = ""        # why the last decision found nothing left to try
 
@@ -234,7 +234,7 @@ class Agent:
         mem = self.memory
         if ex.stuck_after > 0 and mem.since_success >= ex.stuck_after:
             return (f"{mem.since_success} actions without a successful grasp (exploration.stuck_after "
-                    f"{ex.stuck_after}); {len(mem.entries)} failed regions suppressed")
+                    f"{ex.stuck_after}); {len(mem.enforced)} failed regions suppressed")
         return self._exhausted
 
     def q_maps(self, heightmaps: Heightmaps, network: QMapNetwork | None = None) -> np.ndarray:
@@ -282,10 +282,10 @@ class Agent:
         self._exhausted = ""
         if ex.failure_memory:
             self.memory.release_changed(height)
-            if self.memory.entries:
+            if self.memory.enforced:
                 masked[self.memory.suppressed()] = -np.inf
                 if not np.isfinite(masked).any():
-                    self._exhausted = (f"every allowed action lies in one of the {len(self.memory.entries)} "
+                    self._exhausted = (f"every allowed action lies in one of the {len(self.memory.enforced)} "
                                        "regions where an action failed in this scene")
                     return None
             suppressed = self.memory.footprint()

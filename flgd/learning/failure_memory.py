@@ -9,7 +9,14 @@ action's channel (grasp or move), at its rotation and ``failure_rotations``
 steps either side (for a grasp also the twin rotation half a turn on, which
 closes the two fingers the same way).
 
-A suppressed region is released when the heightmap changes inside it (more
+With ``exploration.failure_retries`` = k a spot is suppressed only at its
+(k+1)-th failure: the first failures leave a *pending* region (shown, not
+enforced), and a failure inside a pending region of the same channel and
+rotations makes it count.  A failed grasp often nudges its object, and one more
+try at nearly the same spot then succeeds; the retries allow that and still
+stop the loop.
+
+A region, pending or suppressed, is released when the heightmap changes inside it (more
 than ``RELEASE_SHARE`` of its pixels moved by more than ``rewards.delta``, a
 count that single noise pixels cannot reach) -- something moved there, so the
 old failure no longer says anything -- and everything is released when a new
@@ -46,6 +53,7 @@ class Suppression:
     rotation: int
     kind: str                 # grasp / push / shift as executed
     heights: np.ndarray       # float32, the disk's heights after the failure (for the release test)
+    failures: int = 1         # failures counted in this region
 
 
 class FailureMemory:
@@ -56,8 +64,9 @@ class FailureMemory:
     heightmap shape is the one the failures were recorded on.
     """
 
-    def __init__(self, rotations: int, radius_px: float, rotation_span: int, delta: float) -> None:
+    def __init__(self, rotations: int, radius_px: float, rotation_span: int, delta: float, retries: int = 0) -> None:
         self.rotations = int(rotations)
+        self.retries = int(retries)
         self.shape: tuple[int, int] = (0, 0)
         self.radius_px = float(radius_px)
         self.rotation_span = int(rotation_span)
@@ -101,9 +110,16 @@ class FailureMemory:
         if height.shape != self.shape:  # a heightmap of another size: the old regions mean nothing on it
             self.entries, self.last_failed_grasp, self.shape = [], None, (int(height.shape[0]), int(height.shape[1]))
         rows, cols, disk = self._window(action.row, action.col)
+        heights = np.where(disk, height[rows, cols], np.nan).astype(np.float32)
+        failures = 1
+        for i, old in enumerate(self.entries):  # a failure where one already failed: that region counts one more
+            if old.channel == action.channel and action.rotation in self._rotations_of(old) and \
+                    (old.row - action.row) ** 2 + (old.col - action.col) ** 2 <= self.radius_px ** 2:
+                failures = old.failures + 1
+                del self.entries[i]
+                break
         entry = Suppression(channel=action.channel, row=int(action.row), col=int(action.col),
-                            rotation=int(action.rotation), kind=kind,
-                            heights=np.where(disk, height[rows, cols], np.nan).astype(np.float32))
+                            rotation=int(action.rotation), kind=kind, heights=heights, failures=failures)
         self.entries.append(entry)
         if action.channel == 0:
             self.last_failed_grasp = entry
@@ -140,10 +156,15 @@ class FailureMemory:
         self.released = 0
 
     # ------------------------------------------------------------------ reading
+    @property
+    def enforced(self) -> list[Suppression]:
+        """The regions that failed more than ``retries`` times: the ones that forbid actions."""
+        return [s for s in self.entries if s.failures > self.retries]
+
     def suppressed(self) -> np.ndarray:
         """bool [R,2,H,W]: True where the memory forbids an action."""
         out = np.zeros((self.rotations, 2) + self.shape, dtype=bool)
-        for s in self.entries:
+        for s in self.enforced:
             rows, cols, disk = self._window(s.row, s.col)
             for rot in self._rotations_of(s):
                 out[rot, s.channel, rows, cols] |= disk
@@ -159,14 +180,15 @@ class FailureMemory:
     def footprint(self) -> np.ndarray:
         """uint8 [H,W]: 1 where any region is suppressed, in any channel or rotation (for pictures)."""
         out = np.zeros(self.shape, dtype=np.uint8)
-        for s in self.entries:
+        for s in self.enforced:
             rows, cols, disk = self._window(s.row, s.col)
             out[rows, cols] |= disk.astype(np.uint8)
         return out
 
     def status(self) -> dict:
         """What a person sees: regions held, released, actions since the last pick."""
-        return {"suppressed_regions": len(self.entries), "released_regions": self.released,
+        return {"suppressed_regions": len(self.enforced), "pending_regions": len(self.entries) - len(self.enforced),
+                "released_regions": self.released,
                 "actions_since_success": self.since_success,
-                "regions": [{"kind": s.kind, "row": s.row, "col": s.col, "rotation": s.rotation}
-                            for s in self.entries]}
+                "regions": [{"kind": s.kind, "row": s.row, "col": s.col, "rotation": s.rotation,
+                             "failures": s.failures} for s in self.entries]}
