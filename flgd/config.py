@@ -224,7 +224,7 @@ class ExplorationConfig:
                                   help="radius of the region a failed action suppresses")
     failure_rotations: int = param(1, ge=0, help="rotation steps either side of a failed action's that it "
                                                  "suppresses too")
-    failure_retries: int = param(0, ge=0, le=10, help="failures at the same spot before it is suppressed, beyond "
+    failure_retries: int = param(1, ge=0, le=10, help="failures at the same spot before it is suppressed, beyond "
                                                       "the first (1 = one more try there)")
     stuck_after: int = param(15, ge=0, unit="actions", help="actions without a successful grasp after which the "
                                                             "cell declares itself stuck (0 = never)")

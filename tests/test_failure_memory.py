@@ -177,3 +177,20 @@ def test_the_learners_greedy_index_ignores_the_memory():
     second = a.select(q, height, 1)
     assert (second.action.row, second.action.col) != (first.action.row, first.action.col)
     assert second.greedy == first.greedy == (first.action.rotation, 0, first.action.row, first.action.col)
+
+
+def test_with_one_retry_a_spot_is_suppressed_at_its_second_failure_not_its_first():
+    height, q = wide_block(), peaked_q()
+    a = agent(failed_grasps_trigger=100, failure_retries=1, failure_memory=True)
+    first = a.select(q, height, 0)
+    a.record_outcome(first.action, False, height_after=height, kind="grasp")
+    assert a.memory.status()["pending_regions"] == 1 and a.memory.enforced == []
+    a.previous = None   # (the anti-repeat rule alone would move it off the pixel)
+    again = a.select(q, height, 1)
+    assert (again.action.row, again.action.col) == (first.action.row, first.action.col), "one more try there"
+    a.record_outcome(again.action, False, height_after=height, kind="grasp")
+    assert [s.failures for s in a.memory.enforced] == [2]
+    a.previous = None
+    third = a.select(q, height, 2)
+    assert np.hypot(third.action.row - first.action.row, third.action.col - first.action.col) > a.memory.radius_px \
+        or (third.action.rotation - first.action.rotation) % 8 not in (0, 1, 7)
