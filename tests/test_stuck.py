@@ -52,7 +52,8 @@ def test_on_sim_failed_regions_are_avoided_then_the_cell_is_stuck_and_lays_a_new
     cfg = load_config(REPO / "cell_config" / "sim.yaml")
     cfg = dataclasses.replace(
         cfg, state_dir=str(tmp_path), sim=dataclasses.replace(cfg.sim, objects=3, seed=5),
-        exploration=dataclasses.replace(cfg.exploration, epsilon_start=0.0, epsilon_end=0.0, stuck_after=6))
+        exploration=dataclasses.replace(cfg.exploration, epsilon_start=0.0, epsilon_end=0.0, stuck_after=6,
+                                        failure_retries=0))
     cell = SimCell(cfg)
     try:
         cell.load_scene(_immovable_scene(tmp_path / "scene.yaml"))
