@@ -14,7 +14,8 @@ config files (default: the training cell and the two noisy cells in benchmarks/c
 (variant, cell, seed) are kept in ``--root`` as they finish: the bench run again skips what is done.
 
     flgd bench loop --variants base: area36:rewards.min_object_area=36 [--cells FILE ...] [--seeds 300 301 302]
-                    [--objects blocks] [--count 20] [--runs 3] [--root runs/loop] [--out FILE.json]
+                    [--objects blocks] [--count 20 | --scene-set vpg-hard] [--runs 3] [--root runs/loop]
+                    [--out FILE.json]
 """
 
 from __future__ import annotations
@@ -70,22 +71,16 @@ def variant_config(cell: Path, settings: dict[str, Any]):
     return config_from_dict(data, source=f"{cell} with {', '.join(f'{k}={v}' for k, v in settings.items())}")
 
 
-def run_one(config: Any, policy: Path, objects: str, count: int, runs: int, seed: int) -> list[dict]:
-    """The run rows of one (variant, cell, seed)."""
+def run_one(config: Any, policy: Path, scenes: list, runs: int, seed: int) -> list[dict]:
+    """The run rows of one (variant, cell, seed), every scene's runs in order."""
     from flgd.evaluation.evaluator import EvalOptions, Evaluator
     from flgd.evaluation.report import _run_row
-    from flgd.evaluation.scene_sets import clutter_scene
     from flgd.learning.policy_file import load_policy
 
     network = load_policy(policy).network
-    spec = clutter_scene(objects, count)
     with Evaluator(config, network, EvalOptions(runs=runs, seed=seed)) as ev:
-        results = ev.evaluate([spec])
-    rows = []
-    for log in results[0][1]:
-        row = _run_row(log, 10)
-        rows.append(row)
-    return rows
+        results = ev.evaluate(scenes)
+    return [{"scene": spec.name, **_run_row(log, 10)} for spec, logs in results for log in logs]
 
 
 def pooled(rows: list[dict]) -> dict[str, Any]:
@@ -117,11 +112,19 @@ def main(argv: list[str]) -> int:
     p.add_argument("--policy", type=Path, default=DEFAULT_POLICY)
     p.add_argument("--objects", default="blocks")
     p.add_argument("--count", type=int, default=20)
+    p.add_argument("--scene-set", metavar="NAME", help="a named scene set of flgd eval (e.g. vpg-hard) instead of "
+                                                          "random clutter")
+    p.add_argument("--vpg", type=Path, default=REPO.parent / "shared" / "external" / "vpg",
+                   help="VPG's files for --scene-set vpg-hard")
     p.add_argument("--runs", type=int, default=3, help="runs per seed")
     p.add_argument("--root", type=Path, default=REPO / "runs" / "loop")
     p.add_argument("--out", type=Path, help="summary JSON")
     args = p.parse_args(argv)
     try:
+        from flgd.evaluation.scene_sets import clutter_scene, named_set
+
+        scenes = (named_set(args.scene_set, args.vpg) if args.scene_set
+                  else [clutter_scene(args.objects, args.count)])
         variants = [parse_variant(v) for v in args.variants]
         configs = {(name, cell): variant_config(cell, settings) for name, settings in variants for cell in args.cells}
     except (ValueError, OSError) as exc:
@@ -134,7 +137,8 @@ def main(argv: list[str]) -> int:
     torch.set_num_threads(1)
     args.root.mkdir(parents=True, exist_ok=True)
     summary: dict[str, Any] = {"command": "flgd bench loop " + " ".join(argv), "policy": str(args.policy),
-                               "objects": args.objects, "count": args.count, "runs_per_seed": args.runs,
+                               "objects": args.scene_set or args.objects, "count": args.count,
+                               "runs_per_seed": args.runs,
                                "seeds": args.seeds, "cells": [str(c) for c in args.cells],
                                "machine": f"{platform.node()} ({platform.machine()}, {platform.python_version()})",
                                "date": time.strftime("%Y-%m-%d"), "variants": {}}
@@ -143,13 +147,14 @@ def main(argv: list[str]) -> int:
         for cell in args.cells:
             rows: list[dict] = []
             for seed in args.seeds:
-                done = args.root / f"{name}--{cell.stem}--{seed}.json"
+                scope = f"--{args.scene_set}" if args.scene_set else ""
+                done = args.root / f"{name}--{cell.stem}{scope}--{seed}.json"
                 if done.exists():
                     rows.extend(json.loads(done.read_text())["runs"])
                     continue
                 cfg = dataclasses.replace(configs[(name, cell)], state_dir=str(args.root / "state"))
                 t0 = time.perf_counter()
-                got = run_one(cfg, args.policy, args.objects, args.count, args.runs, seed)
+                got = run_one(cfg, args.policy, scenes, args.runs, seed)
                 done.write_text(json.dumps({"variant": name, "settings": settings, "cell": str(cell), "seed": seed,
                                             "seconds": round(time.perf_counter() - t0, 1), "runs": got}))
                 rows.extend(got)
