@@ -105,9 +105,12 @@ def validation_pooled(reports: dict[str, dict], name_of=_validation_name) -> tup
 
 
 def _line(name: str, s: dict) -> str:
+    ppa = s.get("picks_per_action")
     return (f"| {name} | {s['counted_runs']} | {_pct(s['completion'])} | {_pct(s['grasp_success'])} "
-            f"({s['grasp_successes']}/{s['grasp_attempts']}) | {_pct(s['action_efficiency'])} | "
-            f"{s['mean_actions'] or 0:.1f} | {s['moves']['push']} / {s['moves']['shift']} | {s['aborted']} |")
+            f"({s['grasp_successes']}/{s['grasp_attempts']}) | {'-' if ppa is None else f'{ppa:.2f}'} | "
+            f"{_pct(s['action_efficiency'])} | {s['mean_actions'] or 0:.1f} | {s['moves']['push']} / "
+            f"{s['moves']['shift']} | {s.get('longest_failure_streak', '-')} / {s.get('stuck_runs', '-')} | "
+            f"{s['aborted']} |")
 
 
 def main(argv: list[str]) -> int:
@@ -219,9 +222,9 @@ def main(argv: list[str]) -> int:
             except OSError as exc:  # the evaluation goes on (the next part retries); the table is printed below
                 write_error = f"--json {json_out}: cannot write ({exc})"
                 print(f"flgd bench eval: {write_error}", file=sys.stderr)
-    print("\n| evaluation | runs | completion | grasp success | action efficiency | actions/run | push / shift "
-          "| aborted |")
-    print("|---|---|---|---|---|---|---|---|")
+    print("\n| evaluation | runs | completion | grasp success | picks / action | action efficiency | actions/run "
+          "| push / shift | longest failure streak / stuck runs | aborted |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
     for name, report in reports.items():
         print(_line(name, report["overall"]))
     if "novel objects, isolated" in reports:
