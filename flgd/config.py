@@ -122,9 +122,9 @@ class CameraConfig:
                                               "consecutive frames per capture")
     hole_filling: bool = param(False, help="real cell: librealsense hole filling of missing depth")
     depth_fill: Literal["lowest", "inpaint", "none"] = param(
-        "lowest", help="heightmap cells without a depth reading, every cell: lowest = the lowest valid neighbour "
-                       "(holes in objects get their height, shadows beside them the table's), inpaint = OpenCV "
-                       "inpainting, none = table height (unfilled)")
+        "none", help="heightmap cells without a depth reading, every cell: lowest = the lowest height on the hole's "
+                     "rim (holes in objects get their height, shadows beside them the table's), inpaint = OpenCV "
+                     "inpainting, none = table height (unfilled; what the shipped policy was trained on)")
 
 
 @dataclass(frozen=True)

@@ -11,10 +11,9 @@ metres above the table (workspace.z[0]); the highest point in a cell wins.
 
 Cells with no valid point -- a depth camera's holes: dropouts, the stereo
 shadow beside tall objects, edges where matching fails, and cells the camera
-cannot see -- are *unknown*, not table.  Left at 0 a hole inside an object
-would look like a gap the fingers fit into.  ``camera.depth_fill`` fills them
-from their valid neighbours and ``Heightmaps.filled`` marks them, so that
-pictures can show them:
+cannot see -- are *unknown*, not table.  ``Heightmaps.unknown`` marks them
+for every cell, so that pictures can show them, and ``camera.depth_fill`` says
+what height they get:
 
 * ``lowest``: each hole (connected unknown cells) takes the lowest height on
   its rim (OpenCV's connected components and a grey-level erosion; colours are
@@ -23,7 +22,11 @@ pictures can show them:
   gets the table's, as an unfilled map had it;
 * ``inpaint``: OpenCV's inpainting (the Navier-Stokes method), colour and
   height alike: smooth ramps across holes, also across a shadow beside an object;
-* ``none``: unknown cells stay 0 (table), unfilled.
+* ``none`` (the default): unknown cells stay 0 (table).  A hole inside an
+  object then looks like a gap the fingers fit into, but the shipped policy was
+  trained on such heightmaps: filled ones cost it picks per action on a noisy
+  cell and in packed arrangements (BENCHMARKS.md), so filling waits for a policy
+  trained on them.
 
 A frame with too few valid cells to fill from (``FILL_MIN_VALID``) is left as
 it is: there is nothing trustworthy to fill from.
@@ -54,12 +57,12 @@ _KERNEL3 = np.ones((3, 3), np.uint8)
 
 @dataclass(frozen=True)
 class Heightmaps:
-    """colour: HxWx3 uint8 RGB; height: HxW float32 metres above the table; filled: HxW bool, True where no
-    depth reading fell and the value was filled from the neighbours (None: not known, e.g. a stored state)."""
+    """colour: HxWx3 uint8 RGB; height: HxW float32 metres above the table; unknown: HxW bool, True where no
+    depth reading fell (filled or left at 0 by the fill method; None: not known, e.g. a stored state)."""
 
     color: np.ndarray
     height: np.ndarray
-    filled: np.ndarray | None = None
+    unknown: np.ndarray | None = None
 
 
 def fill_unknown(color: np.ndarray, height: np.ndarray, unknown: np.ndarray,
@@ -152,7 +155,7 @@ def _check_inputs(color: np.ndarray, depth: np.ndarray, intrinsics: np.ndarray, 
 
 def make_heightmaps(color: np.ndarray, depth: np.ndarray, intrinsics: np.ndarray, depth_scale: float,
                     camera_pose: np.ndarray, workspace: WorkspaceConfig,
-                    depth_range: tuple[float, float] = (0.0, np.inf), fill: str = "lowest") -> Heightmaps:
+                    depth_range: tuple[float, float] = (0.0, np.inf), fill: str = "none") -> Heightmaps:
     """Project an RGB-D frame orthographically onto the workspace.
 
     ``depth`` is raw (uint16 units times ``depth_scale`` metres) or float metres
@@ -198,13 +201,11 @@ def make_heightmaps(color: np.ndarray, depth: np.ndarray, intrinsics: np.ndarray
     color_flat[cell[top]] = rgb[src[top]]
     color_flat = color_flat.view(np.uint8)
     colour_map, height_map = color_flat.reshape(rows, cols, 3), height.reshape(rows, cols)
-    if fill == "none":
-        return Heightmaps(color=colour_map, height=height_map)
     unknown = np.ones(rows * cols, dtype=bool)
     unknown[cell] = False
     unknown = unknown.reshape(rows, cols)
-    colour_map, height_map, filled = fill_unknown(colour_map, height_map, unknown, fill)
-    return Heightmaps(color=colour_map, height=height_map, filled=unknown if filled else np.zeros_like(unknown))
+    colour_map, height_map, _ = fill_unknown(colour_map, height_map, unknown, fill)
+    return Heightmaps(color=colour_map, height=height_map, unknown=unknown)
 
 
 def pixel_to_base(row: float, col: float, height: float, workspace: WorkspaceConfig) -> tuple[float, float, float]:
@@ -222,7 +223,7 @@ def base_to_pixel(x: float, y: float, workspace: WorkspaceConfig) -> tuple[int, 
 
 
 def frame_heightmaps(frame, workspace: WorkspaceConfig, depth_range: tuple[float, float],
-                     fill: str = "lowest") -> Heightmaps:
+                     fill: str = "none") -> Heightmaps:
     """Heightmaps of a ``flgd.cell.Frame`` (``fill``: see ``make_heightmaps``)."""
     return make_heightmaps(frame.color, frame.depth, frame.intrinsics, frame.depth_scale,
                            frame.camera_pose, workspace, depth_range, fill)

@@ -9,8 +9,8 @@ Layout of ``qmap_figure`` / ``qmap_picture`` (one image, drawn with OpenCV):
   rotation is framed in white and carries the action glyph;
 * middle: the same for the move Q-map;
 * right column: a large colour heightmap with the chosen action drawn on it,
-  and below it the height map (cells without a depth reading, filled by
-  perception, in magenta), the grasp mask, the move mask (the failure memory's
+  and below it the height map (cells without a depth reading in magenta),
+  the grasp mask, the move mask (the failure memory's
   suppressed regions in red on both) and a legend (the colour scale of each
   channel with its Q range, the action and its Q).
 
@@ -46,7 +46,7 @@ ACTION_COLORS = {"grasp": (40, 255, 40), "push": (0, 160, 255), "shift": (255, 6
 _TEXT = (255, 255, 255)
 _OUTLINE = (0, 0, 0)
 _FRAME = (255, 255, 255)
-_FILLED = (255, 0, 255)      # BGR magenta: no depth reading, filled by perception
+_UNKNOWN = (255, 0, 255)     # BGR magenta: no depth reading
 _SUPPRESSED = (40, 40, 220)  # BGR red: the failure memory's regions
 
 
@@ -214,12 +214,11 @@ def _legend(width: int, height: int, q_range: dict[int, tuple[float, float]], ac
 
 def qmap_figure(color: np.ndarray, height: np.ndarray, q_maps: np.ndarray, grasp_mask: np.ndarray,
                 move_mask: np.ndarray, action: Action | None = None, caption: str = "", tile: int = 160,
-                glyph: ActionGlyph | None = None, filled: np.ndarray | None = None,
+                glyph: ActionGlyph | None = None, unknown: np.ndarray | None = None,
                 suppressed: np.ndarray | None = None) -> QmapFigure:
     """The picture described in the module doc (BGR uint8) and the boxes of its tiles and scene view.
 
-    ``filled`` (bool [H,W]): cells without a depth reading that perception filled, drawn magenta on the
-    height panel; ``suppressed`` (uint8 [H,W]): the failure memory's regions, drawn red on both masks."""
+    ``unknown`` (bool [H,W]): cells without a depth reading (filled or not), drawn magenta on the height panel; ``suppressed`` (uint8 [H,W]): the failure memory's regions, drawn red on both masks."""
     q = np.asarray(q_maps, dtype=np.float32)
     height = np.asarray(height, dtype=np.float32)
     h, w = height.shape
@@ -245,14 +244,14 @@ def qmap_figure(color: np.ndarray, height: np.ndarray, q_maps: np.ndarray, grasp
     hmax = float(np.nanmax(height)) if np.isfinite(height).any() else 0.0
     hnorm = np.clip(np.nan_to_num(height) / (hmax if hmax > 0 else 1.0) * 255.0, 0, 255).astype(np.uint8)
     hcolor = cv2.applyColorMap(hnorm, cv2.COLORMAP_VIRIDIS)
-    n_filled = 0
-    if filled is not None and np.shape(filled) == (h, w):
-        hcolor[np.asarray(filled, dtype=bool)] = _FILLED
-        n_filled = int(np.count_nonzero(filled))
+    n_unknown = 0
+    if unknown is not None and np.shape(unknown) == (h, w):
+        hcolor[np.asarray(unknown, dtype=bool)] = _UNKNOWN
+        n_unknown = int(np.count_nonzero(unknown))
     hpic = cv2.resize(hcolor, (tile, tile), interpolation=cv2.INTER_NEAREST)
     _text(hpic, f"height (max {1000 * hmax:.0f} mm)", (4, 14))
-    if n_filled:
-        _text(hpic, f"filled: {n_filled} px", (4, tile - 6))
+    if n_unknown:
+        _text(hpic, f"no reading: {n_unknown} px", (4, tile - 6))
     held = None if suppressed is None or np.shape(suppressed) != (h, w) else np.asarray(suppressed) > 0
     mask_pics = []
     for name, m in (("grasp mask", masks[0]), ("move mask", masks[1])):
@@ -300,10 +299,10 @@ def qmap_figure(color: np.ndarray, height: np.ndarray, q_maps: np.ndarray, grasp
 
 def qmap_picture(color: np.ndarray, height: np.ndarray, q_maps: np.ndarray, grasp_mask: np.ndarray,
                  move_mask: np.ndarray, action: Action | None = None, caption: str = "",
-                 tile: int = 160, glyph: ActionGlyph | None = None, filled: np.ndarray | None = None,
+                 tile: int = 160, glyph: ActionGlyph | None = None, unknown: np.ndarray | None = None,
                  suppressed: np.ndarray | None = None) -> np.ndarray:
     """The picture of ``qmap_figure`` alone, as a BGR uint8 image."""
-    return qmap_figure(color, height, q_maps, grasp_mask, move_mask, action, caption, tile, glyph, filled,
+    return qmap_figure(color, height, q_maps, grasp_mask, move_mask, action, caption, tile, glyph, unknown,
                        suppressed).image
 
 

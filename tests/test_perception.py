@@ -80,10 +80,10 @@ def test_invalid_depth_is_ignored_and_unfilled_empty_cells_are_zero() -> None:
     assert np.isfinite(hm.height).all()
     assert hm.height.max() <= box.height + 0.002
     r, c = base_to_pixel(-0.5, 0.0, WS)
-    assert hm.height[r, c] == 0.0 and (hm.color[r, c] == 0).all() and hm.filled is None
-    # filled, the hole (which reaches the table around the box) takes the table's height, and is marked
-    filled = make_heightmaps(color, depth_f, k, 1.0, pose, WS, depth_range=(0.2, 1.5))
-    assert filled.height[r, c] == 0.0 and filled.filled[r, c]
+    assert hm.height[r, c] == 0.0 and (hm.color[r, c] == 0).all() and hm.unknown[r, c]
+    # filled, the hole (which reaches the table around the box) takes the table's height, and is marked too
+    filled = make_heightmaps(color, depth_f, k, 1.0, pose, WS, depth_range=(0.2, 1.5), fill="lowest")
+    assert filled.height[r, c] == 0.0 and filled.unknown[r, c]
 
 
 @pytest.mark.parametrize("method", ["lowest", "inpaint"])
@@ -106,7 +106,8 @@ def test_holes_inside_a_block_get_the_blocks_height_and_are_marked(method: str) 
     top = cv2.erode(top.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
     assert np.abs(hm.height[top] - box.height).max() <= 0.002
     assert (hm.color[top] == np.array(box.color, np.uint8)).all()
-    assert hm.filled[r, c] and hm.filled[top].sum() == (plain.height[top] < 0.01).sum()
+    assert hm.unknown[r, c] and hm.unknown[top].sum() == (plain.height[top] < 0.01).sum()
+    assert np.array_equal(plain.unknown, hm.unknown), "marked the same whether filled or not"
 
 
 def test_highest_point_wins_each_cell() -> None:

@@ -952,7 +952,7 @@ class Controller:
         image = qmap_picture(hm.color, hm.height, decision.q_maps, decision.grasp_mask, decision.move_mask,
                              decision.action, caption=f"{note}: step {step}, rule {decision.rule}, "
                                                   f"Q {decision.q_value:.3f}",
-                             glyph=ActionGlyph.from_config(self.config), filled=hm.filled,
+                             glyph=ActionGlyph.from_config(self.config), unknown=hm.unknown,
                              suppressed=decision.suppressed)
         return {"png_base64": base64.b64encode(encode_png(image)).decode("ascii"), "source": note, "step": step,
                 "action": dataclasses.asdict(decision.action), "q_value": decision.q_value}
@@ -975,7 +975,7 @@ class Controller:
             action = greedy_action(q, gmask, mmask, hm.height, self.config.rewards.shift_height)
         note = "fresh capture, greedy action (not executed)"
         image = qmap_picture(hm.color, hm.height, q, gmask, mmask, action, caption=note,
-                             glyph=ActionGlyph.from_config(self.config), filled=hm.filled,
+                             glyph=ActionGlyph.from_config(self.config), unknown=hm.unknown,
                              suppressed=self.agent.memory.footprint() if self.agent.memory.enforced else None)
         return {"png_base64": base64.b64encode(encode_png(image)).decode("ascii"), "source": note,
                 "action": None if action is None else dataclasses.asdict(action),

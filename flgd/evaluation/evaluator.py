@@ -351,5 +351,5 @@ class Evaluator:
                    f"   | rule {decision.rule}, eps {decision.epsilon:.2f}")
         image = qmap_picture(hm.color, hm.height, decision.q_maps, decision.grasp_mask, decision.move_mask,
                              decision.action, caption=caption, glyph=ActionGlyph.from_config(self.config),
-                             filled=hm.filled, suppressed=decision.suppressed)
+                             unknown=hm.unknown, suppressed=decision.suppressed)
         write_png(folder / f"action{number:03d}-{record.kind}.png", image)
