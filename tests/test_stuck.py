@@ -1,6 +1,6 @@
 """A cell that does not repeat what fails: the stuck ladder through the cycle and the daemon, on both backends.
 
-Sim: a block wider than the gripper opens and too heavy to push -- every grasp fails, no move changes
+Sim: a drum wider than the gripper opens and too heavy to push -- every grasp fails, no move changes
 anything.  The cycle keeps each new grasp outside the regions where grasps failed, declares the cell stuck
 after ``exploration.stuck_after`` actions and lays out a new scene.  Real cell (the UR5e, RG2 and D415 fakes of
 tests/test_motion_safety.py): a block the fingers close through -- the daemon pauses with the reason, says so
@@ -33,10 +33,11 @@ pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def _immovable_scene(path: Path) -> Path:
-    """One 10 cm cube of 20 kg: wider than the 8.5 cm opening at any rotation, and no push moves it."""
+    """One drum 14 cm across and 20 kg: wider than the 8.5 cm opening everywhere, no corner a finger pair could
+    pinch, and no push moves it."""
     path.write_text(yaml.safe_dump({"format": "flgd-scene", "version": 1, "objects": [
-        {"shape": "cube", "size": [0.10], "color": [0.8, 0.3, 0.2], "position": [0.0, 0.0, 0.05],
-         "rpy": [0.0, 0.0, 0.3], "mass": 20.0, "friction": 1.5}]}))
+        {"shape": "cylinder", "size": [0.07, 0.06], "color": [0.8, 0.3, 0.2], "position": [0.0, 0.0, 0.03],
+         "mass": 20.0, "friction": 1.5}]}))
     return path
 
 
