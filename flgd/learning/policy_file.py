@@ -19,6 +19,9 @@ uses).  On top of the container's own checks, loading refuses a file unless
 Before a byte is read, the path must be a regular file of at most
 ``MAX_POLICY_BYTES``: ``flgctl policy load /dev/zero`` would otherwise grow the
 daemon until the OOM killer stops it, and a FIFO would block it forever.
+A read the operating system refuses (permissions, an I/O error, a missing
+path) raises ``PolicyFileUnreadable``, a ``PolicyFileError`` that proves
+nothing about the content.
 
 Metadata fields: format, format_version, variant, architecture (JSON),
 shapes (JSON name -> shape), training_steps, cell, rolling_success, created
@@ -53,8 +56,8 @@ from safetensors.torch import save as _st_save
 from flgd.atomic_file import write_atomically
 from flgd.learning.networks import VARIANTS, QMapNetwork, build_network
 
-__all__ = ["FORMAT", "FORMAT_VERSION", "POLICY_SUFFIX", "MAX_POLICY_BYTES", "POLICY_MODE", "PolicyFileError", "first_non_finite",
-           "LoadedPolicy", "save_policy", "load_policy", "read_metadata", "check_fits"]
+__all__ = ["FORMAT", "FORMAT_VERSION", "POLICY_SUFFIX", "MAX_POLICY_BYTES", "POLICY_MODE", "PolicyFileError",
+           "PolicyFileUnreadable", "first_non_finite", "LoadedPolicy", "save_policy", "load_policy", "read_metadata", "check_fits"]
 
 FORMAT = "flgd-policy"
 FORMAT_VERSION = 1
@@ -82,6 +85,19 @@ class PolicyFileError(ValueError):
         self.path = str(path)
         self.problem = problem
         super().__init__(f"policy file {self.path}: {problem}")
+
+
+class PolicyFileUnreadable(PolicyFileError):
+    """The operating system refused to read the file (``os_error``; None for a file swapped while opened).
+
+    Apart from its parent because it says nothing about the file's content: a permission, a disk or a
+    rename in progress may be fixed a moment later, so a caller that keeps records (the gatekeeper) must
+    not judge the file by it.
+    """
+
+    def __init__(self, path: str | os.PathLike, problem: str, os_error: OSError | None) -> None:
+        super().__init__(path, problem)
+        self.os_error = os_error
 
 
 @dataclass(frozen=True)
@@ -180,16 +196,16 @@ def _read_file(path: Path) -> bytes:
     try:
         st = os.stat(path)
     except OSError as exc:
-        raise PolicyFileError(path, _cannot_read(path, exc)) from None
+        raise PolicyFileUnreadable(path, _cannot_read(path, exc), exc) from None
     _check_regular(path, st)
     try:
         fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_NOCTTY", 0))
     except OSError as exc:
-        raise PolicyFileError(path, _cannot_read(path, exc)) from None
+        raise PolicyFileUnreadable(path, _cannot_read(path, exc), exc) from None
     try:
         opened = os.fstat(fd)
         if (opened.st_dev, opened.st_ino) != (st.st_dev, st.st_ino):
-            raise PolicyFileError(path, "the file was replaced while it was being opened; try again")
+            raise PolicyFileUnreadable(path, "the file was replaced while it was being opened; try again", None)
         _check_regular(path, opened)
         chunks, total = [], 0
         while total <= MAX_POLICY_BYTES:
@@ -199,7 +215,7 @@ def _read_file(path: Path) -> bytes:
             chunks.append(chunk)
             total += len(chunk)
     except OSError as exc:
-        raise PolicyFileError(path, f"cannot read: {exc.strerror or exc}") from None
+        raise PolicyFileUnreadable(path, f"cannot read: {exc.strerror or exc}", exc) from None
     finally:
         os.close(fd)
     if total > MAX_POLICY_BYTES:
