@@ -17,11 +17,31 @@ module holds the state around them and keeps it across restarts:
   transaction), so after a ``kill -9`` or a power cut the tallies are recounted
   from exactly the actions that were committed.
 
-A restart acts with the stored champion, never with a learner checkpoint.  A
-champion file that cannot be loaded is recorded as unusable (an event naming the
-file and why) and the gate falls back to its predecessor, then to the configured
+A restart acts with the stored champion, never with a learner checkpoint.
+
+Only a file's content proves it unusable: a size, format or checksum the loader
+refuses, weights other than the ones recorded for it, or a file missing from a
+gate directory that can be listed (gone for good: no retry brings it back).
+Such a file is recorded as ``unusable`` (an event naming it, why, and what to
+do), moved to ``gate/unusable/`` for inspection (the newest ``KEEP_UNUSABLE``
+are kept), and the gate falls back to its predecessor, then to the configured
 policy; if none is usable the daemon refuses to start rather than let a fresh
 network act.
+
+A read the operating system refuses (a permission, an I/O error, the gate
+directory itself missing, a file swapped while opened) says nothing about the
+content.  It is tried again (``READ_RETRY_DELAYS``, about 1.4 s in all: a rename
+in progress is over by then), and if it still fails the daemon refuses to start
+(``GateFileUnreadable``: the file, the OS error, what to fix) and records
+nothing.  It does not act with the predecessor meanwhile: the store would still
+name the unreadable policy as champion, so the actions, the tallies and any
+promotion would be credited to a line the records do not show, and an older
+policy acting quietly hides a fault (a permission, a disk) that a person has to
+fix.  A refused start is loud, and systemd starts the daemon again every 5 s
+(``RestartSec``), so it acts with the whole line again within seconds of the
+file becoming readable.  A start that refuses changes no record at all.  So does
+one whose files hold another network variant than ``learning.network``: the
+files are sound, the config changed.
 
 Only the daemon's run loop calls the methods that change state (they swap the
 agent's networks); ``status`` and ``history`` may be called from any thread.
@@ -31,8 +51,10 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import errno
 import json
 import logging
+import os
 import threading
 import time
 from dataclasses import dataclass
@@ -44,7 +66,8 @@ from flgd.learning.agent import WeightsMailbox
 from flgd.learning.gate import GateSettings, Tally, Verdict, challenger_share, challenger_verdict, rollback_verdict
 from flgd.store import Store
 
-__all__ = ["Gatekeeper", "GateError", "PolicyRecord", "gate_settings", "CREDITED_OUTCOMES"]
+__all__ = ["Gatekeeper", "GateError", "GateFileUnreadable", "PolicyRecord", "gate_settings", "CREDITED_OUTCOMES",
+           "READ_RETRY_DELAYS", "KEEP_UNUSABLE", "UNUSABLE_DIR"]
 
 log = logging.getLogger("flgd")
 
@@ -52,6 +75,12 @@ log = logging.getLogger("flgd")
 # a stop or a cell fault is not.
 CREDITED_OUTCOMES = ("executed", "refused")
 GATE_DIR = "gate"
+UNUSABLE_DIR = "unusable"  # under GATE_DIR: files whose content proved them unusable, kept for inspection
+# The newest unusable files kept there: enough to compare a few failures (a disk going bad shows as several),
+# at most ~150 MB with the largest (DenseNet) policies.
+KEEP_UNUSABLE = 5
+# Pauses before each further try of a read the OS refused (see the module docstring).
+READ_RETRY_DELAYS = (0.1, 0.3, 1.0)
 # events that make a policy the champion, and whether a champion made so is rolled back automatically
 _CROWNING = {"initial": False, "promote": True, "manual-promote": True, "rollback": False,
              "manual-rollback": False, "load": False, "fallback": False}
@@ -59,6 +88,42 @@ _CROWNING = {"initial": False, "promote": True, "manual-promote": True, "rollbac
 
 class GateError(RuntimeError):
     """No usable policy to act with (every champion file and the configured policy are unusable)."""
+
+
+class GateFileUnreadable(GateError):
+    """A gate file the OS would not let the daemon read, on every try; nothing was recorded about it."""
+
+    def __init__(self, policy_id: int, path: Path, message: str) -> None:
+        super().__init__(message)
+        self.policy_id = policy_id
+        self.path = path
+
+
+def _os_problem(exc: Any) -> str:
+    """A PolicyFileUnreadable's OS error in words, without the loader's advice for files outside the state
+    directory (which does not fit a gate file)."""
+    return exc.problem if exc.os_error is None else str(exc.os_error.strerror or exc.os_error)
+
+
+def _read_advice(path: Path, exc: OSError | None) -> str:
+    """What a person does about a refused read of ``path`` (a gate file)."""
+    directory = path.parent
+    if isinstance(exc, PermissionError):
+        uid = os.geteuid()
+        try:
+            import pwd
+            who = f"user {pwd.getpwuid(uid).pw_name} (uid {uid})"
+        except (ImportError, KeyError):
+            who = f"uid {uid}"
+        return (f"The daemon runs as {who} and must be able to read {path} and enter {directory}: give them "
+                f"back to it (as installed: owner flgd, modes 0640 and 0750).")
+    if isinstance(exc, FileNotFoundError):
+        return (f"The gate directory {directory} is missing although the store records this policy in it: "
+                f"restore it (from a backup). To give up the stored policies instead, create {directory} empty: "
+                f"each is then recorded as missing and the configured policy acts.")
+    if exc is None:
+        return f"It was replaced while being opened on every try: find what rewrites files in {directory}."
+    return f"Check the disk that holds it (an {errno.errorcode.get(exc.errno or 0, 'OS')} error: see `dmesg`)."
 
 
 def gate_settings(config: CellConfig) -> GateSettings:
@@ -140,6 +205,8 @@ class Gatekeeper:
         # called with the champion's network whenever the acting policy changes (restore, promotion, rollback,
         # load): the learner's L2-SP anchor (``learning.anchor_weight``) follows what acts
         self.on_champion: Callable[[Any], None] | None = None
+        self.keep_unusable = KEEP_UNUSABLE
+        self.sleep: Callable[[float], None] = time.sleep  # between tries of a refused read
         self._lock = threading.RLock()
 
     # ------------------------------------------------------------------ files and records
@@ -167,13 +234,53 @@ class Gatekeeper:
         return _record_from_row(rows[0]) if rows else None
 
     def _load(self, record: PolicyRecord) -> Any:
-        """The record's network; PolicyFileError (naming the file) when it cannot be used."""
-        from flgd.learning.policy_file import PolicyFileError, load_policy
+        """The record's network.
 
-        loaded = load_policy(self._path(record), expected_variant=self.config.learning.network)
+        PolicyFileError (naming the file): its content proves it unusable.  GateError: the file may be
+        sound but cannot act now -- the OS refused every read (GateFileUnreadable), or it holds another
+        network variant than the config's; nothing is to be recorded about it then.
+        """
+        from flgd.learning.policy_file import PolicyFileError, PolicyFileUnreadable, load_policy
+
+        path = self._path(record)
+        started = time.monotonic()
+        for tries, delay in enumerate((*READ_RETRY_DELAYS, None), start=1):
+            try:
+                loaded = load_policy(path)
+                break
+            except PolicyFileUnreadable as exc:
+                if delay is None:
+                    raise self._refused(record, exc, tries, time.monotonic() - started) from None
+                log.warning("gate: policy #%d file %s cannot be read (%s); trying again in %.1f s", record.id, path,
+                            _os_problem(exc), delay)
+                self.sleep(delay)
+        variant, configured = loaded.metadata.get("variant"), self.config.learning.network
+        if variant != configured:
+            raise GateError(f"policy #{record.id}'s file {path} holds a {variant!r} network, but learning.network "
+                            f"is {configured!r}: set learning.network back to {variant!r}, or, to give up the "
+                            f"stored policies for the configured one, move {path.parent} aside and create it empty "
+                            f"(nothing was recorded)")
         if loaded.metadata.get("weights_sha256") != record.sha256:
-            raise PolicyFileError(self._path(record), "weights differ from the ones the gate recorded for it")
+            raise PolicyFileError(path, "weights differ from the ones the gate recorded for it")
         return loaded.network
+
+    def _refused(self, record: PolicyRecord, exc: Any, tries: int, seconds: float) -> Exception:
+        """The error for a read refused on every try: a missing file in a gate directory that can be listed
+        is gone for good (PolicyFileError: content); anything else is GateFileUnreadable."""
+        from flgd.learning.policy_file import PolicyFileError
+
+        path = self._path(record)
+        if isinstance(exc.os_error, FileNotFoundError):
+            try:
+                os.listdir(path.parent)
+            except OSError:
+                pass  # the directory itself is gone or unreadable: not the file's doing
+            else:
+                return PolicyFileError(path, "is missing (the gate directory holds no such file)")
+        return GateFileUnreadable(record.id, path, (
+            f"policy #{record.id}'s file {path} cannot be read: {_os_problem(exc)} ({tries} tries over {seconds:.1f} s). "
+            f"{_read_advice(path, exc.os_error)} Nothing was recorded about it: the daemon acts with it again "
+            f"once it can read it."))
 
     def _tally(self, policy_id: int, since_step: int) -> Tally:
         rows = self.store.query(
@@ -212,7 +319,12 @@ class Gatekeeper:
             return
         known = {r[0] for r in self.store.query(
             "SELECT file FROM policies WHERE role NOT IN ('dropped', 'rolled_back')")}
-        for path in self.directory.iterdir():
+        try:
+            paths = [p for p in self.directory.iterdir() if not p.is_dir()]  # not unusable/
+        except OSError as exc:  # the policy files' own reads say what to do
+            log.warning("gate: cannot list %s: %s", self.directory, exc)
+            return
+        for path in paths:
             if f"{GATE_DIR}/{path.name}" not in known:
                 try:
                     path.unlink()
@@ -230,25 +342,29 @@ class Gatekeeper:
         ``fresh`` gives the network a daemon without any policy starts from; it is used only on a first
         start without a configured policy (training from scratch), never as a fall-back.
         """
+        from flgd.learning.policy_file import PolicyFileError
+
         with self._lock:
             self._remove_strays()
+            self._set_aside_earlier_unusable()
             note = ""
             first_start = int(self.store.query("SELECT COUNT(*) FROM policies")[0][0]) == 0
             champion = self._by_role("champion")
             network = None
-            tried: list[str] = []
+            unusable: list[tuple[PolicyRecord, PolicyFileError]] = []
             cur = champion
             while cur is not None:
                 try:
-                    network = self._load(cur)
+                    network = self._load(cur)  # a GateError (unreadable now) refuses the start: nothing recorded
                     break
-                except Exception as exc:  # PolicyFileError, OSError: the file named, the next one tried
-                    tried.append(f"{self._path(cur)}: {exc}")
-                    self._mark_unusable(cur, step, str(exc))
+                except PolicyFileError as exc:  # its content: the file named, the next one tried
+                    unusable.append((cur, exc))
                     cur = self._row(cur.predecessor) if cur.predecessor is not None else None
+            tried = [str(exc) for _, exc in unusable]
             if network is not None and cur is not None and champion is not None and cur.id != champion.id:
                 self._crown(cur, step, "fallback", "flgd", f"champion #{champion.id} unusable; policy #{cur.id} "
-                                                           f"acts again", {"unusable": tried})
+                                                           f"acts again", {"unusable": tried},
+                            also=self._set_aside(unusable, step))
                 note = f"fell back to policy #{cur.id} ({'; '.join(tried)})"
             if network is None:
                 got = configured()
@@ -256,37 +372,105 @@ class Gatekeeper:
                     got = fresh()
                 if got is None:
                     raise GateError("no usable champion and no configured policy: " + "; ".join(tried) +
-                                    " (set `policy:` in the config, or flgctl policy load after a restart)")
+                                    " (set `policy:` in the config to a policy file to act with)")
                 net, meta, origin = got
                 kind = "initial" if first_start else "fallback"
                 cur = self._register_champion(net, meta, origin, step, kind, "flgd",
-                                              {"unusable": tried} if tried else {})
+                                              {"unusable": tried} if tried else {},
+                                              also=self._set_aside(unusable, step))
                 network = net
                 if tried:
                     note = f"fell back to the configured policy ({'; '.join(tried)})"
+            self._prune_unusable()
             self._act_with_champion(cur, network)
             self._restore_challenger(step)
             self._recount()
             return note or f"champion #{cur.id} ({cur.origin})"
 
-    def _mark_unusable(self, record: PolicyRecord, step: int, why: str) -> None:
+    def _move_aside(self, record: PolicyRecord) -> str | None:
+        """Move the record's file to ``gate/unusable/`` (named by the time, so the newest sort last);
+        its new path relative to the state directory, or None when there is none to move or it cannot be."""
+        source = self._path(record)
+        stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
+        rel = f"{GATE_DIR}/{UNUSABLE_DIR}/{stamp}-{source.name}"
+        try:
+            (self.directory / UNUSABLE_DIR).mkdir(parents=True, exist_ok=True)
+            for n in range(2, 100):
+                if not (self.state_dir / rel).exists():
+                    break
+                rel = f"{GATE_DIR}/{UNUSABLE_DIR}/{stamp}.{n}-{source.name}"
+            os.rename(source, self.state_dir / rel)
+        except FileNotFoundError:
+            return None
+        except OSError as exc:
+            log.warning("gate: cannot move %s aside: %s", source, exc)
+            return None
+        return rel
+
+    def _set_aside(self, unusable: list[tuple[PolicyRecord, Any]], step: int) -> Callable[[Any], None]:
+        """Move the files aside now; the returned writer records them as unusable (in the caller's transaction,
+        with the change of champion, so that no kill leaves the store without one).  ``unusable``: (record,
+        its PolicyFileError)."""
+        moved = [(record, exc.problem, self._move_aside(record)) for record, exc in unusable]
+
         def write(db: Any) -> None:
-            db.execute("UPDATE policies SET role='unusable' WHERE id=?", (record.id,))
-            self._event(db, "unusable", step, record.id, None, "flgd",
-                        f"policy #{record.id} file {self._path(record)} cannot be used: {why}", {"error": why})
-        self.store.transaction(write)
-        log.error("gate: policy #%d file %s cannot be used: %s", record.id, self._path(record), why)
+            for record, why, rel in moved:
+                where = (f"; moved to {self.state_dir / rel} for inspection (the newest {self.keep_unusable} "
+                         "unusable files are kept)" if rel is not None else
+                         f"; left at {self._path(record)} (it cannot be moved aside)" if self._path(record).exists()
+                         else "")
+                db.execute("UPDATE policies SET role='unusable', file=? WHERE id=?",
+                           (record.file if rel is None else rel, record.id))
+                self._event(db, "unusable", step, record.id, None, "flgd",
+                            f"policy #{record.id} file {self._path(record)} cannot be used: {why}{where}. To act "
+                            "with it again, `flgctl policy load` a good copy (from a backup); several at once "
+                            "point to a failing disk", {"error": why, "moved_to": rel})
+        for record, why, rel in moved:
+            log.error("gate: policy #%d file %s cannot be used: %s%s", record.id, self._path(record), why,
+                      "" if rel is None else f"; moved to {self.state_dir / rel}")
+        return write
+
+    def _set_aside_earlier_unusable(self) -> None:
+        """Files recorded unusable before they were moved aside (by an earlier version) go to ``gate/unusable/``."""
+        rows = self.store.query(f"SELECT {', '.join(_COLUMNS)} FROM policies WHERE role='unusable' AND file LIKE ?",
+                                (f"{GATE_DIR}/policy-%",))
+        for record in map(_record_from_row, rows):
+            if self._path(record).is_file():
+                rel = self._move_aside(record)
+                if rel is not None:
+                    self.store.transaction(lambda db, r=rel, i=record.id: db.execute(
+                        "UPDATE policies SET file=? WHERE id=?", (r, i)))
+
+    def _prune_unusable(self) -> None:
+        """Keep the newest ``keep_unusable`` files in ``gate/unusable/``; older ones are deleted."""
+        directory = self.directory / UNUSABLE_DIR
+        try:
+            files = sorted(p for p in directory.iterdir() if p.is_file())
+        except OSError:  # none yet, or unreadable: nothing to prune now
+            return
+        for old in files[:max(0, len(files) - self.keep_unusable)]:
+            try:
+                old.unlink()
+                log.info("gate: removed %s (only the newest %d unusable files are kept)", old, self.keep_unusable)
+            except OSError as exc:
+                log.warning("gate: cannot remove %s: %s", old, exc)
 
     def _restore_challenger(self, step: int) -> None:
         rec = self._by_role("challenger")
         if rec is None:
             self.agent.set_challenger(None)
             return
+        from flgd.learning.policy_file import PolicyFileError
+
         try:
-            net = self._load(rec)
-        except Exception as exc:
+            net = self._load(rec)  # a GateError (unreadable now) refuses the start: nothing recorded
+        except PolicyFileError as exc:  # its content: kept for inspection, the challenger dropped
             self.challenger = rec
-            self._drop(step, "flgd", f"its file cannot be used: {exc}", {"error": str(exc)}, kind="drop")
+            rel = self._move_aside(rec)
+            where = "" if rel is None else f" (moved to {self.state_dir / rel})"
+            self._drop(step, "flgd", f"its file cannot be used: {exc}{where}", {"error": str(exc), "moved_to": rel},
+                       kind="drop", also=None if rel is None else lambda db: db.execute(
+                           "UPDATE policies SET file=? WHERE id=?", (rel, rec.id)))
             return
         self.challenger = rec
         self.agent.set_challenger(net, rec.id, -1, self.settings.share if self.enabled else 0.0)
@@ -328,7 +512,7 @@ class Gatekeeper:
                 log.warning("gate: the learner's anchor did not follow champion #%d: %s", record.id, exc)
 
     def _register_champion(self, network: Any, meta: dict, origin: str, step: int, kind: str, who: str,
-                           evidence: dict) -> PolicyRecord:
+                           evidence: dict, also: Callable[[Any], None] | None = None) -> PolicyRecord:
         pid = self._next_id()
         steps = int(meta.get("training_steps", 0) or 0)
         rel, sha = self._write_file(pid, network, {"training_steps": steps, "cell": self.config.name or
@@ -338,6 +522,8 @@ class Gatekeeper:
                               int(step), None)
 
         def write(db: Any) -> None:
+            if also is not None:
+                also(db)
             if old is not None:
                 db.execute("UPDATE policies SET role='retired', record=? WHERE id=?",
                            (_tally_json(self.champion_live), old.id))
@@ -350,11 +536,14 @@ class Gatekeeper:
         return record
 
     def _crown(self, record: PolicyRecord, step: int, kind: str, who: str, message: str, evidence: dict,
-               retire_as: str = "retired") -> None:
-        """``record`` (a stored policy) becomes the champion; the current one is retired (or rolled back)."""
+               retire_as: str = "retired", also: Callable[[Any], None] | None = None) -> None:
+        """``record`` (a stored policy) becomes the champion; the current one is retired (or rolled back).
+        ``also`` writes more in the same transaction."""
         old = self.champion
 
         def write(db: Any) -> None:
+            if also is not None:
+                also(db)
             if old is not None and old.id != record.id:
                 db.execute("UPDATE policies SET role=?, record=? WHERE id=?",
                            (retire_as, _tally_json(self.champion_live), old.id))
@@ -371,12 +560,15 @@ class Gatekeeper:
         self.by_promotion = _CROWNING[kind]
         log.info("gate: %s", message)
 
-    def _drop(self, step: int, who: str, why: str, evidence: dict, kind: str = "drop") -> None:
+    def _drop(self, step: int, who: str, why: str, evidence: dict, kind: str = "drop",
+              also: Callable[[Any], None] | None = None) -> None:
         ch = self.challenger
         if ch is None:
             return
 
         def write(db: Any) -> None:
+            if also is not None:
+                also(db)
             db.execute("UPDATE policies SET role='dropped', record=? WHERE id=?",
                        (_tally_json(self.challenger_tally), ch.id))
             self._event(db, kind, step, ch.id, None if self.champion is None else self.champion.id, who,
