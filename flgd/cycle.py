@@ -5,6 +5,15 @@ single definition of what an action, a reward and a transition are.  It knows
 nothing about sockets, states or systemd; the caller decides when to run a
 cycle and what to do with the record and with exceptions.
 
+Nothing moves unrecorded.  With a store, a cycle first checks that the state
+directory can take its writes (``Store.check_space``: free space above
+``storage.min_free_bytes``, a writable filesystem) and raises StoreError
+before any motion when it cannot; and a decided action is written to the
+action log as an intent (outcome ``pending``) before the cell is told to move,
+then completed with its outcome.  An intent that cannot be written stops the
+cycle before the motion; a completion that cannot be written leaves the intent,
+which the store marks ``interrupted`` (flgd/store.py).
+
 One capture per cycle: the frame taken after an action is both the "after" of
 its move judgement and the state the next decision is made on (the next state
 of the stored transition).  A fresh capture is needed only after a scene
@@ -21,6 +30,9 @@ Outcomes of a cycle (``CycleRecord.outcome``):
     and nothing is learned.
   * ``fault``     -- the cell raised CellFault: the action is logged, its
     transition dropped, and the CellFault re-raised for the caller.
+  * ``pending`` / ``interrupted`` -- never a CycleRecord's outcome, only an
+    action-log row's: the intent written before the motion, and one whose
+    completion was never written (a kill, a power cut, a full disk mid-action).
   * ``empty``     -- there was nothing to act on; no step.  A cell that can lay out
     a new scene (the simulation) did so; on any other cell nothing was done and
     ``CycleRecord.refill_needed`` is set: a person must refill the table, and the
@@ -146,7 +158,8 @@ class CycleRunner:
     """Runs cycles on one cell with one agent; optional store, replay and learner.
 
     ``store``   -- a ``flgd.store.Store`` (anything with ``commit_cycle``,
-                   ``note_store_time``, ``forget_last_state``); None = not persisted.
+                   ``note_store_time``, ``forget_last_state``; ``check_space``
+                   and ``record_intent`` where it has them); None = not persisted.
     ``replay``  -- gets every stored transition (``add``); None = no learning.
     ``learner`` -- told about each new transition (``notify_new_transition``).
     ``on_phase``-- called after each phase (the daemon pings its watchdog there).
@@ -165,6 +178,7 @@ class CycleRunner:
         self.backend = backend or config.backend
         self.on_phase = on_phase
         self.current: Heightmaps | None = None
+        self.last_frame: Any = None  # the newest captured frame (the calibration watch fits the table in it)
         # (heightmaps, decision, step) of the newest decision, replaced as one object so another
         # thread (a snapshot request) never pairs a decision with the wrong heightmaps
         self.last_decided: tuple[Heightmaps, Any, int] | None = None
@@ -189,6 +203,7 @@ class CycleRunner:
     def perceive(self, timer: _Timer) -> Heightmaps:
         with timer.phase("capture"):
             frame = self.cell.capture()
+        self.last_frame = frame
         with timer.phase("perceive"):
             cam = self.config.camera
             return frame_heightmaps(frame, self.config.workspace, cam.depth_range, cam.depth_fill)
@@ -224,6 +239,21 @@ class CycleRunner:
             return True
         return not bool(grasp_mask(hm.height, self.config.rewards, self.config.workspace.resolution).any())
 
+    def _check_space(self) -> None:
+        """Before any motion of a cycle: StoreError if the state directory cannot take the cycle's writes."""
+        check = getattr(self.store, "check_space", None)
+        if check is not None:
+            check()
+
+    def _record_intent(self, record: CycleRecord) -> None:
+        """Write-ahead: the decided action is in the action log before the cell is told to move."""
+        write = getattr(self.store, "record_intent", None)
+        if write is None:
+            return
+        t0 = time.perf_counter()
+        write(record.row())
+        record.timings["store"] = record.timings.get("store", 0.0) + time.perf_counter() - t0
+
     def _commit(self, record: CycleRecord, transition: Any, timer: _Timer) -> None:
         t0 = time.perf_counter()
         if self.store is not None:
@@ -232,7 +262,7 @@ class CycleRunner:
             self.replay.add(transition, tag=record.transition_id)
             if self.learner is not None:
                 self.learner.notify_new_transition()
-        record.timings["store"] = time.perf_counter() - t0
+        record.timings["store"] = record.timings.get("store", 0.0) + time.perf_counter() - t0
         if self.store is not None:
             self.store.note_store_time(record.step, record.timings["store"])
         if timer.on_phase is not None:
@@ -259,6 +289,7 @@ class CycleRunner:
     # ------------------------------------------------------------------ the cycle
     def run_once(self) -> CycleRecord:
         """One cycle.  Raises CellFault (after logging the action) and store errors."""
+        self._check_space()
         t_start = time.perf_counter()
         timings: dict[str, float] = {}
         timer = _Timer(timings, self.on_phase)
@@ -339,6 +370,11 @@ class CycleRunner:
 
         if self._stop.is_set():
             return self._stopped(record, "before execution", finish, timer)
+        try:
+            self._record_intent(finish())
+        except Exception:
+            self.step -= 1  # nothing moved and nothing is logged: the next cycle decides this step again
+            raise
         try:
             with timer.phase("execute"):
                 result = self.cell.execute(checked)

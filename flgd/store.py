@@ -36,9 +36,39 @@ Schema (``SCHEMA_VERSION`` 3), file ``<state_dir>/flgd.sqlite``:
 A version-1 or -2 store is upgraded in place when it is opened: the missing columns
 (``contact_stop_mm``, ``policy``) are added (empty for the old rows) and nothing else changes.
 
-Retention: with ``keep_transitions`` (the daemon passes the replay capacity)
-only the newest transitions and their states are kept, so the file stops
-growing; the action log, events and counters are kept whole.
+Write-ahead action log: a decided action that will move the cell is recorded
+(``record_intent``: its row with outcome ``pending`` -- step, time, action,
+plan kind, rule, policy) in its own transaction *before* the cell is told to
+move, and completed (``commit_cycle``: outcome, reward, transition) after.  So a
+``kill -9``, a power cut or a full disk at any instant leaves every motion in
+the log: a row still ``pending`` when the store is next opened, or when a later
+cycle is written, becomes ``interrupted`` (its ``failure`` says so).  Neither
+outcome is ``executed`` or ``refused``, so stats and the gate's tallies never
+count such a row as an outcome; ``flgctl stats`` shows it under "other".
+
+Retention and the disk budget (flgd/disk_budget.py):
+
+* ``keep_transitions`` (the daemon passes the replay capacity): only the newest
+  transitions and their states are kept.
+* ``max_bytes`` (``storage.max_bytes``): the database and its write-ahead log
+  stay under it; above it the oldest transitions and their states are deleted
+  first (the newest one is always kept), and the write-ahead log is truncated
+  after each checkpoint to fit.  The file keeps its largest size: freed pages
+  are reused, not returned to the filesystem.
+* ``action_log_days`` (``storage.action_log_days``, 0 = forever): older
+  action-log rows are deleted, except the newest row (the step counter is
+  ``max(step) + 1``) and the rows the gate's acting policies are tallied from
+  (``policies.since_step`` of the champion and challenger).  Each deleted row is
+  counted in the ``actions_deleted`` counter.  Events and counters are kept whole.
+* ``min_free_bytes`` (``storage.min_free_bytes``): ``check_space`` raises a
+  StoreError naming the directory, the free bytes and the floor when the
+  filesystem has less, is read-only, or the directory is not writable; the
+  cycle calls it before any motion.
+
+The first storage failure is kept as the diagnosis until a write succeeds
+again: SQLite reports later failures of the same broken disk differently (after
+an I/O error, "database disk image is malformed" although the file is intact),
+so those are appended to the first cause instead of replacing it.
 
 The step counter is not stored separately: it is ``max(actions.step) + 1``, so
 it can never disagree with the log.
@@ -51,6 +81,7 @@ from __future__ import annotations
 
 import errno
 import json
+import logging
 import os
 import re
 import sqlite3
@@ -63,6 +94,7 @@ from typing import Any, Callable, Iterator
 
 import numpy as np
 
+from flgd import disk_budget
 from flgd.actions import Action
 from flgd.perception import Heightmaps
 
@@ -75,12 +107,22 @@ __all__ = [
     "CheckpointDir",
     "ACTION_COLUMNS",
     "TIMING_PHASES",
+    "INTENT_OUTCOME",
+    "INTERRUPTED_OUTCOME",
 ]
+
+log = logging.getLogger("flgd")
 
 SCHEMA_VERSION = 3
 HEIGHT_QUANTUM = 1e-4  # metres per stored height unit
 DB_NAME = "flgd.sqlite"
 TIMING_PHASES = ("capture", "perceive", "decide", "plan", "execute", "judge", "store")
+# the outcome of an action-log row written before the motion (``Store.record_intent``), until it is completed
+INTENT_OUTCOME = "pending"
+# ... and of one that was never completed: the cell was told to move, what happened was not recorded
+INTERRUPTED_OUTCOME = "interrupted"
+INTERRUPTED_FAILURE = ("interrupted: the action was sent to the cell, but its outcome was never recorded (the process "
+                       "ended or the store failed during the action); look at the cell before trusting its scene")
 
 ACTION_COLUMNS = (
     "step", "time", "backend", "outcome", "primitive", "kind", "row", "col", "rotation", "reward",
@@ -208,32 +250,53 @@ class Store:
 
     ``keep_transitions``: when set, transitions older than the newest N (the
     replay capacity) and the states only they used are deleted every
-    ``PRUNE_EVERY`` commits, so a daemon running for weeks does not fill the
-    disk; the action log is kept whole (its ``transition_id`` becomes NULL).
+    ``PRUNE_EVERY`` commits (the action log's ``transition_id`` becomes NULL).
+    ``max_bytes``, ``action_log_days`` and ``min_free_bytes``: the disk budget,
+    the action log's retention and the free-space floor (module docstring).
+    ``connect``: how the database is opened (``sqlite3.connect``; tests inject
+    a connection that fails like a full disk).
     """
 
     PRUNE_EVERY = 64
+    RETAIN_EVERY = 1024  # commits between two action-log retention passes (one scan of the old rows)
 
-    def __init__(self, state_dir: str | os.PathLike, keep_transitions: int | None = None):
+    def __init__(self, state_dir: str | os.PathLike, keep_transitions: int | None = None, *,
+                 max_bytes: int | None = None, action_log_days: float = 0.0, min_free_bytes: int = 0,
+                 connect: Callable[..., sqlite3.Connection] = sqlite3.connect):
         if keep_transitions is not None and keep_transitions < 1:
             raise ValueError(f"Store.keep_transitions: got {keep_transitions!r}, expected >= 1 or None")
+        if max_bytes is not None and max_bytes < 1:
+            raise ValueError(f"Store.max_bytes: got {max_bytes!r}, expected >= 1 or None")
+        if action_log_days < 0 or min_free_bytes < 0:
+            raise ValueError(f"Store: got action_log_days {action_log_days!r}, min_free_bytes {min_free_bytes!r}, "
+                             "expected >= 0")
         self.keep_transitions = keep_transitions
+        self.max_bytes = max_bytes
+        self.action_log_days = float(action_log_days)
+        self.min_free_bytes = int(min_free_bytes)
         self._commits = 0
         self.state_dir = Path(state_dir)
         self.path = self.state_dir / DB_NAME
         self._lock = threading.RLock()
         self._last_state: tuple[Any, int] | None = None
         self._pending_store_time: tuple[int, float] | None = None
+        self._open_intent: int | None = None  # the step recorded by record_intent and not completed yet
+        self._state_bytes = 0  # encoded size of the newest stored state: what evicting one transition frees
+        self._first_failure = ""  # the diagnosis of the first failure since the last successful write
+        self.budget_problem = ""  # the action log and other records alone fill max_bytes (nothing left to evict)
         try:
             self.state_dir.mkdir(parents=True, exist_ok=True)
-            self._db = sqlite3.connect(self.path, timeout=10.0, isolation_level=None,
-                                       check_same_thread=False)
+            self._db = connect(self.path, timeout=10.0, isolation_level=None, check_same_thread=False)
             self._db.execute("PRAGMA journal_mode=WAL")
             mode = self._db.execute("PRAGMA journal_mode").fetchone()[0]
             if str(mode).lower() != "wal":
                 raise StoreError(f"store {self.path}: could not switch to WAL mode (got {mode!r})")
             self._db.execute("PRAGMA synchronous=FULL")
             self._db.execute("PRAGMA foreign_keys=ON")
+            if max_bytes is not None:
+                # the write-ahead log stays within its reserve of the budget (disk_budget.database_limit)
+                self._db.execute(f"PRAGMA wal_autocheckpoint={disk_budget.wal_autocheckpoint_pages(max_bytes)}")
+                self._db.execute(f"PRAGMA journal_size_limit={disk_budget.wal_reserve(max_bytes) // 2}")
             self._db.executescript(_SCHEMA)
             row = self._db.execute("SELECT value FROM meta WHERE key='schema_version'").fetchone()
             if row is None:
@@ -245,6 +308,10 @@ class Store:
                 raise StoreError(f"store {self.path}: schema version {row[0]} is not the supported "
                                  f"version {SCHEMA_VERSION}; use a new state directory")
             self._db.executescript(_INDEXES)
+            if self._db.execute("SELECT 1 FROM actions WHERE outcome=? LIMIT 1", (INTENT_OUTCOME,)).fetchone():
+                self._write(lambda db: self._mark_interrupted(db, None))
+            if self.action_log_days > 0:
+                self._write(self._retain_action_log)
         except StoreError:
             raise
         except (sqlite3.Error, OSError) as exc:
@@ -279,40 +346,102 @@ class Store:
                     self._db.execute("COMMIT")
                 except BaseException:
                     if self._db.in_transaction:
-                        self._db.execute("ROLLBACK")
+                        try:
+                            self._db.execute("ROLLBACK")
+                        except sqlite3.Error:
+                            pass  # the failure that got us here is the one to report
                     raise
+                self._first_failure = ""
                 return out
             except (sqlite3.Error, OSError) as exc:
                 self._last_state = None
-                raise StoreError(_explain(exc, self.path)) from exc
+                raise StoreError(self._diagnose(exc)) from exc
 
     def _read(self, sql: str, args: tuple = ()) -> list[tuple]:
         with self._lock:
             try:
                 return self._db.execute(sql, args).fetchall()
             except (sqlite3.Error, OSError) as exc:
-                raise StoreError(_explain(exc, self.path)) from exc
+                raise StoreError(self._diagnose(exc)) from exc
+
+    def _diagnose(self, exc: BaseException) -> str:
+        """The operator's sentence for ``exc``; the first storage failure stays the cause until a write succeeds.
+
+        Why: a disk that failed once keeps failing, and SQLite's later words for it mislead (after an I/O
+        error it reports "database disk image is malformed" for a file that is intact).  A broken constraint
+        is a bug, not the disk, and is reported on its own.
+        """
+        why = _explain(exc, self.path)
+        if isinstance(exc, sqlite3.IntegrityError):
+            return why
+        if self._first_failure:
+            return f"{self._first_failure} (still failing since: {type(exc).__name__}: {exc})"
+        self._first_failure = why
+        return why
 
     def _state_id(self, db: sqlite3.Connection, hm: Heightmaps) -> int:
         if self._last_state is not None and self._last_state[0] is hm:
             return self._last_state[1]
-        cur = db.execute("INSERT INTO states(rows, cols, color, height) VALUES(?,?,?,?)",
-                         encode_heightmaps(hm))
+        encoded = encode_heightmaps(hm)
+        self._state_bytes = len(encoded[2]) + len(encoded[3])
+        cur = db.execute("INSERT INTO states(rows, cols, color, height) VALUES(?,?,?,?)", encoded)
         return int(cur.lastrowid)
 
+    @staticmethod
+    def _mark_interrupted(db: sqlite3.Connection, step: int | None) -> None:
+        """Intent rows (``step``, or all when None) that were never completed become ``interrupted``."""
+        where, args = ("step=? AND outcome=?", (step, INTENT_OUTCOME)) if step is not None \
+            else ("outcome=?", (INTENT_OUTCOME,))
+        db.execute(f"UPDATE actions SET outcome=?, failure=CASE WHEN COALESCE(failure, '')='' THEN ? "
+                   f"ELSE failure || '; ' || ? END WHERE {where}",
+                   (INTERRUPTED_OUTCOME, INTERRUPTED_FAILURE, INTERRUPTED_FAILURE, *args))
+
+    def _insert_action(self, db: sqlite3.Connection, values: dict) -> None:
+        cols = [c for c in ACTION_COLUMNS if c in values]
+        db.execute(f"INSERT INTO actions({', '.join(cols)}) VALUES({', '.join('?' * len(cols))})",
+                   [_sql_value(values[c]) for c in cols])
+
     # ------------------------------------------------------------------ writing
+    def record_intent(self, row: dict) -> None:
+        """Write-ahead: commit the decided action's row, outcome ``pending``, before the cell is told to move.
+
+        ``row`` is the cycle's action-log row as far as it is known (step, time, action, plan kind, rule,
+        policy, timings); ``commit_cycle`` of the same step completes it.  An earlier intent that was never
+        completed (its completion failed) becomes ``interrupted`` in the same transaction.  Raises
+        StoreError when it cannot be written: then nothing may move.
+        """
+        unknown = set(row) - set(ACTION_COLUMNS)
+        if unknown:
+            raise ValueError(f"record_intent: unknown action-log columns {sorted(unknown)}")
+        pending = self._pending_store_time
+        earlier = self._open_intent
+        step = int(row["step"])
+
+        def write(db: sqlite3.Connection) -> None:
+            if earlier is not None:
+                self._mark_interrupted(db, earlier)
+            self._insert_action(db, dict(row, outcome=INTENT_OUTCOME))
+            if pending is not None:
+                db.execute("UPDATE actions SET t_store=? WHERE step=?", (pending[1], pending[0]))
+
+        self._write(write)
+        self._pending_store_time = None
+        self._open_intent = step
+
     def commit_cycle(self, row: dict, transition: Any | None = None,
                      priority: float | None = None) -> int | None:
         """Write one cycle: its action-log ``row`` and, if any, its transition.
 
         ``transition`` has ``state``, ``action``, ``reward``, ``next_state`` and
         ``done``.  A state that is the very object stored as the previous
-        transition's next state is not stored again.  Returns the transition id.
+        transition's next state is not stored again.  A row whose intent was
+        recorded (``record_intent``) is completed in place.  Returns the transition id.
         """
         unknown = set(row) - set(ACTION_COLUMNS)
         if unknown:
             raise ValueError(f"commit_cycle: unknown action-log columns {sorted(unknown)}")
         pending = self._pending_store_time
+        intent = self._open_intent
 
         def write(db: sqlite3.Connection) -> int | None:
             tid = None
@@ -333,34 +462,135 @@ class Store:
                      None if priority is None else float(priority)))
                 tid = int(cur.lastrowid)
             values = dict(row, transition_id=tid)
-            cols = [c for c in ACTION_COLUMNS if c in values]
-            db.execute(f"INSERT INTO actions({', '.join(cols)}) VALUES({', '.join('?' * len(cols))})",
-                       [_sql_value(values[c]) for c in cols])
+            step = int(values["step"])
+            if intent is not None and intent != step:
+                self._mark_interrupted(db, intent)
+            if intent == step:
+                self._complete_action(db, values)
+            else:
+                self._insert_action(db, values)
             if pending is not None:
                 db.execute("UPDATE actions SET t_store=? WHERE step=?", (pending[1], pending[0]))
             if self.keep_transitions is not None and (self._commits + 1) % self.PRUNE_EVERY == 0:
                 self._prune(db, self.keep_transitions)
+            if self.max_bytes is not None and transition is not None:
+                self._evict_to_budget(db)
+            if self.action_log_days > 0 and (self._commits + 1) % self.RETAIN_EVERY == 0:
+                self._retain_action_log(db)
             self._last_state = new_last
             return tid
 
         out = self._write(write)
         self._pending_store_time = None
+        self._open_intent = None
         self._commits += 1
         return out
 
+    def _complete_action(self, db: sqlite3.Connection, values: dict) -> None:
+        """The intent row of ``values['step']`` gets its outcome (a row marked interrupted meanwhile, too)."""
+        cols = [c for c in ACTION_COLUMNS if c in values and c != "step"]
+        cur = db.execute(f"UPDATE actions SET {', '.join(f'{c}=?' for c in cols)} WHERE step=? AND outcome IN (?, ?)",
+                         [*(_sql_value(values[c]) for c in cols), int(values["step"]), INTENT_OUTCOME,
+                          INTERRUPTED_OUTCOME])
+        if cur.rowcount == 0:  # the intent row is gone (deleted by hand): the outcome is still recorded
+            self._insert_action(db, values)
+
     @staticmethod
-    def _prune(db: sqlite3.Connection, keep: int) -> None:
-        row = db.execute("SELECT id FROM transitions ORDER BY id DESC LIMIT 1 OFFSET ?", (keep,)).fetchone()
-        if row is None:
+    def _evict_through(db: sqlite3.Connection, cutoff: int) -> None:
+        """Delete the transitions with id <= ``cutoff`` and the states only they used."""
+        last_step = db.execute("SELECT step FROM transitions WHERE id=?", (cutoff,)).fetchone()
+        if last_step is None:
             return
-        cutoff = row[0]
-        db.execute("UPDATE actions SET transition_id=NULL WHERE transition_id <= ?", (cutoff,))
+        # a transition's action-log row has the same step, so the step bound keeps this a range scan
+        db.execute("UPDATE actions SET transition_id=NULL WHERE step <= ? AND transition_id <= ?",
+                   (last_step[0], cutoff))
         db.execute("DELETE FROM transitions WHERE id <= ?", (cutoff,))
         db.execute("DELETE FROM states WHERE id < (SELECT COALESCE(MIN(state_id), 0) FROM transitions)")
+
+    @classmethod
+    def _prune(cls, db: sqlite3.Connection, keep: int) -> None:
+        row = db.execute("SELECT id FROM transitions ORDER BY id DESC LIMIT 1 OFFSET ?", (keep,)).fetchone()
+        if row is not None:
+            cls._evict_through(db, row[0])
 
     def prune(self, keep: int) -> None:
         """Keep only the newest ``keep`` transitions (and their states) now."""
         self._write(lambda db: self._prune(db, keep))
+
+    @staticmethod
+    def _used_bytes(db: sqlite3.Connection) -> int:
+        """Bytes of the database's pages in use (the file's pages less the free ones)."""
+        pages = db.execute("PRAGMA page_count").fetchone()[0]
+        free = db.execute("PRAGMA freelist_count").fetchone()[0]
+        return int((pages - free) * db.execute("PRAGMA page_size").fetchone()[0])
+
+    def _evict_to_budget(self, db: sqlite3.Connection) -> None:
+        """Over ``max_bytes``: delete the oldest transitions and their states, never the newest one."""
+        limit = disk_budget.database_limit(self.max_bytes)
+        for _ in range(16):  # each round frees about what it estimated; a few rounds at most
+            used = self._used_bytes(db)
+            k = disk_budget.transitions_to_evict(used, limit, self._state_bytes)
+            if k == 0:
+                self.budget_problem = ""
+                return
+            newest = db.execute("SELECT COALESCE(MAX(id), 0) FROM transitions").fetchone()[0]
+            row = db.execute("SELECT id FROM transitions WHERE id < ? ORDER BY id LIMIT 1 OFFSET ?",
+                             (newest, k - 1)).fetchone()
+            if row is None:  # fewer than k older ones: all but the newest go
+                row = db.execute("SELECT MAX(id) FROM transitions WHERE id < ?", (newest,)).fetchone()
+            if row is None or row[0] is None:
+                if not self.budget_problem:
+                    self.budget_problem = (
+                        f"store {self.path}: {disk_budget.format_bytes(used)} in use with no replay left to evict, "
+                        f"over storage.max_bytes {disk_budget.format_bytes(self.max_bytes)}: the action log and "
+                        "the other records fill the budget; lower storage.action_log_days or raise storage.max_bytes")
+                    log.warning("%s", self.budget_problem)
+                return
+            self._evict_through(db, row[0])
+
+    def _retain_action_log(self, db: sqlite3.Connection) -> None:
+        """Delete action-log rows older than ``action_log_days``, except the newest and those the gate tallies."""
+        cutoff = disk_budget.action_log_cutoff(time.time(), self.action_log_days)
+        if cutoff is None:
+            return
+        newest = db.execute("SELECT MAX(step) FROM actions").fetchone()[0]
+        if newest is None:
+            return
+        bound = newest
+        tallied = db.execute("SELECT MIN(since_step) FROM policies WHERE role IN ('champion', 'challenger')").fetchone()
+        if tallied[0] is not None:
+            bound = min(bound, int(tallied[0]))
+        cur = db.execute("DELETE FROM actions WHERE step < ? AND time < ?", (bound, cutoff))
+        if cur.rowcount > 0:
+            db.execute("INSERT INTO counters(name, value) VALUES('actions_deleted', ?) "
+                       "ON CONFLICT(name) DO UPDATE SET value=value + excluded.value", (cur.rowcount,))
+
+    def retain_action_log(self) -> None:
+        """Apply ``action_log_days`` now (it also runs when the store opens and every ``RETAIN_EVERY`` commits)."""
+        self._write(self._retain_action_log)
+
+    # ------------------------------------------------------------------ the disk
+    def space_problem(self) -> str:
+        """What keeps the state directory from taking the next writes ('' = nothing; flgd/disk_budget.py)."""
+        return disk_budget.space_problem(self.state_dir, self.min_free_bytes)
+
+    def check_space(self) -> None:
+        """Raise StoreError, naming the directory, the numbers and what to do, unless a motion may start."""
+        problem = self.space_problem()
+        if problem:
+            raise StoreError(f"store {self.path}: {problem}")
+
+    def file_bytes(self) -> int:
+        """Bytes of the store's files on disk: the database, its write-ahead log and the log's index."""
+        total = 0
+        for suffix in ("", "-wal", "-shm"):
+            try:
+                total += os.stat(f"{self.path}{suffix}").st_size
+            except FileNotFoundError:
+                pass
+            except OSError as exc:
+                raise StoreError(self._diagnose(exc)) from exc
+        return total
 
     def note_store_time(self, step: int, seconds: float) -> None:
         """The measured store time of ``step``; written with the next commit."""
