@@ -392,6 +392,23 @@ class SimConfig:
 
 
 @dataclass(frozen=True)
+class CalibrationWatchConfig:
+    """The watch on the camera's calibration (``flgd.calibration_watch``): the table plane every frame shows,
+    against where ``camera.pose`` puts it.  A bumped camera makes grasps miss everywhere while nothing faults;
+    past these limits the daemon says so (event, status, metric) and names ``flgd calibrate``."""
+
+    enabled: bool = param(True, help="fit the table plane in every cycle's frame and report a drift")
+    max_tilt_degrees: float = param(0.5, unit="deg", gt=0.0, le=10.0,
+                                    help="table tilt in the heightmap beyond which the camera has moved")
+    max_offset_mm: float = param(5.0, unit="mm", gt=0.0, le=100.0,
+                                 help="table height (at the workspace centre) beyond which the camera has moved")
+    window: int = param(5, ge=1, le=100, unit="frames", help="the estimate is the median of the newest frames")
+    confirm_frames: int = param(3, ge=1, le=1000, unit="frames",
+                                help="consecutive estimates beyond a limit before a drift is reported (and "
+                                     "within 80 % of both before it is cleared)")
+
+
+@dataclass(frozen=True)
 class CellConfig:
     backend: str = param("sim", help="registered cell name: sim, ur5e, ...")
     name: str = param("", help="free-form cell name recorded in policies and logs")
@@ -406,6 +423,7 @@ class CellConfig:
     finetune: FinetuneConfig = param(default_factory=FinetuneConfig)
     gate: GateConfig = param(default_factory=GateConfig)
     sim: SimConfig = param(default_factory=SimConfig)
+    calibration_watch: CalibrationWatchConfig = param(default_factory=CalibrationWatchConfig)
     policy: str = param("", help="policy file loaded at start (relative to the config file); "
                                    "empty = a fresh network")
     state_dir: str = param("/var/lib/flgd", help="replay store, logs and checkpoints")
