@@ -237,6 +237,7 @@ def _human(command: str, reply: dict, extra: dict) -> str:
         if stuck:
             when = _dt.datetime.fromtimestamp(stuck["time"]).strftime("%Y-%m-%d %H:%M:%S")
             lines.append(f"last stuck    {when}: {stuck['reason']}; {stuck['action']}")
+        lines += _calibration_lines(r.get("calibration"))
         return "\n".join(lines)
     if command == "stats":
         from flgd.daemon.metrics import format_stats
@@ -276,6 +277,20 @@ def _tally_text(t: dict | None) -> str:
     rate = "-" if t.get("per_action") is None else f"{t['per_action']:.3f}"
     return (f"{t['successes']}/{t['actions']} actions = {rate} picks/action, grasp success "
             f"{_pct(t.get('grasp_success'))}")
+
+
+def _calibration_lines(c: dict | None) -> list[str]:
+    """The calibration watch's estimate of the table plane, and its verdict (nothing when the watch is off)."""
+    if not c:
+        return []
+    if c.get("table_tilt_degrees") is None:
+        return [f"calibration   no frame judged yet ({c.get('unjudged_frames', 0)} with too little table)"]
+    seen = (f"table tilt {c['table_tilt_degrees']:.2f} deg (limit {c['max_tilt_degrees']:g}), offset "
+            f"{1000 * c['table_offset_m']:+.1f} mm (limit {c['max_offset_mm']:g}), median of {c['window']} frames")
+    if c.get("drift"):
+        when = _dt.datetime.fromtimestamp(c["since"]).strftime("%Y-%m-%d %H:%M:%S")
+        return [f"calibration   CAMERA MOVED since {when}: {seen}; run {c.get('remedy', 'flgd calibrate')}"]
+    return [f"calibration   ok: {seen}"]
 
 
 def _gate_lines(g: dict | None) -> list[str]:

@@ -230,3 +230,42 @@ def test_the_unmoved_sim_cell_raises_no_drift_over_changing_scenes():
     tilt, offset = watch.estimate()
     assert tilt < 0.1 * cfg.calibration_watch.max_tilt_degrees
     assert abs(offset) < 0.1 * cfg.calibration_watch.max_offset_mm / 1000
+
+
+# ------------------------------------------------------------------ the daemon: event, status line, metrics
+
+def test_the_daemon_reports_a_moved_camera_in_events_status_and_metrics(tmp_path):
+    from prometheus_client import generate_latest
+    from prometheus_client.registry import CollectorRegistry
+
+    from flgd.ctl import _human
+    from flgd.daemon.controller import Controller
+    from flgd.daemon.prometheus import CellCollector
+    from flgd.daemon.protocol import Request
+    from tests.test_daemon_harness import write_config
+
+    path = write_config(tmp_path, tmp_path / "state", sim={"camera_pose_error": {"position": [0.0, 0.0, 0.01]}},
+                        learning={"updates_per_action": 0})
+    c = Controller(load_config(path))
+    c.setup()
+    try:
+        c.handle(Request("start"))
+        for cycles in range(1, 21):
+            c._one_cycle()
+            if c.status()["calibration"]["drift"]:
+                break
+        events = [e for e in c.store.events() if e["kind"].startswith("calibration")]
+        assert [e["kind"] for e in events] == ["calibration_drift"] and cycles <= 20
+        assert "-10.0 mm" in events[0]["message"] and "flgd calibrate" in events[0]["message"]
+        text = _human("status", {"result": c.status()}, {})          # what `flgctl status` prints
+        line = [ln for ln in text.splitlines() if ln.startswith("calibration")][0]
+        assert "CAMERA MOVED" in line and "offset -10.0 mm" in line and "flgd calibrate" in line
+        assert "camera moved: flgd calibrate" in c.status_text()
+        registry = CollectorRegistry()
+        registry.register(CellCollector(c))
+        page = generate_latest(registry).decode()
+        assert "flgd_calibration_drift 1.0" in page
+        offset = [ln for ln in page.splitlines() if ln.startswith("flgd_calibration_table_offset_meters ")][0]
+        assert abs(float(offset.split()[1]) + 0.010) < 0.0005
+    finally:
+        c.shutdown()

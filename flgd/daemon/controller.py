@@ -31,6 +31,7 @@ import time
 from pathlib import Path
 from typing import Any, Callable
 
+from flgd.calibration_watch import CalibrationWatch
 from flgd.cell import Cell, CellFault, StopPending, make_cell
 from flgd.config import CellConfig, fine_tunes, learner_settings
 from flgd.cycle import CycleRecord, CycleRunner
@@ -96,6 +97,10 @@ class Controller:
         self.last_checkpoint: str = ""
         self.last_record: CycleRecord | None = None
         self.last_stuck: dict[str, Any] | None = None  # the newest time the cell declared itself stuck
+        cw = config.calibration_watch
+        self.calibration_watch = (CalibrationWatch(cw, config.workspace, config.rewards, config.camera.depth_range)
+                                  if cw.enabled else None)
+        self._watched_frame: Any = None  # the frame the calibration watch judged last
         self.cycle_in_flight = False
         self._learning_problem = ""
         self._learning_lock = threading.Lock()  # a policy load and a learner rebuild never interleave
@@ -402,6 +407,7 @@ class Controller:
         finally:
             self.cycle_in_flight = False
         self.last_record = record
+        self._watch_calibration()
         if self.gate is not None:
             from flgd.learning.policy_file import PolicyFileError
             try:
@@ -443,6 +449,21 @@ class Controller:
                                       allowed_from=frozenset({State.RUNNING}))
             except IllegalTransition:
                 pass  # paused or stopping meanwhile: either way no further cycle runs
+
+    def _watch_calibration(self) -> None:
+        """The cycle's newest frame to the calibration watch; a drift (or its end) is logged and recorded."""
+        frame = getattr(self.runner, "last_frame", None)
+        if self.calibration_watch is None or frame is None or frame is self._watched_frame:
+            return
+        self._watched_frame = frame
+        try:
+            event = self.calibration_watch.observe_frame(frame)
+        except Exception:  # the watch is advice: a bug in it must not stop the cell
+            log.exception("calibration watch failed on a frame")
+            return
+        if event is not None:
+            (log.warning if event.kind == "calibration_drift" else log.info)("%s", event.message)
+            self._event(event.kind, event.message)
 
     def _wait_for_refill(self) -> None:
         """PAUSED until the operator refilled the table: a real cell cannot do it, so cycling on would
@@ -567,6 +588,8 @@ class Controller:
             text += f" | champion #{self.gate.champion.id}"
             if self.gate.challenger is not None:
                 text += f", challenger #{self.gate.challenger.id} testing"
+        if self.calibration_watch is not None and self.calibration_watch.drift:
+            text += " | camera moved: flgd calibrate"
         return text
 
     def status(self) -> dict[str, Any]:
@@ -618,6 +641,7 @@ class Controller:
             "store_problem": self.store_problem,
             "last_cycle": last,
             "last_stuck": self.last_stuck,
+            "calibration": self.calibration_watch.status() if self.calibration_watch is not None else None,
             "failure_memory": (self.agent.memory.status() if getattr(self.agent, "memory", None) is not None
                                else None),
             **{k: v for k, v in self.summary().items()},
