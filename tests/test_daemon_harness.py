@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import resource
 import signal
 import subprocess
 import sys
@@ -66,7 +67,8 @@ class DaemonProcess:
     """``flgd run`` as a real subprocess, with its log in a file."""
 
     def __init__(self, tmp_path: Path, config: Path | None = None, args: list[str] | None = None,
-                 env: dict[str, str] | None = None, state_dir: Path | None = None, **sections: Any):
+                 env: dict[str, str] | None = None, state_dir: Path | None = None,
+                 max_descriptors: int | None = None, **sections: Any):
         self.dir = tmp_path
         self.state_dir = state_dir or tmp_path / "state"
         self.config = config or write_config(tmp_path, self.state_dir, **sections)
@@ -75,13 +77,17 @@ class DaemonProcess:
         self.env = dict(os.environ, **(env or {}))
         self.env.pop("NOTIFY_SOCKET", None) if "NOTIFY_SOCKET" not in (env or {}) else None
         self.log_path = tmp_path / f"daemon-{time.monotonic_ns()}.log"
+        self.max_descriptors = max_descriptors  # RLIMIT_NOFILE, soft and hard, of the daemon process
         self.proc: subprocess.Popen | None = None
 
     def start(self) -> "DaemonProcess":
         self.log_file = open(self.log_path, "wb")
         cmd = [sys.executable, "-m", "flgd.cli", "run", "--config", str(self.config), "--socket",
                str(self.socket), "--no-status-line", *self.args]
-        self.proc = subprocess.Popen(cmd, stdout=self.log_file, stderr=subprocess.STDOUT, env=self.env, cwd=REPO)
+        limit = self.max_descriptors
+        preexec = None if limit is None else (lambda: resource.setrlimit(resource.RLIMIT_NOFILE, (limit, limit)))
+        self.proc = subprocess.Popen(cmd, stdout=self.log_file, stderr=subprocess.STDOUT, env=self.env, cwd=REPO,
+                                     preexec_fn=preexec)
         return self
 
     def log(self) -> str:

@@ -16,6 +16,13 @@ answered at once, without the run loop).  Lane connections live for seconds,
 so connections held open -- idle, trickling or by the hundred -- cannot take
 stop and pause away; the lane has its own caps in all and per uid.
 
+Why the operator can still stop the cell when the process is out of file
+descriptors (a leak, or a flood of connections elsewhere): the server holds one
+spare descriptor; when ``accept`` fails for want of descriptors it closes the
+spare, takes the waiting connection on it and reopens the spare when that
+connection closes -- one control connection at a time, never a tight loop, one
+log line per episode rather than one per failure.
+
 Who owns the socket path: the daemon holds an exclusive lock on ``PATH.lock``
 (beside the socket) from before it binds until it exits, and removes only the
 socket file it created itself (same inode), never one another daemon made.
@@ -25,12 +32,14 @@ A socket file found while holding the lock is a dead daemon's, and is replaced.
 from __future__ import annotations
 
 import dataclasses
+import errno
 import fcntl
 import grp
 import logging
 import math
 import os
 import pwd
+import resource
 import socket
 import stat
 import struct
@@ -58,6 +67,11 @@ MAX_URGENT = 16
 MAX_URGENT_PER_UID = 8
 URGENT_TIMEOUT = 2.0
 _SO_PEERCRED_FORMAT = "3i"  # struct ucred {pid_t pid; uid_t uid; gid_t gid;}
+
+
+def _descriptor_limit() -> str:
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    return f"{soft} soft, {hard} hard"
 
 
 class SocketInUse(RuntimeError):
@@ -175,6 +189,10 @@ class ControlServer:
         self._urgent = ConnectionSlots(MAX_URGENT, MAX_URGENT_PER_UID)
         self.requests_served = 0
         self.refused_peers = 0
+        self._reserve_fd: int | None = None  # a spare descriptor for when the process has run out
+        self._closers: dict[int, Callable[[], None]] = {}
+        self._exhausted_since = 0.0  # monotonic time accepts began to fail (0: they do not)
+        self._exhausted_failures = 0
 
     # ------------------------------------------------------------------ life cycle
     def bind(self) -> None:
@@ -274,28 +292,90 @@ class ControlServer:
             self._sock = None
         self._remove_own_socket()
         self._release_path_lock()
+        if self._reserve_fd is not None:
+            os.close(self._reserve_fd)
+            self._reserve_fd = None
 
     # ------------------------------------------------------------------ serving
     def _accept_loop(self) -> None:
         assert self._sock is not None
+        self._open_reserve()
         while not self._stopping.is_set():
             try:
                 conn, _ = self._sock.accept()
             except socket.timeout:
                 continue
-            except OSError:
+            except OSError as exc:
                 if self._stopping.is_set():
                     return
-                log.exception("control socket accept failed")
+                if exc.errno in (errno.EMFILE, errno.ENFILE):
+                    self._accept_with_reserve(exc)
+                    continue
+                self._accept_failed(exc)
                 continue
-            try:
-                self._admit(conn)
-            except Exception:  # never let one connection end the accept loop
-                log.exception("control connection setup failed")
-                conn.close()
+            self._accept_recovered()
+            self._admit_safely(conn)
 
-    def _admit(self, conn: socket.socket) -> None:
-        """Check the caller, then give the connection a slot, an urgent-lane slot, or a ``busy`` reply."""
+    def _admit_safely(self, conn: socket.socket, on_close: Callable[[], None] | None = None) -> None:
+        try:
+            self._admit(conn, on_close)
+        except Exception:  # never let one connection end the accept loop
+            log.exception("control connection setup failed")
+            self._close(conn)
+
+    # ------------------------------------------------------------------ out of descriptors
+    def _open_reserve(self) -> None:
+        """Hold one spare descriptor, so a control connection can be taken when the process has none left."""
+        if self._reserve_fd is None:
+            try:
+                self._reserve_fd = os.open(os.devnull, os.O_RDONLY | os.O_CLOEXEC)
+            except OSError:
+                self._reserve_fd = None  # still exhausted: retried when the next lent connection closes
+
+    def _accept_with_reserve(self, exc: OSError) -> None:
+        """Out of descriptors: give the spare one to the waiting connection, or back off until one frees."""
+        if not self._exhausted_since:
+            self._exhausted_since = time.monotonic()
+            log.error("control socket: out of file descriptors (%s; limit %s); control connections are taken "
+                      "one at a time through a reserve descriptor until some are closed (this is logged once "
+                      "per episode)", exc.strerror or exc, _descriptor_limit())
+        self._exhausted_failures += 1
+        if self._reserve_fd is None:
+            self._stopping.wait(0.05)  # the lent descriptor is still in use: no tight loop
+            return
+        os.close(self._reserve_fd)
+        self._reserve_fd = None
+        try:
+            conn, _ = self._sock.accept()  # type: ignore[union-attr]
+        except OSError:
+            self._open_reserve()
+            self._stopping.wait(0.05)
+            return
+        self._admit_safely(conn, on_close=self._open_reserve)
+
+    def _accept_failed(self, exc: OSError) -> None:
+        """Any other accept error: logged once per episode, retried after a short back-off."""
+        self._exhausted_failures += 1
+        if not self._exhausted_since:
+            self._exhausted_since = time.monotonic()
+            log.error("control socket: accept failed: %s (logged once until an accept succeeds again)", exc)
+        self._stopping.wait(0.05)
+
+    def _accept_recovered(self) -> None:
+        if self._exhausted_since:
+            log.warning("control socket: accepting again after %.0f s (%d accepts failed meanwhile)",
+                        time.monotonic() - self._exhausted_since, self._exhausted_failures)
+            self._exhausted_since = 0.0
+            self._exhausted_failures = 0
+            self._open_reserve()
+
+    def _admit(self, conn: socket.socket, on_close: Callable[[], None] | None = None) -> None:
+        """Check the caller, then give the connection a slot, an urgent-lane slot, or a ``busy`` reply.
+
+        ``on_close`` runs once the connection is closed (the reserve descriptor is taken back then).
+        """
+        if on_close is not None:
+            self._closers[id(conn)] = on_close
         try:
             pid, uid, gid = peer_credentials(conn)
         except OSError as exc:
@@ -332,14 +412,21 @@ class ControlServer:
         except OSError:
             pass
         finally:
-            conn.close()
+            self._close(conn)
+
+    def _close(self, conn: socket.socket) -> None:
+        """Close a connection, then run what waits for its descriptor (see ``_admit``)."""
+        on_close = self._closers.pop(id(conn), None)
+        conn.close()
+        if on_close is not None:
+            on_close()
 
     def _serve_connection(self, conn: socket.socket, peer: tuple[int, int, int]) -> None:
         try:
             self._serve_lines(conn, peer)
         finally:
             try:
-                conn.close()
+                self._close(conn)
             finally:
                 self._slots.release(peer[1])
 
@@ -361,7 +448,7 @@ class ControlServer:
             self._reply(conn, reply)
         finally:
             try:
-                conn.close()
+                self._close(conn)
             finally:
                 self._urgent.release(peer[1])
 
