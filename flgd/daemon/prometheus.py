@@ -18,7 +18,7 @@ import logging
 import time
 from typing import Any, Callable, Iterator
 
-from prometheus_client import CollectorRegistry, start_http_server
+from prometheus_client import CollectorRegistry
 from prometheus_client.core import (CounterMetricFamily, GaugeMetricFamily, HistogramMetricFamily,
                                     InfoMetricFamily, Metric)
 from prometheus_client.platform_collector import PlatformCollector
@@ -26,6 +26,7 @@ from prometheus_client.process_collector import ProcessCollector
 from prometheus_client.registry import Collector
 
 from flgd.daemon.metrics import PhaseHistograms, compute_stats, fault_counts
+from flgd.daemon.metrics_http import MetricsHTTPServer
 from flgd.daemon.state import State
 from flgd.store import StoreError
 
@@ -179,7 +180,11 @@ class CellCollector(Collector):
 
 
 class MetricsServer:
-    """The HTTP endpoint: ``/metrics`` in the Prometheus text format, in its own threads."""
+    """The HTTP endpoint: ``/metrics`` in the Prometheus text format, from a small fixed pool of threads.
+
+    The connections are bounded and each has a deadline (``flgd.daemon.metrics_http``), so no number of
+    slow or half-sent scrapes can take the descriptors the control socket needs.
+    """
 
     def __init__(self, controller: Any, host: str, port: int, state_name: Callable[[], str] | None = None):
         self.host = host
@@ -188,20 +193,21 @@ class MetricsServer:
         self.registry.register(CellCollector(controller, state_name))
         ProcessCollector(registry=self.registry)  # process_* : CPU, memory, open files, start time
         PlatformCollector(registry=self.registry)
-        self._httpd: Any = None
+        self._httpd: MetricsHTTPServer | None = None
 
     def start(self) -> None:
         """Bind and serve; OSError naming the address if it cannot (port in use, address not local)."""
+        httpd = MetricsHTTPServer(self.registry, self.host, self.port)
         try:
-            self._httpd, _thread = start_http_server(self.port, addr=self.host, registry=self.registry)
+            httpd.start()
         except OSError as exc:
             raise OSError(f"metrics: cannot listen on {self.host}:{self.port}: {exc.strerror or exc}") from None
-        self.port = self._httpd.server_port
+        self._httpd = httpd
+        self.port = httpd.port
         log.info("metrics: serving http://%s:%d/metrics", f"[{self.host}]" if ":" in self.host else self.host,
                  self.port)
 
     def stop(self) -> None:
         if self._httpd is not None:
-            self._httpd.shutdown()
-            self._httpd.server_close()
+            self._httpd.stop()
             self._httpd = None
