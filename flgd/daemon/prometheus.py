@@ -76,6 +76,22 @@ def _gate_families(gate: dict | None) -> Iterator[Metric]:
                                 value=float(verdict["p_better"]))
 
 
+def _calibration_families(watch: dict | None) -> Iterator[Metric]:
+    """The calibration watch: the table plane the camera sees, and whether it says the camera moved (absent when
+    the watch is off; the estimates are absent before the first frame with enough table)."""
+    if not watch:
+        return
+    if watch.get("table_tilt_degrees") is not None:
+        yield GaugeMetricFamily("flgd_calibration_table_tilt_degrees", "tilt of the table plane in the heightmap "
+                                "(median of the newest frames; 0 with a calibrated camera)",
+                                value=float(watch["table_tilt_degrees"]))
+        yield GaugeMetricFamily("flgd_calibration_table_offset_meters", "height of the table plane at the "
+                                "workspace centre above workspace.z[0] (median of the newest frames; 0 with a "
+                                "calibrated camera)", value=float(watch["table_offset_m"]))
+    yield GaugeMetricFamily("flgd_calibration_drift", "1 while the table plane says the camera has moved from "
+                            "camera.pose (remedy: flgd calibrate)", value=1.0 if watch.get("drift") else 0.0)
+
+
 def cell_metric_families(controller: Any, state_name: Callable[[], str],
                          histograms: PhaseHistograms) -> Iterator[Metric]:
     """Every metric of one scrape, read from the controller's status and the store's statistics."""
@@ -109,6 +125,7 @@ def cell_metric_families(controller: Any, state_name: Callable[[], str],
     yield GaugeMetricFamily("flgd_replay_transitions", "transitions in the replay memory",
                             value=float(status.get("replay_size") or 0))
     yield from _gate_families(status.get("gate"))
+    yield from _calibration_families(status.get("calibration"))
 
     store = getattr(controller, "store", None)
     readable = store is not None
