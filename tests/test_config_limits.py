@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from flgd.config import MAX_CONFIG_BYTES, ConfigError, load_config
+from flgd.config import MAX_CONFIG_BYTES, ConfigError, load_config, parse_metrics_address
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -133,8 +133,8 @@ def test_an_empty_config_file_is_refused(tmp_path, text):
 
 
 @pytest.mark.parametrize("value, ok", [
-    ("127.0.0.1:9808", True), ("[::1]:0", True), ("localhost:1", True), ("", True),
-    ("9808", False), ("127.0.0.1:", False), (":9808", False), ("127.0.0.1:70000", False),
+    ("127.0.0.1:9808", True), ("[::1]:0", True), ("localhost:1", True), ("", True), ("9808", True),
+    ("98080", False), ("127.0.0.1:", False), (":9808", False), ("127.0.0.1:70000", False),
     ("::1:9808", False), ("host name:1", False), ("127.0.0.1:-1", False),
 ])
 def test_the_metrics_address_is_validated(tmp_path, value, ok):
@@ -145,3 +145,8 @@ def test_the_metrics_address_is_validated(tmp_path, value, ok):
     else:
         (problem,) = _problems(cfg)
         assert problem.startswith("metrics: got ") and "expected HOST:PORT" in problem
+
+
+def test_a_bare_metrics_port_binds_the_loopback_only():
+    assert parse_metrics_address("9808") == ("127.0.0.1", 9808)
+    assert parse_metrics_address("0") == ("127.0.0.1", 0)

@@ -34,6 +34,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 from flgd.config import ConfigError, load_config, parse_metrics_address
+from flgd.log_limit import RepeatLimit
 from flgd.daemon.notify import Notifier
 from flgd.daemon.preflight import PreflightError, check_policy, check_state_dir, warn_if_policy_unused
 from flgd.daemon.protocol import ProtocolError, Request
@@ -180,6 +181,7 @@ def main(argv: list[str]) -> int:
     journal = bool(os.environ.get("JOURNAL_STREAM"))
     handler.setFormatter(logging.Formatter("%(levelname)s %(name)s: %(message)s" if journal else
                                            "%(asctime)s %(levelname)s %(name)s: %(message)s", "%H:%M:%S"))
+    handler.addFilter(RepeatLimit())  # no condition that fails on every try can flood the journal
     root = logging.getLogger()
     root.handlers[:] = [handler]
     root.setLevel(args.log_level)

@@ -1,0 +1,57 @@
+"""A log that cannot be flooded: the same message at most a few times a minute.
+
+Why: a daemon that runs for weeks meets conditions that fail on every try -- a
+disk that is full, a camera that is gone, a port that is attacked.  One line
+per failure turns a three-minute episode into a 54 MB journal and buries the
+first line, the one that says what happened.  This filter passes the first
+``burst`` records of each message (same logger, level and format string) in
+a ``window``; the rest are counted, and the next one that passes says how
+many were left out.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from typing import Callable
+
+__all__ = ["RepeatLimit", "BURST", "WINDOW"]
+
+BURST = 5
+WINDOW = 60.0  # seconds
+
+
+class RepeatLimit(logging.Filter):
+    """Pass at most ``burst`` records of one message per ``window`` seconds; report what was dropped."""
+
+    def __init__(self, burst: int = BURST, window: float = WINDOW, clock: Callable[[], float] = time.monotonic):
+        super().__init__()
+        self.burst = burst
+        self.window = window
+        self.clock = clock
+        self._lock = threading.Lock()
+        self._seen: dict[tuple[str, int, str], list] = {}  # key -> [window start, passed, dropped]
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        key = (record.name, record.levelno, str(record.msg))
+        now = self.clock()
+        with self._lock:
+            entry = self._seen.get(key)
+            if entry is None or now - entry[0] >= self.window:
+                dropped = entry[2] if entry else 0
+                self._seen[key] = [now, 1, 0]
+                if len(self._seen) > 1000:  # messages seen long ago are forgotten, so the table stays small
+                    self._forget_before(now - self.window)
+                if dropped:
+                    record.msg = f"{record.msg} [{dropped} more like this left out in the last {self.window:g} s]"
+                return True
+            if entry[1] < self.burst:
+                entry[1] += 1
+                return True
+            entry[2] += 1
+            return False
+
+    def _forget_before(self, cutoff: float) -> None:
+        for key in [k for k, v in self._seen.items() if v[0] < cutoff and not v[2]]:
+            del self._seen[key]
