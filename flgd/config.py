@@ -24,6 +24,8 @@ from typing import Any, Literal
 
 import yaml
 
+from flgd.disk_budget import MIN_STORE_BYTES
+
 __all__ = [
     "ConfigError",
     "CellConfig",
@@ -329,6 +331,25 @@ class GateConfig:
 
 
 @dataclass(frozen=True)
+class StorageConfig:
+    """The disk the state directory may use and must leave free (flgd/disk_budget.py, docs/real-cell.md "Disk").
+
+    Why: nothing may move whose record cannot be written, so the cell stops at a floor of free space, before
+    the disk is full; and the store keeps to a budget, whatever the heightmap size or the replay capacity.
+    """
+
+    min_free_bytes: int = param(1 << 30, unit="bytes", ge=0,
+                                help="below this much free space on the state directory's filesystem the daemon "
+                                     "goes to FAULT before the next motion, and reset is refused until there is more")
+    max_bytes: int = param(2 << 30, unit="bytes", ge=0,
+                           help="the store (database and its write-ahead log) stays under this; the oldest replay "
+                                "transitions are deleted first (0 = no byte budget, learning.replay_capacity only)")
+    action_log_days: float = param(365.0, unit="days", ge=0.0,
+                                   help="action-log rows older than this are deleted (0 = kept forever); flgctl stats "
+                                        "covers what is kept")
+
+
+@dataclass(frozen=True)
 class CameraPoseErrorConfig:
     """How far the simulated camera's true pose is off ``camera.pose`` (a miscalibrated cell).
 
@@ -422,6 +443,7 @@ class CellConfig:
     learning: LearningConfig = param(default_factory=LearningConfig)
     finetune: FinetuneConfig = param(default_factory=FinetuneConfig)
     gate: GateConfig = param(default_factory=GateConfig)
+    storage: StorageConfig = param(default_factory=StorageConfig)
     sim: SimConfig = param(default_factory=SimConfig)
     calibration_watch: CalibrationWatchConfig = param(default_factory=CalibrationWatchConfig)
     policy: str = param("", help="policy file loaded at start (relative to the config file); "
@@ -552,7 +574,7 @@ def _convert(value: Any, tp: Any, key: str, meta: dict, problems: list[str], sou
         return _check_range(float(value), key, meta, expected, problems)
     if tp is str:
         if isinstance(value, str):
-            return value
+            return value if "\x00" not in value else bad("a NUL character (\\x00) cannot be part of a path or name")
         # A camera serial number or a host written without quotes is read by YAML as a number or a date.
         return bad("quote the value to make it a string" if isinstance(value, (int, float)) and
                    not isinstance(value, bool) else "")
@@ -604,6 +626,9 @@ def _check_relations(cfg: CellConfig, problems: list[str]) -> None:
             problems.append(f"gate.{key}: got {getattr(cfg.gate, key)}, expected <= gate.max_attempts "
                             f"({cfg.gate.max_attempts})")
     _check_device(cfg, problems)
+    if 0 < cfg.storage.max_bytes < MIN_STORE_BYTES:
+        problems.append(f"storage.max_bytes: got {cfg.storage.max_bytes}, expected 0 (no byte budget) or >= "
+                        f"{MIN_STORE_BYTES} bytes (64 MiB: a useful replay beside a month's action log)")
     if cfg.finetune.prior_share > 0.0 and not cfg.finetune.prior_sample:
         problems.append(f"finetune.prior_share: got {cfg.finetune.prior_share!r} with no finetune.prior_sample, "
                         "expected a prior sample file (`flgd prior-sample`) or prior_share 0")
@@ -704,7 +729,9 @@ def _check_relations(cfg: CellConfig, problems: list[str]) -> None:
 
 
 def parse_metrics_address(text: str) -> tuple[str, int]:
-    """(host, port) of ``HOST:PORT`` (``[::1]:PORT`` for IPv6); ValueError saying what was expected.
+    """(host, port) of ``HOST:PORT`` (``[::1]:PORT`` for IPv6), or of a bare ``PORT`` on the loopback
+    (the page needs no login: reaching it from elsewhere is something to ask for); ValueError saying what
+    was expected.
 
     Port 0 asks the system for a free port (the daemon logs the one it got).
     """

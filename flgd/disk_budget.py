@@ -34,7 +34,7 @@ DAY = 86400.0
 MIN_STORE_BYTES = 64 * MIB
 # at most this much of the budget is set aside for the write-ahead log (and its index file)
 WAL_RESERVE_MAX = 16 * MIB
-WAL_RESERVE_MIN = 64 * KIB
+WAL_RESERVE_MIN = 256 * KIB
 SQLITE_DEFAULT_AUTOCHECKPOINT = 1000  # pages
 WAL_FRAME_BYTES = 4096 + 24  # a WAL frame of a default-sized page: the page and its header
 

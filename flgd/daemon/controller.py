@@ -182,7 +182,10 @@ class Controller:
 
     def _open_store(self) -> bool:
         try:
-            self.store = Store(self.state_dir, keep_transitions=self.config.learning.replay_capacity)
+            sc = self.config.storage
+            self.store = Store(self.state_dir, keep_transitions=self.config.learning.replay_capacity,
+                               max_bytes=sc.max_bytes or None, action_log_days=sc.action_log_days,
+                               min_free_bytes=sc.min_free_bytes)
             self.store_problem = ""
             return True
         except StoreError as exc:
@@ -748,6 +751,9 @@ class Controller:
             raise ProtocolError("wrong_state", f"reset: not allowed while {st.value}")
         if self._stop_pending():
             raise self._stopped_during_reset("before it started")
+        disk = self.store.space_problem() if self.store is not None else ""
+        if disk:  # the recovery moves the arm, and nothing may move that cannot be recorded
+            raise ProtocolError("failed", f"reset refused, still {st.value}: store {self.store.path}: {disk}")
         assert self.runner is not None and self.cell is not None
         stale_problem = self._learning_problem  # from before the reset (a checkpoint that failed in FAULT)
         if self.store is None:
