@@ -9,6 +9,7 @@ remaining argv and returns an exit code.
 from __future__ import annotations
 
 import importlib
+import os
 import sys
 
 _COMMANDS: dict[str, tuple[str, str]] = {
@@ -67,7 +68,24 @@ def main(argv: list[str] | None = None) -> int:
     if name not in _COMMANDS:
         print(f"flgd: unknown command {name!r}\n\n{_usage()}", file=sys.stderr)
         return 2
-    return int(_resolve(_COMMANDS[name][0])(rest) or 0)
+    try:
+        return int(_resolve(_COMMANDS[name][0])(rest) or 0)
+    except BrokenPipeError:
+        return _reader_went_away()
+
+
+def _reader_went_away() -> int:
+    """Like Unix tools, silent when the reader of the output went away (``flgd check-config FILE | head -1``).
+
+    stdout then points at /dev/null, so the interpreter's final flush cannot print a traceback either.
+    """
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        os.close(devnull)
+    except (OSError, ValueError):
+        pass
+    return 1
 
 
 if __name__ == "__main__":

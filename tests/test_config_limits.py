@@ -150,3 +150,17 @@ def test_the_metrics_address_is_validated(tmp_path, value, ok):
 def test_a_bare_metrics_port_binds_the_loopback_only():
     assert parse_metrics_address("9808") == ("127.0.0.1", 9808)
     assert parse_metrics_address("0") == ("127.0.0.1", 0)
+
+
+def test_a_nul_character_in_a_path_is_a_config_problem_not_an_internal_error(tmp_path):
+    cfg = tmp_path / "nul.yaml"
+    cfg.write_text('backend: sim\npolicy: "/var/lib/flgd/a\\0b.flgp"\n')
+    (problem,) = _problems(cfg)
+    assert problem.startswith("policy: got ") and "NUL character" in problem
+
+
+def test_check_config_into_a_pipe_closed_early_prints_no_traceback():
+    # the reader takes one line and goes away; the rest of the config printout meets a closed pipe
+    p = subprocess.run(f"{sys.executable} -m flgd.cli check-config cell_config/sim.yaml | head -c 10 >/dev/null",
+                       shell=True, capture_output=True, text=True, timeout=60, cwd=REPO)
+    assert "Traceback" not in p.stderr and "BrokenPipeError" not in p.stderr, p.stderr

@@ -41,6 +41,21 @@ def test_bad_requests_are_classified(line, code):
     assert err.value.message
 
 
+@pytest.mark.parametrize("line, says", [
+    (b'{"cmd": "status", "cmd": "stop"}', "key 'cmd' appears twice"),
+    (b'{"cmd": "backend", "args": {"name": "sim", "name": "ur5e"}}', "key 'name' appears twice"),
+    (b'{"cmd": "policy_load", "args": {"path": "/var/lib/flgd/a\\u0000b.flgp"}}', "contains a NUL character"),
+    (b'{"cmd": "status", "id": ' + b"7" * 4300 + b"}", "'id' is a 4300-digit number"),
+    (b'{"cmd": "policy_history", "args": {"limit": ' + b"9" * 4000 + b"}}", "'limit' is a 4000-digit number"),
+    (b'{"cmd": "status", "id": "' + b"x" * 5000 + b'"}', "'id' is a string of 5000 characters"),
+])
+def test_ambiguous_or_oversized_values_are_refused_by_name_and_never_quoted_back_whole(line, says):
+    with pytest.raises(ProtocolError) as err:
+        parse_request(line)
+    assert err.value.code == "bad_request" and says in err.value.message
+    assert len(err.value.message) < 200
+
+
 def test_valid_requests_parse():
     assert parse_request(b'{"cmd": "status"}') == Request("status", {}, None)
     r = parse_request(b'{"cmd": "backend", "args": {"name": "sim"}, "id": 7}')

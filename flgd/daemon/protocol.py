@@ -126,8 +126,37 @@ class Request:
     peer: str = ""  # who sent it ("uid U pid P", from SO_PEERCRED; set by the server), for the gate's records
 
 
+MAX_ID_CHARS = 200
+_INT_LIMIT = 2 ** 63  # integers are counts and ids: anything longer is a mistake or an attack
+
+
 def _scalar(v: Any) -> bool:
     return v is None or isinstance(v, (str, int, float, bool))
+
+
+def _described(v: Any) -> str:
+    """A value for an error message, never quoted back whole when it is huge."""
+    if isinstance(v, int) and not isinstance(v, bool) and abs(v) >= _INT_LIMIT:
+        return f"a {len(str(abs(v)))}-digit number"
+    if isinstance(v, str) and len(v) > 80:
+        return f"a string of {len(v)} characters"
+    return repr(v)
+
+
+class _DuplicateKey(ValueError):
+    def __init__(self, key: str):
+        super().__init__(key)
+        self.key = key
+
+
+def _no_duplicates(pairs: list[tuple[str, Any]]) -> dict:
+    """json's object hook: a key given twice is refused, not silently resolved to its last value."""
+    obj: dict = {}
+    for key, value in pairs:
+        if key in obj:
+            raise _DuplicateKey(key)
+        obj[key] = value
+    return obj
 
 
 def parse_request(line: bytes) -> Request:
@@ -143,7 +172,10 @@ def parse_request(line: bytes) -> Request:
         raise ProtocolError("bad_request", "empty request; expected a JSON object such as "
                                            '{"cmd": "status"}')
     try:
-        data = json.loads(text)
+        data = json.loads(text, object_pairs_hook=_no_duplicates)
+    except _DuplicateKey as exc:
+        raise ProtocolError("bad_request", f"key {exc.key[:80]!r} appears twice in the request; give each key "
+                                           "once") from None
     except (json.JSONDecodeError, RecursionError) as exc:
         where = f" at column {exc.colno}" if isinstance(exc, json.JSONDecodeError) else ""
         raise ProtocolError("bad_request", f"request is not valid JSON{where}") from None
@@ -156,6 +188,9 @@ def parse_request(line: bytes) -> Request:
     rid = data.get("id")
     if not _scalar(rid):
         raise ProtocolError("bad_request", "'id' must be a JSON scalar (string, number, bool or null)")
+    if (isinstance(rid, int) and abs(rid) >= _INT_LIMIT) or (isinstance(rid, str) and len(rid) > MAX_ID_CHARS):
+        raise ProtocolError("bad_request", f"'id' is {_described(rid)}; expected a number below 2**63 or a "
+                                           f"string of at most {MAX_ID_CHARS} characters")
     extra = set(data) - {"cmd", "args", "id"}
     if extra:
         raise ProtocolError("bad_request", f"unknown request keys {sorted(extra)}; expected cmd, args, id",
@@ -182,9 +217,16 @@ def parse_request(line: bytes) -> Request:
             if required:
                 raise ProtocolError("bad_request", f"{cmd}: missing arg {name!r} ({tp.__name__})", rid)
             continue
-        if not isinstance(args[name], tp) or isinstance(args[name], bool) and tp is not bool:
+        value = args[name]
+        if not isinstance(value, tp) or isinstance(value, bool) and tp is not bool:
             raise ProtocolError("bad_request", f"{cmd}: arg {name!r} must be a {tp.__name__}, got "
-                                               f"{type(args[name]).__name__}", rid)
+                                               f"{type(value).__name__}", rid)
+        if tp is int and abs(value) >= _INT_LIMIT:
+            raise ProtocolError("bad_request", f"{cmd}: arg {name!r} is {_described(value)}; expected a number "
+                                               "below 2**63", rid)
+        if tp is str and "\x00" in value:
+            raise ProtocolError("bad_request", f"{cmd}: arg {name!r} contains a NUL character (\\x00); "
+                                               "expected a file path or name without one", rid)
     return Request(cmd=cmd, args=dict(args), id=rid)
 
 
