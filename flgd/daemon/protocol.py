@@ -23,7 +23,8 @@ Reply::
     {"ok": false, "id": 7, "state": "IDLE", "error": {"code": "wrong_state", "message": "..."}}
 
 Error codes: ``bad_request`` (not JSON, not an object, wrong types, unknown
-args, not UTF-8, empty line), ``too_long`` (line over the cap; the rest of that
+args, not UTF-8, empty line, a key given twice, a NUL character in a string
+arg, an integer of 2**63 or more, an ``id`` string over 200 characters), ``too_long`` (line over the cap; the rest of that
 line is discarded), ``unknown_command``, ``wrong_state`` (the command is not
 allowed in the current state), ``failed`` (the command was valid but did not
 succeed; the daemon's state is unchanged unless the message says otherwise),
