@@ -24,7 +24,7 @@ import os
 from typing import Callable
 
 __all__ = ["GIB", "MIB", "KIB", "MIN_STORE_BYTES", "DAY", "format_bytes", "space_problem", "wal_reserve",
-           "database_limit", "wal_autocheckpoint_pages", "transitions_to_evict", "action_log_cutoff"]
+           "database_limit", "wal_autocheckpoint_pages", "wal_log_limit", "transitions_to_evict", "action_log_cutoff"]
 
 KIB = 1024
 MIB = 1024 * KIB
@@ -34,7 +34,7 @@ DAY = 86400.0
 MIN_STORE_BYTES = 64 * MIB
 # at most this much of the budget is set aside for the write-ahead log (and its index file)
 WAL_RESERVE_MAX = 16 * MIB
-WAL_RESERVE_MIN = 256 * KIB
+WAL_RESERVE_MIN = 512 * KIB
 SQLITE_DEFAULT_AUTOCHECKPOINT = 1000  # pages
 WAL_FRAME_BYTES = 4096 + 24  # a WAL frame of a default-sized page: the page and its header
 
@@ -48,15 +48,18 @@ def format_bytes(n: float) -> str:
 
 
 def space_problem(directory: str | os.PathLike, min_free_bytes: int, *,
-                  statvfs: Callable[[str], os.statvfs_result] = os.statvfs,
-                  access: Callable[[str, int], bool] = os.access) -> str:
+                  statvfs: Callable[[str], os.statvfs_result] | None = None,
+                  access: Callable[[str, int], bool] | None = None) -> str:
     """What keeps ``directory`` from taking the next writes ('' = nothing): read-only, below the floor, full.
 
     Each answer names the directory, the numbers and what to do, since it becomes the FAULT cause an operator
     reads in ``flgctl status``.  A directory that cannot be examined at all is a problem too: the store
-    would not be writable there either.
+    would not be writable there either.  ``statvfs`` and ``access`` default to the os module's (looked up
+    at each call).
     """
     d = os.fspath(directory)
+    statvfs = statvfs or os.statvfs
+    access = access or os.access
     try:
         st = statvfs(d)
     except OSError as exc:
@@ -68,7 +71,10 @@ def space_problem(directory: str | os.PathLike, min_free_bytes: int, *,
         return (f"the state directory {d} is not writable by this user; nothing moves until it is (check its "
                 f"owner and mode), then flgctl reset")
     free = int(st.f_bavail) * int(st.f_frsize)
-    if free < min_free_bytes or st.f_bavail == 0:
+    if st.f_bavail == 0:
+        return (f"the disk is full (no space free on the filesystem of the state directory {d}); nothing moves "
+                f"until space is freed there, then flgctl reset")
+    if free < min_free_bytes:
         return (f"only {format_bytes(free)} ({free} bytes) free on the filesystem of the state directory {d}, "
                 f"below storage.min_free_bytes {format_bytes(min_free_bytes)} ({min_free_bytes} bytes); nothing "
                 f"moves until space is freed there (or the floor lowered), then flgctl reset")
@@ -87,16 +93,23 @@ def database_limit(max_bytes: int) -> int:
     """The bytes the database's used pages may take under the budget ``max_bytes``.
 
     The file keeps its largest size (freed pages are reused, not returned), and grows past the used pages by
-    at most one cycle's write before the same transaction evicts; the write-ahead log is kept below half the
-    reserve (``wal_autocheckpoint_pages`` and ``journal_size_limit``), so database + log stay under
-    ``max_bytes`` as long as a cycle writes less than a quarter of the reserve (a 224 x 224 px state: ~35 KB).
+    at most one cycle's write before the same transaction evicts.  The write-ahead log is copied into the
+    database once it holds a quarter of the reserve and truncated to that size afterwards
+    (``wal_autocheckpoint_pages``, ``journal_size_limit``), so it never holds more than that plus one
+    transaction; with its 32 KiB index, database + log stay under ``max_bytes`` as long as a cycle's
+    transaction is well under a quarter of the reserve (a 224 x 224 px state: ~35 KB, its transaction ~100 KB).
     """
     return int(max_bytes - wal_reserve(max_bytes))
 
 
 def wal_autocheckpoint_pages(max_bytes: int) -> int:
     """Write-ahead-log pages after which SQLite copies the log into the database (never above its default)."""
-    return int(max(8, min(SQLITE_DEFAULT_AUTOCHECKPOINT, wal_reserve(max_bytes) // 2 // WAL_FRAME_BYTES)))
+    return int(max(8, min(SQLITE_DEFAULT_AUTOCHECKPOINT, wal_log_limit(max_bytes) // WAL_FRAME_BYTES)))
+
+
+def wal_log_limit(max_bytes: int) -> int:
+    """The size the write-ahead log is truncated to after a checkpoint (SQLite's ``journal_size_limit``)."""
+    return int(wal_reserve(max_bytes) // 4)
 
 
 def transitions_to_evict(used_bytes: int, limit: int, bytes_per_transition: int) -> int:

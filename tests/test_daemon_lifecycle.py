@@ -229,7 +229,9 @@ def test_bad_config_and_bad_policy_exit_nonzero_with_a_clear_message(tmp_path):
 
 def test_full_disk_gives_a_fault_not_a_crash(daemon_factory, tmp_path):
     with tmpfs(tmp_path / "small", size="3m") as state_dir:
-        d = daemon_factory(state_dir=state_dir, args=["--autostart"]).start().wait_ready()
+        # no free-space floor: the writes themselves meet the full disk (the floor: tests/test_disk_budget.py)
+        d = daemon_factory(state_dir=state_dir, args=["--autostart"],
+                           storage={"min_free_bytes": 0}).start().wait_ready()
         st = d.wait_for(lambda s: s["state"] == "FAULT", "a FAULT from the full disk", timeout=400)
         assert "disk is full" in st["cause"], st["cause"]
         assert d.proc.poll() is None  # still running and answering
