@@ -106,7 +106,8 @@ def main(argv: list[str]) -> int:
     cw = cfg.calibration_watch
     t0 = time.perf_counter()
     quiet = _run(cfg, args.frames, args.new_scene_every)
-    result = {"benchmark": "calibration_watch", "config": args.config, "limits": dataclasses.asdict(cw),
+    config_name = os.path.relpath(Path(args.config).resolve(), REPO)
+    result = {"benchmark": "calibration_watch", "config": config_name, "limits": dataclasses.asdict(cw),
               "packed_scenes": cfg.sim.packed_scenes, "seed": cfg.sim.seed,
               "machine": f"{platform.machine()} {os.cpu_count()} cpus, {platform.python_version()}",
               "unmoved": quiet, "unmoved_seconds": round(time.perf_counter() - t0, 1), "moved": []}
