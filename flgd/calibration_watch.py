@@ -217,6 +217,9 @@ class CalibrationWatch:
         self._streak = 0                # consecutive estimates that point to the other verdict
         self.frames = 0                 # frames with enough table to judge
         self.unjudged = 0               # frames with too little table (covered, dark, arm in view)
+        # (tilt deg, offset m) as of the newest frame: replaced whole, so status() from another thread (a control
+        # connection, a scrape) never iterates the window while the run loop appends to it
+        self.latest: tuple[float, float] | None = None
 
     def observe_frame(self, frame: Any, now: float | None = None) -> WatchEvent | None:
         """Fit the table in a ``flgd.cell.Frame`` and judge it (``observe``)."""
@@ -231,7 +234,7 @@ class CalibrationWatch:
             return None
         self.frames += 1
         self._recent.append(plane)
-        tilt, offset = self.estimate()  # type: ignore[misc]
+        self.latest = tilt, offset = self.estimate()  # type: ignore[misc]
         cfg = self.config
         tilt_limit, offset_limit = cfg.max_tilt_degrees, cfg.max_offset_mm / 1000.0
         if self.drift:
@@ -262,14 +265,14 @@ class CalibrationWatch:
         return math.degrees(math.atan(math.hypot(sx, sy))), offset
 
     def status(self) -> dict[str, Any]:
-        """What ``flgctl status`` and the metrics show."""
-        est = self.estimate()
+        """What ``flgctl status`` and the metrics show (any thread)."""
+        est = self.latest
         return {
             "table_tilt_degrees": None if est is None else est[0],
             "table_offset_m": None if est is None else est[1],
             "frames": self.frames,
             "unjudged_frames": self.unjudged,
-            "window": len(self._recent),
+            "window": min(self.frames, self.config.window),
             "drift": self.drift,
             "since": self.since,
             "max_tilt_degrees": self.config.max_tilt_degrees,
