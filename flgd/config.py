@@ -735,7 +735,11 @@ def parse_metrics_address(text: str) -> tuple[str, int]:
 
     Port 0 asks the system for a free port (the daemon logs the one it got).
     """
-    expected = "expected HOST:PORT such as 127.0.0.1:9808 (or '' for no metrics)"
+    expected = "expected HOST:PORT such as 127.0.0.1:9808, a PORT alone for the loopback, or '' for no metrics"
+    if text.isdigit():
+        if int(text) > 65535:
+            raise ValueError(f"got {_quote(text)}: port is not a number 0..65535; {expected}")
+        return "127.0.0.1", int(text)
     host, sep, port_text = text.rpartition(":")
     if host.startswith("[") and host.endswith("]"):
         host = host[1:-1]
