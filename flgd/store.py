@@ -1,12 +1,14 @@
 """Persistence of what the cell has experienced: replay transitions, the action log, checkpoints.
 
-Why SQLite in WAL mode: one cycle is written as one transaction (the action-log
-row, the transition and any new heightmap), so a process killed at any instant
-leaves either the whole cycle or none of it, and readers (``flgctl stats``)
-never block the writer.  ``synchronous=FULL``: a commit is on disk when it
-returns (one fsync of the WAL per cycle, small next to a cycle's controller
-time, BENCHMARKS.md "Controller overhead"), so a power cut loses at most the cycle in flight, as a killed process
-does; with NORMAL it could also lose the last few committed cycles.
+Why SQLite in WAL mode: a cycle's outcome is written as one transaction (the
+action-log row, the transition and any new heightmap), so a process killed at
+any instant leaves either the whole outcome or none of it, and readers
+(``flgctl stats``) never block the writer; a cycle that moves the cell first
+commits its intent (below).  ``synchronous=FULL``: a commit is on disk when it
+returns (one fsync of the WAL per commit, two per cycle that moves, small next
+to a cycle's controller time, BENCHMARKS.md "Controller overhead"), so a power
+cut loses at most the outcome of the cycle in flight, as a killed process does;
+with NORMAL it could also lose the last few committed cycles.
 
 Schema (``SCHEMA_VERSION`` 3), file ``<state_dir>/flgd.sqlite``:
 
@@ -22,8 +24,8 @@ Schema (``SCHEMA_VERSION`` 3), file ``<state_dir>/flgd.sqlite``:
   t_judge, t_store, transition_id, policy)`` -- one row per cycle, whatever happened;
   ``policy`` is the gate's id of the policy whose greedy decision it was (NULL for an
   epsilon-random action or before the gate).
-  ``t_store`` of a row is written with the next cycle's commit (a commit cannot
-  time itself).
+  ``t_store`` of a row is written with the next write of a cycle (its intent or
+  its commit: a commit cannot time itself).
 * ``events(id, time, kind, message)`` -- state changes, faults, policy loads.
 * ``counters(name PRIMARY KEY, value)`` -- e.g. learner updates.
 * ``meta(key PRIMARY KEY, value)`` -- schema version.
