@@ -751,9 +751,6 @@ class Controller:
             raise ProtocolError("wrong_state", f"reset: not allowed while {st.value}")
         if self._stop_pending():
             raise self._stopped_during_reset("before it started")
-        disk = self.store.space_problem() if self.store is not None else ""
-        if disk:  # the recovery moves the arm, and nothing may move that cannot be recorded
-            raise ProtocolError("failed", f"reset refused, still {st.value}: store {self.store.path}: {disk}")
         assert self.runner is not None and self.cell is not None
         stale_problem = self._learning_problem  # from before the reset (a checkpoint that failed in FAULT)
         if self.store is None:
@@ -776,6 +773,9 @@ class Controller:
             except StartupError as exc:
                 self._fault(str(exc))
                 raise ProtocolError("failed", f"reset: {exc}") from None
+        disk = self.store.space_problem()
+        if disk:  # the recovery moves the arm, and nothing may move that cannot be recorded
+            raise ProtocolError("failed", f"reset refused, still {st.value}: store {self.store.path}: {disk}")
         try:
             self.store.record_event("reset", f"reset requested in {st.value}")
         except StoreError as exc:
