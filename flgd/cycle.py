@@ -246,13 +246,13 @@ class CycleRunner:
             check()
 
     def _record_intent(self, record: CycleRecord) -> None:
-        """Write-ahead: the decided action is in the action log before the cell is told to move."""
+        """Write-ahead: the decided action is in the action log before the cell is told to move.
+
+        Its time is in the cycle's duration and no phase's (``t_store`` is the outcome's commit), so the
+        controller's own time (flgctl stats: the cycle minus execution) includes it once."""
         write = getattr(self.store, "record_intent", None)
-        if write is None:
-            return
-        t0 = time.perf_counter()
-        write(record.row())
-        record.timings["store"] = record.timings.get("store", 0.0) + time.perf_counter() - t0
+        if write is not None:
+            write(record.row())
 
     def _commit(self, record: CycleRecord, transition: Any, timer: _Timer) -> None:
         t0 = time.perf_counter()
@@ -262,7 +262,7 @@ class CycleRunner:
             self.replay.add(transition, tag=record.transition_id)
             if self.learner is not None:
                 self.learner.notify_new_transition()
-        record.timings["store"] = record.timings.get("store", 0.0) + time.perf_counter() - t0
+        record.timings["store"] = time.perf_counter() - t0
         if self.store is not None:
             self.store.note_store_time(record.step, record.timings["store"])
         if timer.on_phase is not None:
