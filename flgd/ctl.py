@@ -225,6 +225,8 @@ def _human(command: str, reply: dict, extra: dict) -> str:
             lines.append(f"learner error {r['learner_error']}")
         if r.get("store_problem"):
             lines.append(f"store problem {r['store_problem']}")
+        if r.get("storage_budget_problem"):
+            lines.append(f"disk budget   {r['storage_budget_problem']}")
         last = r.get("last_cycle")
         if last:
             lines.append(f"last cycle    step {last['step']} {last['outcome']} {last['kind'] or ''} "

@@ -115,6 +115,11 @@ __all__ = [
 
 log = logging.getLogger("flgd")
 
+# Counters of what the action-log retention deleted (with ``actions_deleted``, the deleted rows): the
+# totals in flgd/daemon/metrics.py add them, so a counter never goes down when old rows go.
+DELETED_TOTALS = ("deleted_executed", "deleted_refused", "deleted_grasp_attempts", "deleted_grasp_successes",
+                  "deleted_push", "deleted_shift", "deleted_cycle_ms")
+
 SCHEMA_VERSION = 3
 HEIGHT_QUANTUM = 1e-4  # metres per stored height unit
 DB_NAME = "flgd.sqlite"
@@ -550,6 +555,8 @@ class Store:
                         f"over storage.max_bytes {disk_budget.format_bytes(self.max_bytes)}: the action log and "
                         "the other records fill the budget; lower storage.action_log_days or raise storage.max_bytes")
                     log.warning("%s", self.budget_problem)
+                    db.execute("INSERT INTO events(time, kind, message) VALUES(?, 'storage_budget', ?)",
+                               (time.time(), self.budget_problem))
                 return
             self._evict_through(db, row[0])
 
@@ -565,10 +572,20 @@ class Store:
         tallied = db.execute("SELECT MIN(since_step) FROM policies WHERE role IN ('champion', 'challenger')").fetchone()
         if tallied[0] is not None:
             bound = min(bound, int(tallied[0]))
+        # what the deleted rows counted is kept, so the totals of flgctl stats and the metrics never go down
+        totals = db.execute(
+            "SELECT COALESCE(SUM(outcome='executed'), 0), COALESCE(SUM(outcome='refused'), 0), "
+            "COALESCE(SUM(outcome='executed' AND primitive='grasp'), 0), "
+            "COALESCE(SUM(outcome='executed' AND primitive='grasp' AND success=1), 0), "
+            "COALESCE(SUM(outcome='executed' AND primitive!='grasp' AND kind='push'), 0), "
+            "COALESCE(SUM(outcome='executed' AND primitive!='grasp' AND kind='shift'), 0), "
+            "COALESCE(SUM(duration), 0) FROM actions WHERE step < ? AND time < ?", (bound, cutoff)).fetchone()
         cur = db.execute("DELETE FROM actions WHERE step < ? AND time < ?", (bound, cutoff))
         if cur.rowcount > 0:
-            db.execute("INSERT INTO counters(name, value) VALUES('actions_deleted', ?) "
-                       "ON CONFLICT(name) DO UPDATE SET value=value + excluded.value", (cur.rowcount,))
+            names = ("actions_deleted", *DELETED_TOTALS)
+            for name, value in zip(names, (cur.rowcount, *totals[:-1], round(1000.0 * totals[-1]))):
+                db.execute("INSERT INTO counters(name, value) VALUES(?, ?) "
+                           "ON CONFLICT(name) DO UPDATE SET value=value + excluded.value", (name, int(value)))
 
     def retain_action_log(self) -> None:
         """Apply ``action_log_days`` now (it also runs when the store opens and every ``RETAIN_EVERY`` commits)."""

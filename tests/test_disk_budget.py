@@ -171,6 +171,30 @@ def test_old_action_log_rows_go_except_the_newest_and_those_the_gate_tallies(tmp
     assert store.next_step() == 5
 
 
+def test_totals_of_stats_and_metrics_never_go_down_when_old_rows_are_deleted(tmp_path):
+    from flgd.daemon.metrics import compute_stats, status_summary
+
+    old, now = time.time() - 400 * disk_budget.DAY, time.time()
+    store = Store(tmp_path)
+    kinds = [dict(primitive="grasp", kind="grasp", success=1), dict(primitive="grasp", kind="grasp", success=0),
+             dict(primitive="push", kind="push", success=0), dict(primitive="shift", kind="shift", success=0),
+             dict(outcome="refused", primitive="grasp", kind="grasp", success=None)]
+    for i in range(60):
+        store.commit_cycle(_row(i, time=old if i < 45 else now, duration=0.5 + i % 3, **kinds[i % 5]), None)
+    keys = ("cycles", "actions_executed", "plans_refused", "grasp_attempts", "grasp_successes", "moves",
+            "picks_per_hour", "cycle_time_total")
+    before = {k: compute_stats(store)[k] for k in keys}
+    summary = status_summary(store)
+    store.close()
+    store = Store(tmp_path, action_log_days=365)
+    assert len(store.action_log()) == 15, "the retention deleted the old rows"
+    after = compute_stats(store)
+    assert after["moves"] == before.pop("moves")
+    assert {k: after[k] for k in before} == pytest.approx(before)
+    assert status_summary(store)["cycles"] == summary["cycles"] == 60
+    assert status_summary(store)["picks_per_hour"] == pytest.approx(summary["picks_per_hour"])
+
+
 # --------------------------------------------------------------------------- the first diagnosis stays
 
 class FailingWrites:
@@ -224,3 +248,29 @@ def test_a_malformed_report_after_an_io_error_does_not_replace_the_first_cause(t
     writes.queue = [_sqlite_error(sqlite3.DatabaseError, "database disk image is malformed", "SQLITE_CORRUPT")]
     with pytest.raises(StoreError, match="the database file is damaged"):
         store.record_event("fault", "three")
+
+
+def test_a_budget_the_log_alone_fills_is_said_once_as_an_event_and_in_flgctl_status(tmp_path):
+    from flgd.ctl import _human
+
+    store = Store(tmp_path, max_bytes=256 << 10)
+    tiny = [_hm(i, shape=(16, 20)) for i in range(2)]  # the replay is small; the log is what fills the budget
+
+    def cycle(step: int) -> None:
+        store.commit_cycle(_row(step), Transition(tiny[step % 2], Action("push", 1, 2, 3), 0.5, tiny[1 - step % 2],
+                                                  False))
+
+    for i in range(5000):
+        cycle(i)
+        if store.budget_problem:
+            break
+    assert "no replay left to evict" in store.budget_problem and "storage.action_log_days" in store.budget_problem
+    for j in range(i + 1, i + 50):
+        cycle(j)
+    assert len(store.events("storage_budget")) == 1
+    status = {"state": "RUNNING", "cause": "", "since": time.time(), "cycles": j, "backend": "sim", "config": "c",
+              "policy": "p", "learner_updates": 0, "replay_size": 0, "stored_transitions": 1,
+              "last_checkpoint": None, "state_dir": str(tmp_path), "pid": 1,
+              "storage_budget_problem": store.budget_problem}
+    text = _human("status", {"ok": True, "state": "RUNNING", "result": status}, {})
+    assert "disk budget" in text and "storage.max_bytes" in text

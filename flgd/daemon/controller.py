@@ -642,6 +642,7 @@ class Controller:
             "trainer_state": self.trainer_state,
             "last_checkpoint": self.last_checkpoint,
             "store_problem": self.store_problem,
+            "storage_budget_problem": self.store.budget_problem if self.store is not None else "",
             "last_cycle": last,
             "last_stuck": self.last_stuck,
             "calibration": self.calibration_watch.status() if self.calibration_watch is not None else None,

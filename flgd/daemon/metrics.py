@@ -23,7 +23,7 @@ import statistics
 import threading
 from typing import Any
 
-from flgd.store import TIMING_PHASES, Store
+from flgd.store import DELETED_TOTALS, TIMING_PHASES, Store
 
 __all__ = ["compute_stats", "status_summary", "TIMING_WINDOW", "format_stats", "FAULT_KINDS", "fault_counts",
            "PHASE_BUCKETS", "PhaseHistograms"]
@@ -35,13 +35,27 @@ def _rate(rows: list[tuple]) -> float | None:
     return (sum(1 for (s,) in rows if s) / len(rows)) if rows else None
 
 
+def _deleted(store: Store) -> dict[str, int]:
+    """What the action-log retention deleted (flgd/store.py), so that totals never go down."""
+    names = ("actions_deleted", *DELETED_TOTALS)
+    marks = ", ".join("?" * len(names))
+    found = dict(store.query(f"SELECT name, value FROM counters WHERE name IN ({marks})", names))
+    return {name: int(found.get(name, 0)) for name in names}
+
+
 def compute_stats(store: Store) -> dict[str, Any]:
     q = store.query
-    cycles = q("SELECT COUNT(*) FROM actions")[0][0]
+    gone = _deleted(store)
+    cycles = q("SELECT COUNT(*) FROM actions")[0][0] + gone["actions_deleted"]
     by_outcome = dict(q("SELECT outcome, COUNT(*) FROM actions GROUP BY outcome"))
+    for outcome in ("executed", "refused"):
+        if gone[f"deleted_{outcome}"]:
+            by_outcome[outcome] = by_outcome.get(outcome, 0) + gone[f"deleted_{outcome}"]
     executed = by_outcome.get("executed", 0)
-    attempts, successes = q("SELECT COUNT(*), COALESCE(SUM(success), 0) FROM actions "
-                            "WHERE outcome='executed' AND primitive='grasp'")[0]
+    kept_attempts, successes = q("SELECT COUNT(*), COALESCE(SUM(success), 0) FROM actions "
+                                 "WHERE outcome='executed' AND primitive='grasp'")[0]
+    attempts = kept_attempts + gone["deleted_grasp_attempts"]
+    successes += gone["deleted_grasp_successes"]
     window = {}
     for n in (50, 200):
         rows = q("SELECT success FROM actions WHERE outcome='executed' AND primitive='grasp' "
@@ -49,6 +63,8 @@ def compute_stats(store: Store) -> dict[str, Any]:
         window[f"grasp_success_last_{n}"] = _rate(rows)
     moves = dict(q("SELECT kind, COUNT(*) FROM actions WHERE outcome='executed' AND primitive!='grasp' "
                    "GROUP BY kind"))
+    for kind in ("push", "shift"):
+        moves[kind] = moves.get(kind, 0) + gone[f"deleted_{kind}"]
     stopped_short = [r[0] for r in q("SELECT contact_stop_mm FROM actions WHERE outcome='executed' "
                                      "AND primitive='grasp' AND contact_stop_mm IS NOT NULL")]
     cycle_time = _cycle_time(store)
@@ -79,7 +95,7 @@ def compute_stats(store: Store) -> dict[str, Any]:
         "moves": {"push": moves.get("push", 0), "shift": moves.get("shift", 0)},
         "plans_refused": by_outcome.get("refused", 0),
         "contact_stops": len(stopped_short),
-        "contact_stop_share": (len(stopped_short) / attempts) if attempts else None,
+        "contact_stop_share": (len(stopped_short) / kept_attempts) if kept_attempts else None,  # the kept log
         "contact_stop_mm_median": statistics.median(stopped_short) if stopped_short else None,
         "faults": faults,
         "stuck_events": stuck,
@@ -93,10 +109,12 @@ def compute_stats(store: Store) -> dict[str, Any]:
 def status_summary(store: Store) -> dict[str, Any]:
     """The cheap subset for the live status line and STATUS= notifications."""
     q = store.query
-    cycles = q("SELECT COUNT(*) FROM actions")[0][0]
+    gone = _deleted(store)
+    cycles = q("SELECT COUNT(*) FROM actions")[0][0] + gone["actions_deleted"]
     rows = q("SELECT success FROM actions WHERE outcome='executed' AND primitive='grasp' "
              "ORDER BY step DESC LIMIT 50")
     successes = q("SELECT COALESCE(SUM(success), 0) FROM actions WHERE outcome='executed' AND primitive='grasp'")[0][0]
+    successes += gone["deleted_grasp_successes"]
     return {"cycles": cycles, "grasp_success_last_50": _rate(rows),
             "picks_per_hour": _picks_per_hour(successes, _cycle_time(store))}
 
@@ -109,7 +127,8 @@ def _actions_since_pick(store: Store) -> int:
 
 
 def _cycle_time(store: Store) -> float:
-    return store.query("SELECT COALESCE(SUM(duration), 0) FROM actions")[0][0]
+    kept = store.query("SELECT COALESCE(SUM(duration), 0) FROM actions")[0][0]
+    return kept + _deleted(store)["deleted_cycle_ms"] / 1000.0
 
 
 def _picks_per_hour(grasp_successes: int, cycle_time: float) -> float | None:
