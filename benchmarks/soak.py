@@ -196,6 +196,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", type=Path, help="summary JSON (also written to ROOT/summary.json)")
     args = p.parse_args(argv)
 
+    args.root = args.root.resolve()  # the config names its state directory absolutely
     args.root.mkdir(parents=True, exist_ok=True)
     samples_path = args.root / "samples.jsonl"
     samples = [json.loads(line) for line in samples_path.read_text().splitlines()] if samples_path.exists() else []
