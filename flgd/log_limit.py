@@ -4,9 +4,10 @@ Why: a daemon that runs for weeks meets conditions that fail on every try -- a
 disk that is full, a camera that is gone, a port that is attacked.  One line
 per failure turns a three-minute episode into a 54 MB journal and buries the
 first line, the one that says what happened.  This filter passes the first
-``burst`` records of each message (same logger, level and format string) in
-a ``window``; the rest are counted, and the next one that passes says how
-many were left out.
+``burst`` records of each message (same logger, level and text) in a
+``window``; the rest are counted, and the next one that passes says how many
+were left out.  Messages that differ in their text (a state change, a
+step number) are never held back by each other.
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ from typing import Callable
 
 __all__ = ["RepeatLimit", "BURST", "WINDOW"]
 
-BURST = 5
+BURST = 10
 WINDOW = 60.0  # seconds
 
 
@@ -34,7 +35,11 @@ class RepeatLimit(logging.Filter):
         self._seen: dict[tuple[str, int, str], list] = {}  # key -> [window start, passed, dropped]
 
     def filter(self, record: logging.LogRecord) -> bool:
-        key = (record.name, record.levelno, str(record.msg))
+        try:
+            text = record.getMessage()
+        except Exception:  # a record whose arguments do not fit its format: the handler will report it
+            return True
+        key = (record.name, record.levelno, text)
         now = self.clock()
         with self._lock:
             entry = self._seen.get(key)
@@ -44,7 +49,8 @@ class RepeatLimit(logging.Filter):
                 if len(self._seen) > 1000:  # messages seen long ago are forgotten, so the table stays small
                     self._forget_before(now - self.window)
                 if dropped:
-                    record.msg = f"{record.msg} [{dropped} more like this left out in the last {self.window:g} s]"
+                    record.msg = f"{text} [{dropped} more like this left out in the last {self.window:g} s]"
+                    record.args = None
                 return True
             if entry[1] < self.burst:
                 entry[1] += 1

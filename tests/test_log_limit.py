@@ -26,6 +26,7 @@ def _logger(limit: RepeatLimit) -> tuple[logging.Logger, list[str]]:
     handler.addFilter(limit)
     logger = logging.getLogger(f"test-log-limit-{id(limit)}")
     logger.propagate = False
+    logger.setLevel(logging.DEBUG)
     logger.handlers[:] = [handler]
     return logger, lines
 
@@ -50,3 +51,12 @@ def test_different_messages_and_other_loggers_are_not_held_back_by_a_flood():
         logger.warning("camera: no frame")
     logger.warning("stopping: %s", "operator")
     assert lines == ["camera: no frame", "camera: no frame", "stopping: operator"]
+
+
+def test_messages_of_one_format_with_different_text_are_each_passed():
+    clock = _Clock()
+    logger, lines = _logger(RepeatLimit(burst=2, window=60.0, clock=clock))
+    changes = [("IDLE", "RUNNING"), ("RUNNING", "PAUSED"), ("PAUSED", "RUNNING"), ("RUNNING", "STOPPING")]
+    for old, new in changes:
+        logger.info("%s -> %s", old, new)
+    assert lines == [f"{old} -> {new}" for old, new in changes]
