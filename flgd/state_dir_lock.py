@@ -1,8 +1,9 @@
-"""One process at a time drives a cell: the daemon, or ``flgd calibrate``, never both.
+"""One process at a time owns a state directory: the daemon, ``flgd calibrate`` or ``flgd train``.
 
-Both would command the same arm and camera (a UR controller takes one RTDE control client, a RealSense
-one streaming process), so they take the same advisory lock, ``flgd.lock`` in the cell's state
-directory. The kernel drops an flock with its process, so a crash or ``kill -9`` never leaves a stale lock.
+The daemon and ``flgd calibrate`` would command the same arm and camera (a UR controller takes one RTDE
+control client, a RealSense one streaming process); the daemon and ``flgd train`` would write the same
+store, checkpoints and policies.  So every command that drives a cell or writes a state directory takes
+the same advisory lock, ``flgd.lock`` in that directory. The kernel drops an flock with its process, so a crash or ``kill -9`` never leaves a stale lock.
 """
 
 from __future__ import annotations
@@ -35,6 +36,6 @@ def lock_state_dir(state_dir: str | os.PathLike, *, create: bool) -> int:
         fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
     except BlockingIOError:
         os.close(fd)
-        raise StateDirBusy(f"another flgd process (the daemon or flgd calibrate) is using the state directory "
-                           f"{Path(state_dir)}") from None
+        raise StateDirBusy(f"another flgd process (the daemon, flgd calibrate or flgd train) is using the state "
+                           f"directory {Path(state_dir)}") from None
     return fd

@@ -386,3 +386,18 @@ def test_a_give_up_whose_new_scene_fails_is_recovered_like_a_fault(tmp_path):
         assert any("object 4 settles" in e["message"] for e in store.events("fault"))
     finally:
         store.close()
+
+
+def test_train_is_refused_on_a_state_directory_a_daemon_holds(tmp_path):
+    from flgd.state_dir_lock import lock_state_dir
+
+    out = tmp_path / "cell-state"
+    held = lock_state_dir(out, create=True)  # what a running flgd run (or flgd calibrate) holds
+    try:
+        p = subprocess.run([sys.executable, "-m", "flgd.cli", "train", "--config", CONFIG, "--out", str(out),
+                            "--steps", "5", "--threads", "1"], capture_output=True, text=True, timeout=120, cwd=REPO)
+    finally:
+        os.close(held)
+    assert p.returncode != 0
+    assert "is using the state directory" in p.stderr + p.stdout and "Traceback" not in p.stderr, p.stderr
+    assert not (out / "flgd.sqlite").exists(), "nothing of the daemon's was touched"

@@ -269,13 +269,13 @@ class TrainingRun:
         write_atomically(self.out / RUN_FILE, (json.dumps(info, indent=2) + "\n").encode(), mode=0o644)
 
     def _take_lock(self) -> None:
-        fd = os.open(self.out / "train.lock", os.O_RDWR | os.O_CREAT, 0o644)
+        """The state directory's one lock (``flgd.state_dir_lock``): a daemon or another run there refuses us."""
+        from flgd.state_dir_lock import StateDirBusy, lock_state_dir
+
         try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            os.close(fd)
-            raise RuntimeError(f"another flgd train is using {self.out}") from None
-        self._lock_fd = fd
+            self._lock_fd = lock_state_dir(self.out, create=True)
+        except StateDirBusy as exc:
+            raise RuntimeError(str(exc)) from None
 
     def setup(self) -> None:
         import torch
