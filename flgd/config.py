@@ -312,13 +312,13 @@ class GateConfig:
                                      "unvetted (unsafe: a fine-tune that makes the policy worse keeps acting)")
     handover_every: int = param(100, ge=1, unit="updates",
                                 help="the learner hands its weights over every N updates, whatever its backlog")
-    share: float = param(0.2, gt=0.0, lt=1.0, help="chance a greedy decision is made by the challenger")
+    share: float = param(0.5, gt=0.0, lt=1.0, help="chance a greedy decision is made by the challenger")
     max_share: float = param(0.0, ge=0.0, lt=1.0,
                              help="above share: a challenger doing better gets up to this share of the greedy "
                                   "decisions (rising with P(better) from share at 0.5 to max_share at 0.9, after "
                                   "drop_min_attempts of its actions); 0 = the share stays gate.share")
     min_attempts: int = param(60, ge=1, unit="actions", help="challenger actions before it may be promoted")
-    max_attempts: int = param(800, ge=1, unit="actions",
+    max_attempts: int = param(100, ge=1, unit="actions",
                               help="a challenger not shown better within this many actions is dropped")
     promote_confidence: float = param(0.98, gt=0.5, lt=1.0, help="P(challenger better) that promotes it")
     drop_min_attempts: int = param(40, ge=1, unit="actions", help="challenger actions before an early drop")

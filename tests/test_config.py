@@ -182,3 +182,10 @@ def test_check_config_says_which_learner_settings_apply() -> None:
 def test_gate_and_finetune_keys_are_checked(data: dict, needle: str) -> None:
     with pytest.raises(ConfigError, match=needle.replace(".", r"\.")):
         config_from_dict(data)
+
+
+def test_a_config_without_a_gate_section_gets_the_shipped_gate(tmp_path):
+    shipped = load_config(Path(__file__).resolve().parents[1] / "cell_config" / "sim.yaml").gate
+    bare = tmp_path / "bare.yaml"
+    bare.write_text("backend: sim\n")
+    assert load_config(bare).gate == shipped

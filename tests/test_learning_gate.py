@@ -20,7 +20,9 @@ from flgd.learning.gate import Tally, challenger_verdict, p_better
 from benchmarks.gate import challenger_trial, rollback_trial
 
 TRIALS = 1000
-SETTINGS = gate_settings(CellConfig())  # the defaults a user gets
+SHIPPED = gate_settings(CellConfig())  # the defaults a user gets: share 0.5, at most 100 actions
+# the long test of the first table in docs/learning-on-the-cell.md: a fifth of the decisions, up to 800 actions
+SETTINGS = dataclasses.replace(SHIPPED, share=0.2, max_attempts=800)
 
 
 def test_p_better_is_a_probability_that_follows_the_evidence():
@@ -45,6 +47,20 @@ def test_a_challenger_5_points_better_is_promoted_in_at_least_80_percent_within_
     promoted = [n for kind, n, _ in runs if kind == "promote"]
     assert len(promoted) / TRIALS >= 0.80, len(promoted) / TRIALS
     assert np.percentile(promoted, 90) <= 600  # the stated number: 90 % of the promotions within 600 of its actions
+
+
+@pytest.mark.parametrize("challenger, at_most, at_least", [
+    (0.70, 0.03, 0.0),   # 5 points worse: rarely promoted (docs: 1.1 %)
+    (0.75, 0.08, 0.0),   # as good: docs 5.1 %
+    (0.80, 0.35, 0.12),  # 5 points better: docs 21.3 %; the next weights are tested after 100 actions
+    (0.85, 0.65, 0.38),  # 10 points better: docs 50.9 %
+])
+def test_the_shipped_gate_decides_within_100_actions_at_the_documented_rates(challenger, at_most, at_least):
+    rng = np.random.default_rng(21)
+    runs = [challenger_trial(rng, 0.75, challenger, SHIPPED) for _ in range(TRIALS)]
+    promoted = sum(kind == "promote" for kind, _, _ in runs) / TRIALS
+    assert at_least <= promoted <= at_most, promoted
+    assert max(n for _, n, _ in runs) <= SHIPPED.max_attempts
 
 
 def test_a_champion_10_points_below_its_predecessors_record_is_rolled_back_in_90_percent():

@@ -66,10 +66,10 @@ class Tally:
 
 @dataclass(frozen=True)
 class GateSettings:
-    share: float = 0.2
+    share: float = 0.5  # the shipped settings (GateConfig's defaults; docs/learning-on-the-cell.md)
     max_share: float = 0.0  # 0 (or <= share): the challenger's share stays ``share``
     min_attempts: int = 60
-    max_attempts: int = 800
+    max_attempts: int = 100
     promote_confidence: float = 0.98
     drop_min_attempts: int = 40
     drop_confidence: float = 0.99
