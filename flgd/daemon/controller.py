@@ -31,6 +31,7 @@ import time
 from pathlib import Path
 from typing import Any, Callable
 
+from flgd.memory import trim_heap
 from flgd.calibration_watch import CalibrationWatch
 from flgd.cell import Cell, CellFault, StopPending, make_cell
 from flgd.config import CellConfig, fine_tunes, learner_settings
@@ -432,6 +433,7 @@ class Controller:
         elif record.outcome == "stuck":
             self._on_stuck(record)
         self.notifier.status(self.status_text())
+        trim_heap()  # what the cycle and the learner freed goes back to the system (flgd/memory.py)
 
     def _on_stuck(self, record: Any) -> None:
         """The agent gave up on this scene: say so (event, status, metric), and on a cell that cannot re-lay
