@@ -9,7 +9,6 @@ remaining argv and returns an exit code.
 from __future__ import annotations
 
 import importlib
-import os
 import sys
 
 _COMMANDS: dict[str, tuple[str, str]] = {
@@ -70,22 +69,11 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     try:
         return int(_resolve(_COMMANDS[name][0])(rest) or 0)
-    except BrokenPipeError:
-        return _reader_went_away()
+    except BrokenPipeError:  # the reader went away (``| head -1``): quiet, like Unix tools
+        from flgd.closed_pipe import stdout_to_devnull
 
-
-def _reader_went_away() -> int:
-    """Like Unix tools, silent when the reader of the output went away (``flgd check-config FILE | head -1``).
-
-    stdout then points at /dev/null, so the interpreter's final flush cannot print a traceback either.
-    """
-    try:
-        devnull = os.open(os.devnull, os.O_WRONLY)
-        os.dup2(devnull, sys.stdout.fileno())
-        os.close(devnull)
-    except (OSError, ValueError):
-        pass
-    return 1
+        stdout_to_devnull()
+        return 1
 
 
 if __name__ == "__main__":

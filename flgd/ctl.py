@@ -368,12 +368,9 @@ def _output_failed(exc: _OutputFailed) -> int:
     stdout then points at /dev/null, so the interpreter's final flush of what is still buffered cannot
     print a traceback either.
     """
-    try:
-        devnull = os.open(os.devnull, os.O_WRONLY)
-        os.dup2(devnull, sys.stdout.fileno())
-        os.close(devnull)
-    except (OSError, ValueError):
-        pass
+    from flgd.closed_pipe import stdout_to_devnull
+
+    stdout_to_devnull()
     if not isinstance(exc.error, BrokenPipeError):
         _say(f"flgctl: cannot write the output: {exc.error.strerror or exc.error}", sys.stderr)
     return EXIT_FAILED

@@ -16,6 +16,7 @@ from __future__ import annotations
 import ctypes
 import ctypes.util
 import logging
+from typing import Callable
 
 __all__ = ["return_freed_memory", "trim_heap", "MMAP_THRESHOLD"]
 
@@ -25,29 +26,27 @@ M_MMAP_THRESHOLD = -3  # glibc's mallopt parameter (malloc.h); setting it also s
 MMAP_THRESHOLD = 128 * 1024  # glibc's own starting value, kept fixed
 
 
+def _libc(name: str, argtypes: tuple, restype: type) -> Callable[..., int] | None:
+    """The C library's function ``name``, typed; None where there is none (not glibc)."""
+    library = ctypes.util.find_library("c")
+    if not library:
+        return None
+    try:
+        function = getattr(ctypes.CDLL(library), name)
+    except (OSError, AttributeError):
+        return None
+    function.argtypes = argtypes
+    function.restype = restype
+    return function
+
+
 def return_freed_memory(threshold: int = MMAP_THRESHOLD) -> bool:
     """Keep blocks of ``threshold`` bytes or more on ``mmap`` for the rest of the process; True if it took."""
-    name = ctypes.util.find_library("c")
-    if not name:
-        return False
-    try:
-        mallopt = ctypes.CDLL(name).mallopt
-    except (OSError, AttributeError):
-        return False
-    mallopt.argtypes = (ctypes.c_int, ctypes.c_int)
-    mallopt.restype = ctypes.c_int
-    return bool(mallopt(M_MMAP_THRESHOLD, int(threshold)))
+    mallopt = _libc("mallopt", (ctypes.c_int, ctypes.c_int), ctypes.c_int)
+    return mallopt is not None and bool(mallopt(M_MMAP_THRESHOLD, int(threshold)))
 
 
 def trim_heap() -> bool:
     """Give the heap's free pages back now (glibc ``malloc_trim``); True if any were returned."""
-    name = ctypes.util.find_library("c")
-    if not name:
-        return False
-    try:
-        malloc_trim = ctypes.CDLL(name).malloc_trim
-    except (OSError, AttributeError):
-        return False
-    malloc_trim.argtypes = (ctypes.c_size_t,)
-    malloc_trim.restype = ctypes.c_int
-    return bool(malloc_trim(0))
+    malloc_trim = _libc("malloc_trim", (ctypes.c_size_t,), ctypes.c_int)
+    return malloc_trim is not None and bool(malloc_trim(0))
