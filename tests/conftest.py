@@ -2,8 +2,12 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import pytest
 import torch
+
+from tests.test_daemon_harness import DaemonProcess
 
 
 @pytest.fixture
@@ -13,3 +17,18 @@ def one_torch_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(before)
+
+
+@pytest.fixture
+def daemon_factory(tmp_path):
+    """Make daemons that are always cleaned up, even when a test fails."""
+    made: list[DaemonProcess] = []
+
+    def make(**kw: Any) -> DaemonProcess:
+        d = DaemonProcess(tmp_path, **kw)
+        made.append(d)
+        return d
+
+    yield make
+    for d in made:
+        d.cleanup()

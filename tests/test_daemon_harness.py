@@ -153,18 +153,3 @@ class DaemonProcess:
                 self.proc.wait()
         if not self.log_file.closed:
             self.log_file.close()
-
-
-@pytest.fixture
-def daemon_factory(tmp_path):
-    """Make daemons that are always cleaned up, even when a test fails."""
-    made: list[DaemonProcess] = []
-
-    def make(**kw: Any) -> DaemonProcess:
-        d = DaemonProcess(tmp_path, **kw)
-        made.append(d)
-        return d
-
-    yield make
-    for d in made:
-        d.cleanup()
