@@ -9,6 +9,7 @@ the decision of chosen steps (to force a refused plan or a push).
 from __future__ import annotations
 
 import dataclasses
+import threading
 import time
 from pathlib import Path
 
@@ -366,21 +367,27 @@ def test_with_wait_for_updates_each_decision_waits_for_the_learners_scheduled_up
         return decide(hm, step)
     runner.agent.decide = noting_decide
     runner.config, runner.learner = cfg, learner
-    slow = learner.update
+    update = learner.update
+    # Without waiting, no update may finish while the cycles run (so the backlog they leave is certain, not a
+    # race); with waiting, updates run as they come (a held one would hold the cycle, which is the point).
+    release = threading.Event()
+    if wait:
+        release.set()
 
-    def slow_update():
-        time.sleep(0.3)  # an update that takes longer than a simulated cycle's decision
-        return slow()
-    learner.update = slow_update
+    def held_update():
+        release.wait(120)
+        return update()
+    learner.update = held_update
     learner.start()
     try:
         for _ in range(4):
             runner.run_once()
     finally:
+        release.set()
         learner.stop(timeout=120)
         cell.close()
     assert len(backlog_at_decision) == 4
     if wait:
         assert backlog_at_decision == [0, 0, 0, 0]
     else:
-        assert max(backlog_at_decision) > 0  # without waiting the cycle outruns the learner
+        assert min(backlog_at_decision[1:]) > 0  # without waiting the cycle goes on with updates still to run
