@@ -5,7 +5,7 @@ Why: every decision and every learner update allocates and frees tensors of mega
 first large free, so that such blocks come from the heap too: the daemon on the shipped sim config settled at
 about 1 GB of resident memory (``flgd bench soak``) while it needs far less at any instant.  The daemon calls
 ``trim_heap`` after each cycle: the free pages go back (about 20 ms), and the next cycle faults its pages in
-again.  Keeping large blocks on ``mmap`` instead (``return_freed_memory``) saves a little more but made every
+again (about 50 ms more per decision; resident memory 0.62x).  Keeping large blocks on ``mmap`` instead (``return_freed_memory``) saves a little more but made every
 allocation a fresh mapping: it doubled the decision and update times, so the daemon does not use it.  Both are
 measured by ``flgd bench memory`` (BENCHMARKS.md).  On a C library without these calls (not glibc) nothing
 changes.
