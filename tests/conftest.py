@@ -7,7 +7,9 @@ from typing import Any
 import pytest
 import torch
 
-from tests.test_daemon_harness import DaemonProcess
+from tests.fakes.daemon import DaemonProcess
+from tests.fakes.rg2 import LoopbackRG2
+from tests.fakes.ur5e import FakeURController
 
 
 @pytest.fixture
@@ -32,3 +34,17 @@ def daemon_factory(tmp_path):
     yield make
     for d in made:
         d.cleanup()
+
+
+@pytest.fixture
+def rg2():
+    """A loopback RG2 whose fingers move in 10 ms, closed after the test."""
+    server = LoopbackRG2(move_time=0.01)
+    yield server
+    server.close()
+
+
+@pytest.fixture
+def ctl():
+    """A fresh fake UR controller (the arm at home, powered, program running)."""
+    return FakeURController()

@@ -242,7 +242,7 @@ def test_the_daemon_reports_a_moved_camera_in_events_status_and_metrics(tmp_path
     from flgd.daemon.controller import Controller
     from flgd.daemon.prometheus import CellCollector
     from flgd.daemon.protocol import Request
-    from tests.test_daemon_harness import write_config
+    from tests.fakes.daemon import write_config
 
     path = write_config(tmp_path, tmp_path / "state", sim={"camera_pose_error": {"position": [0.0, 0.0, 0.01]}},
                         learning={"updates_per_action": 0})

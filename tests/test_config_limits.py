@@ -164,3 +164,23 @@ def test_check_config_into_a_pipe_closed_early_prints_no_traceback():
     p = subprocess.run(f"{sys.executable} -m flgd.cli check-config cell_config/sim.yaml | head -c 10 >/dev/null",
                        shell=True, capture_output=True, text=True, timeout=60, cwd=REPO)
     assert "Traceback" not in p.stderr and "BrokenPipeError" not in p.stderr, p.stderr
+
+
+# --------------------------------------------------------------------------- config loading: bad input is a clear error
+
+def _load(tmp_path: Path, text: str):
+    path = tmp_path / "cell.yaml"
+    path.write_text(text)
+    return load_config(path), path
+
+
+@pytest.mark.parametrize("text, expect", [
+    ("? [a, b]\n: 1\n", "cannot be a key"),                               # was TypeError: unhashable
+    ("camera:\n  depth_scale: " + "1" * 400 + "\n", "camera.depth_scale"),  # was OverflowError
+    ("[" * 5000 + "]" * 5000 + "\n", "nested too deeply"),               # was RecursionError
+    ("camera:\n  serial: 819612070593\n", "quote the value"),
+])
+def test_malformed_config_is_a_config_error_naming_the_file(tmp_path, text, expect):
+    with pytest.raises(ConfigError) as info:
+        _load(tmp_path, text)
+    assert str(tmp_path / "cell.yaml") in str(info.value) and expect in str(info.value)

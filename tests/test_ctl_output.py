@@ -3,13 +3,20 @@ tool, never with a traceback."""
 
 from __future__ import annotations
 
+import base64
+import json
 import os
+import shutil
+import socket
 import subprocess
 import sys
+import tempfile
+import threading
 from pathlib import Path
 
 import pytest
 
+from flgd import ctl
 from flgd.daemon.server import ControlServer, PeerPolicy
 
 REPO = Path(__file__).resolve().parents[1]
@@ -62,3 +69,64 @@ def test_a_full_disk_is_one_line_on_stderr(daemon_socket, argv):
 def test_output_still_arrives_whole(daemon_socket):
     p = _flgctl(daemon_socket, "ping", stdout=subprocess.PIPE)
     assert p.returncode == 0 and p.stdout == "flgd answers (pid 1, IDLE)\n"
+
+
+# --------------------------------------------------------------------------- flgctl: bad input is a clear error
+
+@pytest.mark.parametrize("value", ["-1", "0", "nan", "inf", "soon"])
+def test_bad_timeout_is_a_usage_error(value, capsys):
+    assert ctl.main(["--socket", "/nonexistent/flgd.sock", "--timeout", value, "status"]) == ctl.EXIT_USAGE
+    assert "--timeout" in capsys.readouterr().err
+
+
+class _OneReplyDaemon:
+    """A control socket that answers every request line with ``reply`` (bytes, newline added)."""
+
+    def __init__(self, reply: bytes):
+        self.dir = Path(tempfile.mkdtemp(prefix="flgd-ctl-", dir="/tmp"))
+        self.path = self.dir / "s.sock"
+        self.sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        self.sock.bind(str(self.path))
+        self.sock.listen(1)
+        self.reply = reply
+        self.thread = threading.Thread(target=self._serve, daemon=True)
+        self.thread.start()
+
+    def _serve(self) -> None:
+        conn, _ = self.sock.accept()
+        with conn:
+            buf = b""
+            while b"\n" not in buf:
+                chunk = conn.recv(65536)
+                if not chunk:
+                    return
+                buf += chunk
+            conn.sendall(self.reply + b"\n")
+
+    def close(self) -> None:
+        self.sock.close()
+        self.thread.join(5)
+        shutil.rmtree(self.dir, ignore_errors=True)
+
+
+def test_json_output_reports_a_snapshot_that_cannot_be_written(tmp_path, capsys):
+    png = base64.b64encode(b"\x89PNG fake").decode()
+    daemon = _OneReplyDaemon(json.dumps({"ok": True, "state": "IDLE",
+                                         "result": {"png_base64": png, "source": "last", "action": None}}).encode())
+    try:
+        code = ctl.main(["--socket", str(daemon.path), "--json", "snapshot", str(tmp_path / "no-dir" / "s.png")])
+    finally:
+        daemon.close()
+    out = capsys.readouterr()
+    assert code == ctl.EXIT_FAILED
+    reply = json.loads(out.out)  # a script reading stdout must not see an empty output (or a success)
+    assert reply["ok"] is False and "no-dir" in reply["error"]["message"]
+
+
+def test_a_reply_that_is_not_utf8_is_exit_1_not_a_traceback(capsys):
+    daemon = _OneReplyDaemon(b'{"ok": true, "result": "\xff"}')  # JSON-looking, not UTF-8
+    try:
+        code = ctl.main(["--socket", str(daemon.path), "status"])
+    finally:
+        daemon.close()
+    assert code == ctl.EXIT_FAILED and "unreadable reply" in capsys.readouterr().err

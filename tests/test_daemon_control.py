@@ -22,7 +22,7 @@ from hypothesis import strategies as st
 from flgd.ctl import main as ctl_main
 from flgd.daemon.protocol import MAX_REQUEST_BYTES
 
-from tests.test_daemon_harness import REPO, DaemonProcess
+from tests.fakes.daemon import REPO, DaemonProcess
 
 
 @pytest.fixture(scope="module")

@@ -17,7 +17,7 @@ import pytest
 
 from flgd.store import Store
 
-from tests.test_daemon_harness import REPO, DaemonProcess, tmpfs, write_config
+from tests.fakes.daemon import REPO, DaemonProcess, tmpfs, write_config
 
 
 def _db_counts(state_dir: Path) -> dict:

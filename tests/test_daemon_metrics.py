@@ -11,7 +11,7 @@ import urllib.request
 from prometheus_client.parser import text_string_to_metric_families
 
 from flgd.daemon.metrics import PhaseHistograms
-from tests.test_daemon_harness import REPO, write_config
+from tests.fakes.daemon import REPO, write_config
 
 
 def _scrape(port: int) -> dict[str, list]:

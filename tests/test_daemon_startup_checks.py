@@ -12,7 +12,7 @@ import pytest
 from flgd.learning.networks import build_network
 from flgd.learning.policy_file import save_policy
 from flgd.training.state import TRAINER_STATE
-from tests.test_daemon_harness import REPO, DaemonProcess, write_config
+from tests.fakes.daemon import REPO, DaemonProcess, write_config
 
 SHIPPED = REPO / "policies" / "flg-sim.safetensors"
 

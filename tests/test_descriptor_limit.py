@@ -21,7 +21,7 @@ from pathlib import Path
 import pytest
 
 from flgd.ctl import Client
-from tests.test_daemon_harness import REPO
+from tests.fakes.daemon import REPO
 
 DAEMON_LIMIT = 1024
 SLOW_SCRAPES = 1022

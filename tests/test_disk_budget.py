@@ -24,7 +24,7 @@ from flgd.daemon.state import State
 from flgd.learning.replay import Transition
 from flgd.store import Store, StoreError
 
-from tests.test_daemon_harness import write_config
+from tests.fakes.daemon import write_config
 from tests.test_store import _hm, _row
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")

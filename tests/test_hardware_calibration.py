@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 import math
 import os
 import re
@@ -15,6 +16,7 @@ import pytest
 from flgd.cell import ExecutionResult, Frame
 from flgd.config import load_config
 from flgd.geometry import pose_matrix, rpy_to_matrix
+from flgd.hardware import calibration
 from flgd.hardware.calibration import (CALIBRATION_YAWS, OFFSET_TOLERANCE_MM, CalibrationOptions, check_fit,
                                        find_marker, grid_poses, main, write_calibration)
 from flgd.hardware.calibration_math import (CalibrationError, CalibrationFit, fit_camera_pose,
@@ -451,3 +453,52 @@ def test_calibrate_refuses_while_a_daemon_holds_the_cell_and_runs_once_it_is_gon
     assert main(["--config", str(path), "--dry-run"], cell_factory=probing_factory, sleep=lambda s: None) == 0
     assert held and opened[-1].closed
     os.close(lock_state_dir(state, create=True))  # released afterwards
+
+
+# --------------------------------------------------------------------------- calibration: bad input is a clear error
+
+def _grid_points() -> np.ndarray:
+    xs, ys, zs = np.meshgrid(np.linspace(0.33, 0.67, 4), np.linspace(-0.17, 0.17, 4), [0.08, 0.18])
+    return np.stack([xs.ravel(), ys.ravel(), zs.ravel()], axis=1)
+
+
+def test_coincident_camera_points_are_a_calibration_error_not_a_nan_pose():
+    base = _grid_points()
+    frozen = np.tile([0.01, -0.02, 0.6], (len(base), 1))  # the camera returned the same point every time
+    with pytest.raises(CalibrationError, match="camera-side"):
+        fit_camera_pose(frozen, base)
+
+
+def test_a_nan_residual_is_never_accepted():
+    fit = CalibrationFit(true_camera_pose(), 1.0, float("nan"), float("nan"), np.ones(20, bool))
+    assert check_fit(fit, CalibrationOptions()) is not None
+
+
+@pytest.mark.parametrize("args, flag", [
+    (["--max-residual-mm", "nan"], "--max-residual-mm"),    # NaN would switch the residual gate off
+    (["--settle", "nan"], "--settle"),
+    (["--heights", "0.1", "-0.2"], "--heights"),
+    (["--marker-offset", "0", "nan", "0"], "--marker-offset"),
+    (["--aruco-dict", "DICT_NOPE"], "--aruco-dict"),        # used to stop the run with the arm out on the grid
+    (["--aruco-id", "50"], "--aruco-id"),                   # DICT_4X4_50 has ids 0..49: never detected
+])
+def test_bad_calibrate_options_are_refused_before_the_cell_is_opened(args, flag, capsys):
+    code = main(["--config", str(REAL_CONFIG), *args], cell_factory=pytest.fail)
+    err = capsys.readouterr().err
+    assert code == 2 and flag in err and "expected" in err
+
+
+def test_a_config_that_cannot_be_written_is_exit_1_and_left_unchanged(tmp_path, monkeypatch, capsys):
+    path = tmp_path / "cell.yaml"
+    shutil.copy(REAL_CONFIG, path)
+    before = path.read_bytes()
+
+    def read_only(*_a, **_k):
+        raise OSError(errno.EROFS, "Read-only file system", str(path))
+
+    monkeypatch.setattr(calibration, "write_atomically", read_only)
+    cell = FakeCalibrationCell(load_config(path), true_camera_pose())
+    code = main(["--config", str(path)], cell_factory=lambda cfg: cell, sleep=lambda s: None)
+    err = capsys.readouterr().err
+    assert code == 1 and str(path) in err and "Read-only file system" in err
+    assert path.read_bytes() == before and cell.closed

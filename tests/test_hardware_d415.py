@@ -2,7 +2,7 @@
 
 Frames are rendered by the simulated cell (``sim_cell.cell.SimCell``); the
 alignment test, which needs the depth seen from a second imager, uses the
-analytic box renderer of ``tests.synthetic_scene``.  The heightmap that comes
+analytic box renderer of ``tests.fakes.scene``.  The heightmap that comes
 out of librealsense must match the one made from the same frame directly.
 """
 
@@ -21,7 +21,7 @@ from flgd.cell import Frame
 from flgd.config import CellConfig, load_config
 from flgd.geometry import pose_matrix, rpy_to_matrix
 from flgd.perception import frame_heightmaps
-from tests.synthetic_scene import Box, render
+from tests.fakes.scene import Box, render
 
 rs = pytest.importorskip("pyrealsense2", reason="pyrealsense2 cannot load here (libusb-1.0 missing?)")
 

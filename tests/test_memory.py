@@ -8,7 +8,7 @@ import textwrap
 
 import pytest
 
-from tests.test_daemon_harness import REPO
+from tests.fakes.daemon import REPO
 
 # Run apart: the test process's own heap must not blur the numbers.
 _PROGRAM = textwrap.dedent("""

@@ -18,76 +18,21 @@ import numpy as np
 import pytest
 import torch
 
-from flgd.cell import STOPPED_ON_REQUEST, CellFault, Frame, StopPending
+from flgd.cell import STOPPED_ON_REQUEST, CellFault, StopPending
 from flgd.config import CellConfig
 from flgd.daemon.controller import EMPTY_WORKSPACE_CAUSE, Controller
 from flgd.daemon.protocol import ProtocolError, Request
 from flgd.daemon.state import State
-from flgd.geometry import matrix_to_rotvec, pose_matrix, rpy_to_matrix, top_down_rotation
-from flgd.hardware.d415 import CameraFault
-from flgd.hardware.rg2 import RG2XmlRpcDriver
-from flgd.hardware.ur5e_cell import UR5eCell
+from flgd.geometry import matrix_to_rotvec, top_down_rotation
 from flgd.plans import plan_home
 from flgd.safety import check_plan
 from flgd.store import StoreError
-from tests.test_hardware_ur5e import (MOTION, FakeRTDEFactory, FakeURController, ctl, push,  # noqa: F401
-                                      real_config, rg2)
+from tests.fakes.d415 import FakeD415Factory
+from tests.fakes.ur5e import MOTION, FakeURController, make_cell, push, real_config
 
 MOVES = MOTION - {"stopL"}  # what a stop must never be followed by (the stop itself sends stopL)
 
-# --------------------------------------------------------------------------- fakes and helpers
-
-
-class FakeD415:
-    """A fake of ``D415Camera``: frames of an empty table as the configured camera sees it.
-
-    ``factory.unplugged`` models a camera that is gone: capture raises the
-    CameraFault the real class raises on a frame timeout.
-    """
-
-    def __init__(self, config: CellConfig, factory: "FakeD415Factory"):
-        self.config, self.factory = config, factory
-        self.closed = False
-        self.captures = 0
-
-    def capture(self) -> Frame:
-        if self.factory.unplugged or self.closed:
-            raise CameraFault("RealSense 000000000000 was disconnected (no frame within 2.0 s)")
-        self.captures += 1
-        cam = self.config.camera
-        it = cam.intrinsics
-        pose = pose_matrix(cam.pose.position, rpy_to_matrix(*cam.pose.rpy))
-        # looking straight down: every pixel sees the table at the camera's height above it
-        distance = pose[2, 3] - self.config.workspace.table_z
-        depth = np.full((it.height, it.width), round(distance / cam.depth_scale), dtype=np.uint16)
-        color = np.full((it.height, it.width, 3), 90, dtype=np.uint8)
-        k = np.array([[it.fx, 0.0, it.cx], [0.0, it.fy, it.cy], [0.0, 0.0, 1.0]])
-        return Frame(color=color, depth=depth, depth_scale=cam.depth_scale, intrinsics=k, camera_pose=pose)
-
-    def close(self) -> None:
-        self.closed = True
-
-
-class FakeD415Factory:
-    """Opens ``FakeD415`` cameras like ``D415Camera.open``; refuses (CameraFault) while ``unplugged``."""
-
-    def __init__(self):
-        self.unplugged = False
-        self.opened: list[FakeD415] = []
-
-    def __call__(self, config: CellConfig) -> FakeD415:
-        if self.unplugged:
-            raise CameraFault("RealSense 000000000000 (camera.serial) is not connected; connected: none")
-        cam = FakeD415(config, self)
-        self.opened.append(cam)
-        return cam
-
-
-def make_cell(ctl: FakeURController, rg2, cfg: CellConfig, cameras: FakeD415Factory) -> UR5eCell:
-    # sleep looks ctl.sleep up at each call, so a test can wrap it after the cell exists
-    return UR5eCell(cfg, rtde_factory=FakeRTDEFactory(ctl), camera_factory=cameras,
-                    gripper=RG2XmlRpcDriver("127.0.0.1", rg2.port, timeout=2.0, poll_interval=0.002),
-                    clock=ctl.clock, sleep=lambda dt: ctl.sleep(dt))
+# --------------------------------------------------------------------------- helpers
 
 
 def home_plan(cfg: CellConfig):
@@ -423,7 +368,7 @@ def test_a_loaded_policy_is_checkpointed_at_once_and_a_restart_resumes_it(daemon
 
 def test_the_simulated_cell_lays_out_a_new_scene_on_an_empty_table_and_keeps_running(tmp_path):
     from flgd.config import load_config
-    from tests.test_daemon_harness import write_config
+    from tests.fakes.daemon import write_config
 
     cfg = load_config(write_config(tmp_path, tmp_path / "state", sim={"objects": 0}))
     c = Controller(cfg)

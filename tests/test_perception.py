@@ -12,7 +12,7 @@ from hypothesis import strategies as st
 
 from flgd.config import WorkspaceConfig
 from flgd.perception import base_to_pixel, make_heightmaps, pixel_to_base
-from tests.synthetic_scene import Box, camera_looking_down, intrinsics_matrix, render
+from tests.fakes.scene import Box, camera_looking_down, intrinsics_matrix, render
 
 WS = WorkspaceConfig()  # 224 x 224 at 2 mm, x in [-0.724, -0.276], table at z = 0
 
@@ -162,3 +162,39 @@ def test_pixel_to_base_inverts_base_to_pixel(r, c, h) -> None:
     x, y, z = pixel_to_base(r, c, h, WS)
     assert base_to_pixel(x, y, WS) == (r, c)
     assert z == pytest.approx(WS.table_z + h)
+
+
+# --------------------------------------------------------------------------- perception: bad input is a clear error
+
+def _frame(h: int = 30, w: int = 30):
+    k = intrinsics_matrix()
+    k = k.copy()
+    k[0, 2], k[1, 2] = w / 2, h / 2
+    pose = camera_looking_down(-0.5, 0.0, 0.7)
+    return np.zeros((h, w, 3), np.uint8), np.full((h, w), 700, np.uint16), k, pose
+
+
+def test_rgba_colour_is_refused_not_scrambled():
+    color, depth, k, pose = _frame()
+    rgba = np.zeros((30, 30, 4), np.uint8)  # 30*30*4 bytes divide by 3: the old byte view silently misread it
+    with pytest.raises(ValueError, match="color"):
+        make_heightmaps(rgba, depth, k, 0.001, pose, WorkspaceConfig())
+    with pytest.raises(ValueError, match="color"):
+        make_heightmaps(color.astype(np.float32), depth, k, 0.001, pose, WorkspaceConfig())
+
+
+@pytest.mark.parametrize("what", ["pose", "intrinsics", "depth_scale", "depth"])
+def test_non_finite_camera_model_is_refused_not_an_empty_heightmap(what):
+    color, depth, k, pose = _frame()
+    scale = 0.001
+    if what == "pose":
+        pose = pose.copy()
+        pose[0, 3] = np.nan
+    elif what == "intrinsics":
+        k[0, 0] = 0.0
+    elif what == "depth_scale":
+        scale = float("nan")
+    else:
+        depth = depth[None]
+    with pytest.raises(ValueError, match=what):
+        make_heightmaps(color, depth, k, scale, pose, WorkspaceConfig())

@@ -126,7 +126,7 @@ def test_a_prior_share_needs_a_sample_and_its_range_is_checked():
 
 def test_the_daemon_refuses_to_start_on_a_sample_it_cannot_use_and_names_it(tmp_path):
     from flgd.daemon.controller import Controller, StartupError
-    from tests.test_daemon_harness import write_config
+    from tests.fakes.daemon import write_config
 
     bad = tmp_path / "prior.npz"
     bad.write_text("not a sample")
@@ -141,7 +141,7 @@ def test_the_daemon_refuses_to_start_on_a_sample_it_cannot_use_and_names_it(tmp_
 
 def test_the_daemon_mixes_the_configured_sample_into_its_learner_and_status_shows_it(tmp_path):
     from flgd.daemon.controller import Controller
-    from tests.test_daemon_harness import write_config
+    from tests.fakes.daemon import write_config
 
     path = tmp_path / "prior.npz"
     shipped = load_config(REPO / "cell_config" / "sim.yaml")

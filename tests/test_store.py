@@ -20,7 +20,7 @@ from flgd.learning.replay import Transition
 from flgd.perception import Heightmaps
 from flgd.store import HEIGHT_QUANTUM, CheckpointDir, Store, StoreError
 
-from tests.test_daemon_harness import tmpfs
+from tests.fakes.daemon import tmpfs
 
 
 def _hm(seed: int, shape=(32, 40)) -> Heightmaps:

@@ -23,8 +23,8 @@ from flgd.daemon.protocol import Request
 from flgd.daemon.state import State
 from flgd.learning.agent import Agent
 from flgd.learning.networks import build_network
-from tests.test_hardware_ur5e import ctl, real_config, rg2  # noqa: F401
-from tests.test_motion_safety import FakeD415, FakeD415Factory, make_cell
+from tests.fakes.d415 import FakeD415, FakeD415Factory
+from tests.fakes.ur5e import make_cell, real_config
 
 REPO = Path(__file__).resolve().parents[1]
 

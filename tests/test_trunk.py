@@ -23,7 +23,7 @@ from flgd.training.pretrain import PretrainSettings, collect_frames, pretrain
 from flgd.wiring import starting_network
 from sim_cell.cell import SimCell
 from sim_cell.objects import ObjectSpec
-from tests.test_daemon_harness import write_config
+from tests.fakes.daemon import write_config
 
 REPO = Path(__file__).resolve().parents[1]
 BASE_CFG = load_config(REPO / "cell_config" / "sim.yaml")

@@ -24,7 +24,7 @@ import yaml
 from flgd.config import load_config
 from flgd.ctl import Client, DaemonUnreachable
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 
 @contextlib.contextmanager
