@@ -19,29 +19,8 @@ module holds the state around them and keeps it across restarts:
 
 A restart acts with the stored champion, never with a learner checkpoint.
 
-Only a file's content proves it unusable: a size, format or checksum the loader
-refuses, weights other than the ones recorded for it, or a file missing from a
-gate directory that can be listed (gone for good: no retry brings it back).
-Such a file is recorded as ``unusable`` (an event naming it, why, and what to
-do), moved to ``gate/unusable/`` for inspection (the newest ``KEEP_UNUSABLE``
-are kept), and the gate falls back to its predecessor, then to the configured
-policy; if none is usable the daemon refuses to start rather than let a fresh
-network act.
-
-A read the operating system refuses (a permission, an I/O error, the gate
-directory itself missing, a file swapped while opened) says nothing about the
-content.  It is tried again (``READ_RETRY_DELAYS``, about 1.4 s in all: a rename
-in progress is over by then), and if it still fails the daemon refuses to start
-(``GateFileUnreadable``: the file, the OS error, what to fix) and records
-nothing.  It does not act with the predecessor meanwhile: the store would still
-name the unreadable policy as champion, so the actions, the tallies and any
-promotion would be credited to a line the records do not show, and an older
-policy acting quietly hides a fault (a permission, a disk) that a person has to
-fix.  A refused start is loud, and systemd starts the daemon again every 5 s
-(``RestartSec``), so it acts with the whole line again within seconds of the
-file becoming readable.  A start that refuses changes no record at all.  So does
-one whose files hold another network variant than ``learning.network``: the
-files are sound, the config changed.
+How the files are kept, and what a file that cannot be read or used does to a
+start (it is set aside, or the start is refused): ``flgd.gate_storage``.
 
 Only the daemon's run loop calls the methods that change state (they swap the
 agent's networks); ``status`` and ``history`` may be called from any thread.
@@ -51,130 +30,36 @@ from __future__ import annotations
 
 import copy
 import dataclasses
-import errno
 import json
 import logging
-import os
 import threading
-import time
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
 
 from flgd.config import CellConfig
+from flgd.gate_storage import (GATE_DIR, KEEP_UNUSABLE, READ_RETRY_DELAYS, UNUSABLE_DIR, GateError,
+                               GateFileUnreadable, GateStorage, PolicyRecord, insert_record, tally_json,
+                               write_event)
 from flgd.learning.agent import WeightsMailbox
 from flgd.learning.gate import GateSettings, Tally, Verdict, challenger_share, challenger_verdict, rollback_verdict
 from flgd.store import Store
 
 __all__ = ["Gatekeeper", "GateError", "GateFileUnreadable", "PolicyRecord", "gate_settings", "CREDITED_OUTCOMES",
-           "READ_RETRY_DELAYS", "KEEP_UNUSABLE", "UNUSABLE_DIR"]
+           "READ_RETRY_DELAYS", "KEEP_UNUSABLE", "UNUSABLE_DIR", "GATE_DIR"]
 
 log = logging.getLogger("flgd")
 
 # Outcomes that are the deciding policy's doing: a refused plan is its failure too; an unstable simulation,
 # a stop or a cell fault is not.
 CREDITED_OUTCOMES = ("executed", "refused")
-GATE_DIR = "gate"
-UNUSABLE_DIR = "unusable"  # under GATE_DIR: files whose content proved them unusable, kept for inspection
-# The newest unusable files kept there: enough to compare a few failures (a disk going bad shows as several),
-# at most ~150 MB with the largest (DenseNet) policies.
-KEEP_UNUSABLE = 5
-# Pauses before each further try of a read the OS refused (see the module docstring).
-READ_RETRY_DELAYS = (0.1, 0.3, 1.0)
 # events that make a policy the champion, and whether a champion made so is rolled back automatically
 _CROWNING = {"initial": False, "promote": True, "manual-promote": True, "rollback": False,
              "manual-rollback": False, "load": False, "fallback": False}
 
 
-class GateError(RuntimeError):
-    """No usable policy to act with (every champion file and the configured policy are unusable)."""
-
-
-class GateFileUnreadable(GateError):
-    """A gate file the OS would not let the daemon read, on every try; nothing was recorded about it."""
-
-    def __init__(self, policy_id: int, path: Path, message: str) -> None:
-        super().__init__(message)
-        self.policy_id = policy_id
-        self.path = path
-
-
-def _os_problem(exc: Any) -> str:
-    """A PolicyFileUnreadable's OS error in words, without the loader's advice for files outside the state
-    directory (which does not fit a gate file)."""
-    return exc.problem if exc.os_error is None else str(exc.os_error.strerror or exc.os_error)
-
-
-def _read_advice(path: Path, exc: OSError | None) -> str:
-    """What a person does about a refused read of ``path`` (a gate file)."""
-    directory = path.parent
-    if isinstance(exc, PermissionError):
-        uid = os.geteuid()
-        try:
-            import pwd
-            who = f"user {pwd.getpwuid(uid).pw_name} (uid {uid})"
-        except (ImportError, KeyError):
-            who = f"uid {uid}"
-        return (f"The daemon runs as {who} and must be able to read {path} and enter {directory}: give them "
-                f"back to it (as installed: owner flgd, modes 0640 and 0750).")
-    if isinstance(exc, FileNotFoundError):
-        return (f"The gate directory {directory} is missing although the store records this policy in it: "
-                f"restore it (from a backup). To give up the stored policies instead, create {directory} empty: "
-                f"each is then recorded as missing and the configured policy acts.")
-    if exc is None:
-        return f"It was replaced while being opened on every try: find what rewrites files in {directory}."
-    return f"Check the disk that holds it (an {errno.errorcode.get(exc.errno or 0, 'OS')} error: see `dmesg`)."
-
-
 def gate_settings(config: CellConfig) -> GateSettings:
     """The config's gate section as the statistics' settings (same names)."""
     return GateSettings(**{f.name: getattr(config.gate, f.name) for f in dataclasses.fields(GateSettings)})
-
-
-@dataclass
-class PolicyRecord:
-    id: int
-    role: str
-    file: str  # relative to the state directory
-    sha256: str
-    origin: str
-    predecessor: int | None
-    learner_updates: int | None
-    training_steps: int
-    since_step: int
-    record: Tally | None  # a retired champion's tally over its tenure
-
-    def as_dict(self) -> dict:
-        return {"id": self.id, "role": self.role, "file": self.file, "origin": self.origin,
-                "predecessor": self.predecessor, "learner_updates": self.learner_updates,
-                "training_steps": self.training_steps, "since_step": self.since_step,
-                "record": None if self.record is None else self.record.as_dict()}
-
-
-_COLUMNS = ("id", "role", "file", "sha256", "origin", "predecessor", "learner_updates", "training_steps",
-            "since_step", "record")
-
-
-def _tally_json(t: Tally) -> str:
-    return json.dumps({"actions": t.actions, "successes": t.successes, "grasps": t.grasps})
-
-
-def _record_from_row(row: tuple) -> PolicyRecord:
-    d = dict(zip(_COLUMNS, row))
-    rec = None
-    if d["record"]:
-        r = json.loads(d["record"])
-        rec = Tally(int(r["actions"]), int(r["successes"]), int(r["grasps"]))
-    return PolicyRecord(id=int(d["id"]), role=d["role"], file=d["file"], sha256=d["sha256"], origin=d["origin"],
-                        predecessor=d["predecessor"], learner_updates=d["learner_updates"],
-                        training_steps=int(d["training_steps"]), since_step=int(d["since_step"]), record=rec)
-
-
-def _insert(db: Any, r: PolicyRecord) -> None:
-    db.execute("INSERT INTO policies(id, created, role, file, sha256, origin, predecessor, learner_updates, "
-               "training_steps, since_step, record) VALUES(?,?,?,?,?,?,?,?,?,?,NULL)",
-               (r.id, time.time(), r.role, r.file, r.sha256, r.origin, r.predecessor, r.learner_updates,
-                r.training_steps, r.since_step))
 
 
 class Gatekeeper:
@@ -189,7 +74,6 @@ class Gatekeeper:
         self.store = store
         self.agent = agent
         self.state_dir = Path(state_dir)
-        self.directory = self.state_dir / GATE_DIR
         self.handovers = WeightsMailbox()  # the learner posts here when the gate is on
         self.champion: PolicyRecord | None = None
         self.challenger: PolicyRecord | None = None
@@ -205,83 +89,12 @@ class Gatekeeper:
         # called with the champion's network whenever the acting policy changes (restore, promotion, rollback,
         # load): the learner's L2-SP anchor (``learning.anchor_weight``) follows what acts
         self.on_champion: Callable[[Any], None] | None = None
-        self.keep_unusable = KEEP_UNUSABLE
-        self.sleep: Callable[[float], None] = time.sleep  # between tries of a refused read
+        # KEEP_UNUSABLE and READ_RETRY_DELAYS as this module holds them when the gate is built
+        self.files = GateStorage(config, store, state_dir, keep_unusable=KEEP_UNUSABLE,
+                                 read_retry_delays=READ_RETRY_DELAYS)
         self._lock = threading.RLock()
 
-    # ------------------------------------------------------------------ files and records
-    def _path(self, record: PolicyRecord) -> Path:
-        return self.state_dir / record.file
-
-    def _write_file(self, policy_id: int, network: Any, meta: dict) -> tuple[str, str]:
-        from flgd.learning.policy_file import read_metadata, save_policy
-
-        self.directory.mkdir(parents=True, exist_ok=True)
-        rel = f"{GATE_DIR}/policy-{policy_id:06d}.safetensors"
-        save_policy(self.state_dir / rel, network, meta)
-        return rel, str(read_metadata(self.state_dir / rel)["weights_sha256"])
-
-    def _next_id(self) -> int:
-        return int(self.store.query("SELECT COALESCE(MAX(id), 0) + 1 FROM policies")[0][0])
-
-    def _row(self, policy_id: int) -> PolicyRecord | None:
-        rows = self.store.query(f"SELECT {', '.join(_COLUMNS)} FROM policies WHERE id=?", (int(policy_id),))
-        return _record_from_row(rows[0]) if rows else None
-
-    def _by_role(self, role: str) -> PolicyRecord | None:
-        rows = self.store.query(f"SELECT {', '.join(_COLUMNS)} FROM policies WHERE role=? ORDER BY id DESC LIMIT 1",
-                                (role,))
-        return _record_from_row(rows[0]) if rows else None
-
-    def _load(self, record: PolicyRecord) -> Any:
-        """The record's network.
-
-        PolicyFileError (naming the file): its content proves it unusable.  GateError: the file may be
-        sound but cannot act now -- the OS refused every read (GateFileUnreadable), or it holds another
-        network variant than the config's; nothing is to be recorded about it then.
-        """
-        from flgd.learning.policy_file import PolicyFileError, PolicyFileUnreadable, load_policy
-
-        path = self._path(record)
-        started = time.monotonic()
-        for tries, delay in enumerate((*READ_RETRY_DELAYS, None), start=1):
-            try:
-                loaded = load_policy(path)
-                break
-            except PolicyFileUnreadable as exc:
-                if delay is None:
-                    raise self._refused(record, exc, tries, time.monotonic() - started) from None
-                log.warning("gate: policy #%d file %s cannot be read (%s); trying again in %.1f s", record.id, path,
-                            _os_problem(exc), delay)
-                self.sleep(delay)
-        variant, configured = loaded.metadata.get("variant"), self.config.learning.network
-        if variant != configured:
-            raise GateError(f"policy #{record.id}'s file {path} holds a {variant!r} network, but learning.network "
-                            f"is {configured!r}: set learning.network back to {variant!r}, or, to give up the "
-                            f"stored policies for the configured one, move {path.parent} aside and create it empty "
-                            f"(nothing was recorded)")
-        if loaded.metadata.get("weights_sha256") != record.sha256:
-            raise PolicyFileError(path, "weights differ from the ones the gate recorded for it")
-        return loaded.network
-
-    def _refused(self, record: PolicyRecord, exc: Any, tries: int, seconds: float) -> Exception:
-        """The error for a read refused on every try: a missing file in a gate directory that can be listed
-        is gone for good (PolicyFileError: content); anything else is GateFileUnreadable."""
-        from flgd.learning.policy_file import PolicyFileError
-
-        path = self._path(record)
-        if isinstance(exc.os_error, FileNotFoundError):
-            try:
-                os.listdir(path.parent)
-            except OSError:
-                pass  # the directory itself is gone or unreadable: not the file's doing
-            else:
-                return PolicyFileError(path, "is missing (the gate directory holds no such file)")
-        return GateFileUnreadable(record.id, path, (
-            f"policy #{record.id}'s file {path} cannot be read: {_os_problem(exc)} ({tries} tries over {seconds:.1f} s). "
-            f"{_read_advice(path, exc.os_error)} Nothing was recorded about it: the daemon acts with it again "
-            f"once it can read it."))
-
+    # ------------------------------------------------------------------ tallies
     def _tally(self, policy_id: int, since_step: int) -> Tally:
         rows = self.store.query(
             "SELECT COUNT(*), COALESCE(SUM(success = 1), 0), COALESCE(SUM(primitive = 'grasp'), 0) FROM actions "
@@ -289,48 +102,6 @@ class Gatekeeper:
             (int(policy_id), int(since_step), *CREDITED_OUTCOMES))
         n, s, g = rows[0]
         return Tally(int(n), int(s), int(g))
-
-    def _event(self, db: Any, kind: str, step: int, policy: int | None, other: int | None, who: str,
-               message: str, evidence: dict) -> None:
-        db.execute("INSERT INTO gate_events(time, step, kind, policy, other, who, message, evidence) "
-                   "VALUES(?,?,?,?,?,?,?,?)", (time.time(), int(step), kind, policy, other, who, message,
-                                               json.dumps(evidence, sort_keys=True, default=str)))
-
-    def _remove_file(self, record: PolicyRecord) -> None:
-        try:
-            self._path(record).unlink(missing_ok=True)
-        except OSError as exc:
-            log.warning("gate: cannot remove %s: %s", self._path(record), exc)
-
-    def _prune_retired(self) -> None:
-        """Keep the files of the champion's last ``keep_champions`` predecessors; older ones are deleted."""
-        chain, cur = [], self.champion
-        while cur is not None and cur.predecessor is not None:
-            cur = self._row(cur.predecessor)
-            if cur is not None:
-                chain.append(cur)
-        for old in chain[self.keep_champions:]:
-            if self._path(old).exists():
-                self._remove_file(old)
-
-    def _remove_strays(self) -> None:
-        """Files in the gate directory no record points to (a kill between writing a file and its row)."""
-        if not self.directory.is_dir():
-            return
-        known = {r[0] for r in self.store.query(
-            "SELECT file FROM policies WHERE role NOT IN ('dropped', 'rolled_back')")}
-        try:
-            paths = [p for p in self.directory.iterdir() if not p.is_dir()]  # not unusable/
-        except OSError as exc:  # the policy files' own reads say what to do
-            log.warning("gate: cannot list %s: %s", self.directory, exc)
-            return
-        for path in paths:
-            if f"{GATE_DIR}/{path.name}" not in known:
-                try:
-                    path.unlink()
-                    log.info("gate: removed %s (no record: written just before an interruption)", path)
-                except OSError as exc:
-                    log.warning("gate: cannot remove %s: %s", path, exc)
 
     # ------------------------------------------------------------------ start-up
     def restore(self, step: int, configured: Callable[[], tuple[Any, dict, str] | None],
@@ -345,26 +116,26 @@ class Gatekeeper:
         from flgd.learning.policy_file import PolicyFileError
 
         with self._lock:
-            self._remove_strays()
-            self._set_aside_earlier_unusable()
+            self.files.remove_strays()
+            self.files.set_aside_earlier_unusable()
             note = ""
             first_start = int(self.store.query("SELECT COUNT(*) FROM policies")[0][0]) == 0
-            champion = self._by_role("champion")
+            champion = self.files.by_role("champion")
             network = None
             unusable: list[tuple[PolicyRecord, PolicyFileError]] = []
             cur = champion
             while cur is not None:
                 try:
-                    network = self._load(cur)  # a GateError (unreadable now) refuses the start: nothing recorded
+                    network = self.files.load(cur)  # a GateError (unreadable now) refuses the start: nothing recorded
                     break
                 except PolicyFileError as exc:  # its content: the file named, the next one tried
                     unusable.append((cur, exc))
-                    cur = self._row(cur.predecessor) if cur.predecessor is not None else None
+                    cur = self.files.row(cur.predecessor) if cur.predecessor is not None else None
             tried = [str(exc) for _, exc in unusable]
             if network is not None and cur is not None and champion is not None and cur.id != champion.id:
                 self._crown(cur, step, "fallback", "flgd", f"champion #{champion.id} unusable; policy #{cur.id} "
                                                            f"acts again", {"unusable": tried},
-                            also=self._set_aside(unusable, step))
+                            also=self.files.set_aside(unusable, step))
                 note = f"fell back to policy #{cur.id} ({'; '.join(tried)})"
             if network is None:
                 got = configured()
@@ -377,96 +148,28 @@ class Gatekeeper:
                 kind = "initial" if first_start else "fallback"
                 cur = self._register_champion(net, meta, origin, step, kind, "flgd",
                                               {"unusable": tried} if tried else {},
-                                              also=self._set_aside(unusable, step))
+                                              also=self.files.set_aside(unusable, step))
                 network = net
                 if tried:
                     note = f"fell back to the configured policy ({'; '.join(tried)})"
-            self._prune_unusable()
+            self.files.prune_unusable()
             self._act_with_champion(cur, network)
             self._restore_challenger(step)
             self._recount()
             return note or f"champion #{cur.id} ({cur.origin})"
 
-    def _move_aside(self, record: PolicyRecord) -> str | None:
-        """Move the record's file to ``gate/unusable/`` (named by the time, so the newest sort last);
-        its new path relative to the state directory, or None when there is none to move or it cannot be."""
-        source = self._path(record)
-        stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
-        rel = f"{GATE_DIR}/{UNUSABLE_DIR}/{stamp}-{source.name}"
-        try:
-            (self.directory / UNUSABLE_DIR).mkdir(parents=True, exist_ok=True)
-            for n in range(2, 100):
-                if not (self.state_dir / rel).exists():
-                    break
-                rel = f"{GATE_DIR}/{UNUSABLE_DIR}/{stamp}.{n}-{source.name}"
-            os.rename(source, self.state_dir / rel)
-        except FileNotFoundError:
-            return None
-        except OSError as exc:
-            log.warning("gate: cannot move %s aside: %s", source, exc)
-            return None
-        return rel
-
-    def _set_aside(self, unusable: list[tuple[PolicyRecord, Any]], step: int) -> Callable[[Any], None]:
-        """Move the files aside now; the returned writer records them as unusable (in the caller's transaction,
-        with the change of champion, so that no kill leaves the store without one).  ``unusable``: (record,
-        its PolicyFileError)."""
-        moved = [(record, exc.problem, self._move_aside(record)) for record, exc in unusable]
-
-        def write(db: Any) -> None:
-            for record, why, rel in moved:
-                where = (f"; moved to {self.state_dir / rel} for inspection (the newest {self.keep_unusable} "
-                         "unusable files are kept)" if rel is not None else
-                         f"; left at {self._path(record)} (it cannot be moved aside)" if self._path(record).exists()
-                         else "")
-                db.execute("UPDATE policies SET role='unusable', file=? WHERE id=?",
-                           (record.file if rel is None else rel, record.id))
-                self._event(db, "unusable", step, record.id, None, "flgd",
-                            f"policy #{record.id} file {self._path(record)} cannot be used: {why}{where}. To act "
-                            "with it again, `flgctl policy load` a good copy (from a backup); several at once "
-                            "point to a failing disk", {"error": why, "moved_to": rel})
-        for record, why, rel in moved:
-            log.error("gate: policy #%d file %s cannot be used: %s%s", record.id, self._path(record), why,
-                      "" if rel is None else f"; moved to {self.state_dir / rel}")
-        return write
-
-    def _set_aside_earlier_unusable(self) -> None:
-        """Files recorded unusable before they were moved aside (by an earlier version) go to ``gate/unusable/``."""
-        rows = self.store.query(f"SELECT {', '.join(_COLUMNS)} FROM policies WHERE role='unusable' AND file LIKE ?",
-                                (f"{GATE_DIR}/policy-%",))
-        for record in map(_record_from_row, rows):
-            if self._path(record).is_file():
-                rel = self._move_aside(record)
-                if rel is not None:
-                    self.store.transaction(lambda db, r=rel, i=record.id: db.execute(
-                        "UPDATE policies SET file=? WHERE id=?", (r, i)))
-
-    def _prune_unusable(self) -> None:
-        """Keep the newest ``keep_unusable`` files in ``gate/unusable/``; older ones are deleted."""
-        directory = self.directory / UNUSABLE_DIR
-        try:
-            files = sorted(p for p in directory.iterdir() if p.is_file())
-        except OSError:  # none yet, or unreadable: nothing to prune now
-            return
-        for old in files[:max(0, len(files) - self.keep_unusable)]:
-            try:
-                old.unlink()
-                log.info("gate: removed %s (only the newest %d unusable files are kept)", old, self.keep_unusable)
-            except OSError as exc:
-                log.warning("gate: cannot remove %s: %s", old, exc)
-
     def _restore_challenger(self, step: int) -> None:
-        rec = self._by_role("challenger")
+        rec = self.files.by_role("challenger")
         if rec is None:
             self.agent.set_challenger(None)
             return
         from flgd.learning.policy_file import PolicyFileError
 
         try:
-            net = self._load(rec)  # a GateError (unreadable now) refuses the start: nothing recorded
+            net = self.files.load(rec)  # a GateError (unreadable now) refuses the start: nothing recorded
         except PolicyFileError as exc:  # its content: kept for inspection, the challenger dropped
             self.challenger = rec
-            rel = self._move_aside(rec)
+            rel = self.files.move_aside(rec)
             where = "" if rel is None else f" (moved to {self.state_dir / rel})"
             self._drop(step, "flgd", f"its file cannot be used: {exc}{where}", {"error": str(exc), "moved_to": rel},
                        kind="drop", also=None if rel is None else lambda db: db.execute(
@@ -513,9 +216,9 @@ class Gatekeeper:
 
     def _register_champion(self, network: Any, meta: dict, origin: str, step: int, kind: str, who: str,
                            evidence: dict, also: Callable[[Any], None] | None = None) -> PolicyRecord:
-        pid = self._next_id()
+        pid = self.files.next_id()
         steps = int(meta.get("training_steps", 0) or 0)
-        rel, sha = self._write_file(pid, network, {"training_steps": steps, "cell": self.config.name or
+        rel, sha = self.files.write_file(pid, network, {"training_steps": steps, "cell": self.config.name or
                                                    self.config.backend, "source": origin, "gate_policy": pid})
         old = self.champion
         record = PolicyRecord(pid, "champion", rel, sha, origin, None if old is None else old.id, None, steps,
@@ -526,9 +229,9 @@ class Gatekeeper:
                 also(db)
             if old is not None:
                 db.execute("UPDATE policies SET role='retired', record=? WHERE id=?",
-                           (_tally_json(self.champion_live), old.id))
-            _insert(db, record)
-            self._event(db, kind, step, pid, record.predecessor, who, f"policy #{pid} is the champion: {origin}",
+                           (tally_json(self.champion_live), old.id))
+            insert_record(db, record)
+            write_event(db, kind, step, pid, record.predecessor, who, f"policy #{pid} is the champion: {origin}",
                         evidence)
         self.store.transaction(write)
         log.info("gate: policy #%d is the champion (%s: %s)", pid, kind, origin)
@@ -546,15 +249,15 @@ class Gatekeeper:
                 also(db)
             if old is not None and old.id != record.id:
                 db.execute("UPDATE policies SET role=?, record=? WHERE id=?",
-                           (retire_as, _tally_json(self.champion_live), old.id))
+                           (retire_as, tally_json(self.champion_live), old.id))
             if kind in ("promote", "manual-promote"):
                 db.execute("UPDATE policies SET role='champion', predecessor=?, since_step=? WHERE id=?",
                            (None if old is None else old.id, int(step), record.id))
             else:
                 db.execute("UPDATE policies SET role='champion', since_step=? WHERE id=?", (int(step), record.id))
-            self._event(db, kind, step, record.id, None if old is None else old.id, who, message, evidence)
+            write_event(db, kind, step, record.id, None if old is None else old.id, who, message, evidence)
         self.store.transaction(write)
-        refreshed = self._row(record.id)
+        refreshed = self.files.row(record.id)
         assert refreshed is not None
         self.champion = refreshed
         self.by_promotion = _CROWNING[kind]
@@ -570,11 +273,11 @@ class Gatekeeper:
             if also is not None:
                 also(db)
             db.execute("UPDATE policies SET role='dropped', record=? WHERE id=?",
-                       (_tally_json(self.challenger_tally), ch.id))
-            self._event(db, kind, step, ch.id, None if self.champion is None else self.champion.id, who,
+                       (tally_json(self.challenger_tally), ch.id))
+            write_event(db, kind, step, ch.id, None if self.champion is None else self.champion.id, who,
                         f"challenger #{ch.id} dropped: {why}", evidence)
         self.store.transaction(write)
-        self._remove_file(ch)
+        self.files.remove_file(ch)
         log.info("gate: challenger #%d dropped: %s", ch.id, why)
         self.challenger = None
         self.challenger_tally = Tally()
@@ -603,7 +306,7 @@ class Gatekeeper:
             self.agent.set_challenger(None)
             self._act_with_champion(self.champion, network)
             self.champion_live, self.challenger_tally, self.champion_during_test = Tally(), Tally(), Tally()
-            self._prune_retired()
+            self.files.prune_retired(self.champion, self.keep_champions)
             self.verdict = None
             return {"champion": self.champion.id, "reason": reason}
 
@@ -622,11 +325,11 @@ class Gatekeeper:
             ch = self.champion
             if ch is None or ch.predecessor is None:
                 raise GateError("the champion has no predecessor to roll back to")
-            pred = self._row(ch.predecessor)
+            pred = self.files.row(ch.predecessor)
             if pred is None:
                 raise GateError(f"predecessor #{ch.predecessor} is not in the store")
             try:
-                network = self._load(pred)
+                network = self.files.load(pred)
             except Exception as exc:
                 raise GateError(f"predecessor #{pred.id} cannot be used: {exc}") from None
             if self.challenger is not None:
@@ -636,7 +339,7 @@ class Gatekeeper:
             evidence["predecessor_record"] = None if pred.record is None else pred.record.as_dict()
             self._crown(pred, step, kind, who, f"champion #{ch.id} rolled back to #{pred.id}: {reason}", evidence,
                         retire_as="rolled_back")
-            self._remove_file(ch)
+            self.files.remove_file(ch)
             self._act_with_champion(self.champion, network)
             self.champion_live = Tally()
             self.verdict = None
@@ -652,7 +355,7 @@ class Gatekeeper:
                 k: v for k, v in meta.items() if isinstance(v, (str, int, float, bool, type(None)))}})
             self._act_with_champion(rec, network)
             self.champion_live = Tally()
-            self._prune_retired()
+            self.files.prune_retired(self.champion, self.keep_champions)
             self.verdict = None
             return {"champion": rec.id}
 
@@ -673,15 +376,15 @@ class Gatekeeper:
             network = copy.deepcopy(self.agent.network)
             network.load_state_dict(weights)
             network.eval()
-            pid = self._next_id()
+            pid = self.files.next_id()
             origin = f"learner update {version}"
             steps = max(0, int(step) + int(getattr(self.agent, "exploration_offset", 0)))  # the policy's own count
             try:
-                rel, sha = self._write_file(pid, network, {"training_steps": steps, "cell": self.config.name or
+                rel, sha = self.files.write_file(pid, network, {"training_steps": steps, "cell": self.config.name or
                                                            self.config.backend, "source": origin,
                                                            "learner_updates": int(version), "gate_policy": pid})
             except PolicyFileError as exc:  # e.g. non-finite weights: never tested, never acting
-                self.store.transaction(lambda db: self._event(
+                self.store.transaction(lambda db: write_event(
                     db, "refused", step, None, None, "gate", f"hand-over of learner update {version} refused: {exc}",
                     {"error": str(exc)}))
                 log.error("gate: hand-over of learner update %s refused: %s", version, exc)
@@ -690,8 +393,8 @@ class Gatekeeper:
             champion = self.champion
 
             def write(db: Any) -> None:
-                _insert(db, rec)
-                self._event(db, "challenger", step, pid, None if champion is None else champion.id, "gate",
+                insert_record(db, rec)
+                write_event(db, "challenger", step, pid, None if champion is None else champion.id, "gate",
                             f"policy #{pid} ({origin}) is the challenger", {"share": self.settings.share,
                                                                              "training_steps": steps})
             self.store.transaction(write)
@@ -733,7 +436,7 @@ class Gatekeeper:
         ch = self.champion
         if not self.by_promotion or ch is None or ch.predecessor is None:
             return None
-        pred = self._row(ch.predecessor)
+        pred = self.files.row(ch.predecessor)
         if pred is None or pred.record is None or pred.record.actions == 0:
             return None
         return rollback_verdict(self.champion_live, pred.record, self.settings)
@@ -769,7 +472,7 @@ class Gatekeeper:
             except GateError as exc:
                 log.error("gate: rollback not possible: %s", exc)
                 self.by_promotion = False  # do not retry every cycle; the operator sees the event
-                self.store.transaction(lambda db: self._event(
+                self.store.transaction(lambda db: write_event(
                     db, "rollback-failed", step, self.champion.id, None, "gate", f"rollback not possible: {exc}",
                     {"verdict": rv.reason}))
                 return None
@@ -797,10 +500,10 @@ class Gatekeeper:
             share = getattr(self.agent, "challenger_share", 0.0) if cl is not None else self.settings.share
             out: dict[str, Any] = {"enabled": self.enabled, "share": share if self.enabled else 0.0}
             out["champion"] = None if ch is None else {
-                **ch.as_dict(), "live": self.champion_live.as_dict(), "file": str(self._path(ch)),
+                **ch.as_dict(), "live": self.champion_live.as_dict(), "file": str(self.files.path(ch)),
                 "rolled_back_automatically": self.by_promotion}
             out["challenger"] = None if cl is None else {
-                **cl.as_dict(), "tally": self.challenger_tally.as_dict(), "file": str(self._path(cl)),
+                **cl.as_dict(), "tally": self.challenger_tally.as_dict(), "file": str(self.files.path(cl)),
                 "champion_during_test": self.champion_during_test.as_dict()}
             out["verdict"] = None if v is None else {"kind": v.kind, "p_better": v.p_better, "reason": v.reason}
             cv = self.champion_verdict
