@@ -65,6 +65,12 @@ def test_valid_requests_parse():
                              "backend", "snapshot"}
 
 
+def test_every_protocol_command_has_one_handler_and_every_handler_a_protocol_command():
+    from flgd.daemon.commands import HANDLERS
+
+    assert set(HANDLERS) == set(COMMANDS)
+
+
 @pytest.fixture
 def server(tmp_path):
     seen: list[Request] = []

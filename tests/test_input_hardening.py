@@ -113,6 +113,7 @@ def _controller(tmp_path: Path):
 
 def test_flgctl_policy_load_of_a_diverged_file_is_an_error_reply_and_the_running_policy_stays(tmp_path,
                                                                                               monkeypatch):
+    from flgd.daemon.commands import policy_load
     from flgd.daemon.protocol import ProtocolError
 
     net, name = poisoned(float("nan"))
@@ -121,7 +122,7 @@ def test_flgctl_policy_load_of_a_diverged_file_is_an_error_reply_and_the_running
     ctl = _controller(tmp_path)
     ctl.learner = None  # never reached: the file is refused before the learner sees any weight
     with pytest.raises(ProtocolError) as err:
-        ctl._policy_load(str(path))
+        policy_load(ctl, str(path))
     assert err.value.code == "failed" and "running policy stays" in err.value.message
     assert str(path) in err.value.message and repr(name) in err.value.message
 
@@ -646,11 +647,11 @@ def test_a_device_error_found_only_at_learner_construction_is_still_a_clear_exit
                                                                                   capsys, keep_logging):
     """Defence in depth: should the config check be bypassed, the learner's error is a ConfigError that
     ``flgd run`` reports (not a traceback) before anything moves."""
-    import flgd.config as config_module
+    import flgd.config.rules as config_rules
     from flgd.daemon import run
 
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
-    monkeypatch.setattr(config_module, "_check_device", lambda cfg, problems: None)
+    monkeypatch.setattr(config_rules, "_check_device", lambda cfg, problems: None)
     path = _cuda_config(tmp_path)
     before = {sig: signal.getsignal(sig) for sig in (signal.SIGTERM, signal.SIGINT)}
     assert run.main(["--config", str(path), "--socket", str(tmp_path / "s.sock"), "--no-status-line"]) == 1

@@ -13,16 +13,14 @@ Learner settings: with a policy given the daemon fine-tunes it (the config's
 BatchNorm mode and warm-up; exploration continues from the policy's recorded
 training steps, capped at ``finetune.max_epsilon``); without one it trains a fresh
 network from scratch with ``learning`` as written.  Control connections have their own threads and
-only read state, validate input and queue work.
+only read state, validate input and queue work; what each operator command does is in its handler
+(flgd/daemon/commands.py), which ``handle`` looks up.
 """
 
 from __future__ import annotations
 
-import base64
 import concurrent.futures
-import copy
 import dataclasses
-import datetime as _dt
 import logging
 import os
 import queue
@@ -36,7 +34,7 @@ from flgd.calibration_watch import CalibrationWatch
 from flgd.cell import Cell, CellFault, StopPending, make_cell
 from flgd.config import CellConfig, fine_tunes, learner_settings
 from flgd.cycle import CycleRecord, CycleRunner
-from flgd.daemon.metrics import compute_stats, status_summary
+from flgd.daemon import commands
 from flgd.daemon.notify import Notifier
 from flgd.daemon.protocol import ProtocolError, Request
 from flgd.daemon.state import IllegalTransition, State, StateChange, StateMachine
@@ -48,7 +46,6 @@ __all__ = ["Controller", "StartupError"]
 log = logging.getLogger("flgd")
 
 COMMAND_TIMEOUT = 120.0  # seconds a control request waits for the run loop
-LEARNER_QUIET_TIMEOUT = 60.0  # seconds a policy load waits for the learner's update in progress
 # The cause of RUNNING -> PAUSED when a cell that cannot refill its own table finds nothing to grasp.
 EMPTY_WORKSPACE_CAUSE = "workspace empty/nothing graspable: refill the table, then flgctl start"
 ACCEPTING_COMMANDS = frozenset({State.IDLE, State.RUNNING, State.PAUSED, State.FAULT})
@@ -56,10 +53,6 @@ ACCEPTING_COMMANDS = frozenset({State.IDLE, State.RUNNING, State.PAUSED, State.F
 
 class StartupError(RuntimeError):
     """The daemon cannot start (bad policy, cell does not connect, state dir locked ...)."""
-
-
-def _fmt_pct(v: float | None) -> str:
-    return "-" if v is None else f"{100 * v:.0f}%"
 
 
 class Controller:
@@ -573,148 +566,24 @@ class Controller:
             os.close(self._lock_fd)
             self._lock_fd = None
 
-    # ================================================================== status
-    def summary(self) -> dict[str, Any]:
-        if self.store is None:
-            return {"cycles": 0, "grasp_success_last_50": None, "picks_per_hour": None}
-        try:
-            return status_summary(self.store)
-        except StoreError:
-            return {"cycles": None, "grasp_success_last_50": None, "picks_per_hour": None}
-
+    # ================================================================== status and commands
     def status_text(self) -> str:
-        s = self.summary()
-        pph = "-" if s["picks_per_hour"] is None else f"{s['picks_per_hour']:.0f}"
-        text = (f"{self.state.state.value} | cycles {s['cycles']} | grasp success {_fmt_pct(s['grasp_success_last_50'])}"
-                f" (last 50) | picks/h {pph}")
-        if self.state.state in (State.FAULT, State.PAUSED):
-            text += f" | {self.state.cause}"
-        if self.gate is not None and self.gate.champion is not None:
-            text += f" | champion #{self.gate.champion.id}"
-            if self.gate.challenger is not None:
-                text += f", challenger #{self.gate.challenger.id} testing"
-        if self.calibration_watch is not None and self.calibration_watch.drift:
-            text += " | camera moved: flgd calibrate"
-        return text
+        """The one-line status (systemd's STATUS=, ``flgd run``'s log), assembled in flgd/daemon/commands.py."""
+        return commands.status_text(self)
 
     def status(self) -> dict[str, Any]:
-        rec = self.last_record
-        last = None
-        if rec is not None:
-            last = {"step": rec.step, "outcome": rec.outcome, "primitive": rec.primitive, "kind": rec.kind,
-                    "reward": rec.reward, "success": rec.success, "rule": rec.rule, "refused": rec.refused,
-                    "failure": rec.failure, "duration": rec.duration}
-        stored = None
-        if self.store is not None:
-            try:
-                stored = self.store.transition_count()
-            except StoreError:
-                stored = None
-        lr = self.learner
-        return {
-            "state": self.state.state.value,
-            "cause": self.state.cause,
-            "since": self.state.since,
-            "pid": os.getpid(),
-            "uptime": time.time() - self._started,
-            "backend": self.backend,
-            "config": self.config.source,
-            "state_dir": str(self.state_dir),
-            "policy": (f"champion #{self.gate.champion.id}: {self.gate.champion.origin}"
-                       if self.gate is not None and self.gate.champion is not None else self.policy_source),
-            "learner_from": self.policy_source,
-            "step": self.runner.step if self.runner is not None else None,
-            "cycle_in_flight": self.cycle_in_flight,
-            "replay_size": len(self.replay) if self.replay is not None else 0,
-            "stored_transitions": stored,
-            "learner_updates": lr.updates if lr is not None else 0,
-            "learner_running": bool(lr is not None and lr.running),
-            "learner_stopped_why": "" if lr is None or lr.running else getattr(lr, "stopped_why", ""),
-            "learner_handovers": getattr(lr, "handovers", 0) if lr is not None else 0,
-            "learner_prior": None if getattr(lr, "prior", None) is None else {
-                "path": lr.prior.path, "transitions": len(lr.prior), "share": lr.prior_share,
-                "drawn": lr.prior_drawn},
-            "learning": "finetune" if self.fine_tune else "learning",
-            "learning_why": self.learning_why,
-            "gate": None if self.gate is None else self.gate.status(),
-            "learner_backlog": lr.pending if lr is not None else 0,  # scheduled updates not run yet
-            "learner_dropped": getattr(lr, "dropped_updates", 0) if lr is not None else 0,  # backlog was full
-            "learner_error": getattr(lr, "last_error", None) if lr is not None else None,
-            "resumed_from_updates": self.resumed_from_updates,
-            "trainer_state": self.trainer_state,
-            "last_checkpoint": self.last_checkpoint,
-            "store_problem": self.store_problem,
-            "storage_budget_problem": self.store.budget_problem if self.store is not None else "",
-            "last_cycle": last,
-            "last_stuck": self.last_stuck,
-            "calibration": self.calibration_watch.status() if self.calibration_watch is not None else None,
-            "failure_memory": (self.agent.memory.status() if getattr(self.agent, "memory", None) is not None
-                               else None),
-            **{k: v for k, v in self.summary().items()},
-        }
+        """What ``flgctl status`` shows, assembled in flgd/daemon/commands.py."""
+        return commands.status(self)
 
-    # ================================================================== commands
     def handle(self, req: Request) -> dict:
-        """Serve one validated request (control thread); raise ProtocolError for error replies."""
+        """Serve one validated request (control thread) from the command table; ProtocolError for error replies."""
+        command = commands.HANDLERS.get(req.cmd)
+        if command is None:
+            raise ProtocolError("unknown_command", f"unknown command {req.cmd!r}")
         st = self.state.state
-        if req.cmd == "ping":
-            return {"pong": True, "pid": os.getpid()}
-        if req.cmd == "status":
-            return self.status()
-        if req.cmd == "policy_history":
-            limit = req.args.get("limit", 50)
-            if isinstance(limit, bool) or not 1 <= limit <= 10000:
-                raise ProtocolError("bad_request", f"policy_history: limit must be 1..10000, got {limit!r}")
-            if self.gate is None:
-                raise ProtocolError("failed", f"no policy history: {self.store_problem or 'no store'}")
-            try:
-                return {"events": self.gate.history(limit)}
-            except StoreError as exc:
-                raise ProtocolError("failed", str(exc)) from None
-        if req.cmd == "stats":
-            if self.store is None:
-                raise ProtocolError("failed", f"no statistics: {self.store_problem}")
-            try:
-                return compute_stats(self.store)
-            except StoreError as exc:
-                raise ProtocolError("failed", str(exc)) from None
-        if st not in ACCEPTING_COMMANDS:
+        if not command.any_state and st not in ACCEPTING_COMMANDS:
             raise ProtocolError("wrong_state", f"{req.cmd}: the daemon is {st.value}")
-        if req.cmd == "start":
-            if not self._clear_stop_latch():
-                raise ProtocolError("wrong_state", f"start: the daemon is stopping ({self.state.cause})")
-            return self._change(State.RUNNING, "start by operator", {State.IDLE, State.PAUSED}, req.cmd)
-        if req.cmd == "pause":
-            return self._change(State.PAUSED, "pause by operator", {State.RUNNING}, req.cmd)
-        if req.cmd == "stop":
-            self.request_stop("stop by operator")
-            return {"stopping": True}
-        if req.cmd == "reset":
-            if st not in (State.IDLE, State.PAUSED, State.FAULT):
-                raise ProtocolError("wrong_state", f"reset: not allowed while {st.value}; pause first")
-            return self._in_loop(self._reset)
-        if req.cmd == "policy_load":
-            return self._policy_load(req.args["path"], req.peer)
-        if req.cmd in ("policy_promote", "policy_reject", "policy_rollback"):
-            return self._in_loop(lambda: self._gate_command(req.cmd, req.peer or "operator"))
-        if req.cmd == "policy_save":
-            return self._policy_save(req.args.get("path"))
-        if req.cmd == "backend":
-            return self._in_loop(lambda: self._swap_backend(req.args["name"]))
-        if req.cmd == "snapshot":
-            return self._snapshot()
-        raise ProtocolError("unknown_command", f"unknown command {req.cmd!r}")
-
-    def _change(self, new: State, cause: str, allowed: set[State], cmd: str) -> dict:
-        try:
-            self.state.transition(new, cause, allowed_from=frozenset(allowed))
-        except IllegalTransition:
-            names = ", ".join(sorted(s.value for s in allowed))
-            hint = " (reset first)" if self.state.state is State.FAULT else ""
-            raise ProtocolError("wrong_state", f"{cmd}: not allowed while {self.state.state.value}; "
-                                               f"allowed in {names}{hint}") from None
-        self._wake.set()
-        return {"state": new.value}
+        return command.run(self, req)
 
     def _stop_pending(self) -> bool:
         """A stop was requested (the daemon is STOPPING, or the runner was told to stop)."""
@@ -812,205 +681,3 @@ class Controller:
                 raise self._stopped_during_reset("after the recovery") from None
             raise
         return {"state": State.IDLE.value}
-
-    def _policy_load(self, path: str, who: str = "") -> dict:
-        """Validate the file here, then make it the champion between cycles (see ``_swap_in_policy``)."""
-        from flgd.learning.policy_file import PolicyFileError, load_policy
-
-        if not os.path.isabs(path):
-            raise ProtocolError("bad_request", f"policy_load: path must be absolute, got {path!r}")
-        try:
-            running = self.agent.network.architecture() if self.agent is not None else None
-            loaded = load_policy(path, expected_variant=self.config.learning.network, expected_architecture=running)
-        except PolicyFileError as exc:
-            raise ProtocolError("failed", f"policy not loaded, the running policy stays: {exc}") from None
-        return self._in_loop(lambda: self._swap_in_policy(path, loaded, who or "operator"))
-
-    def _swap_in_policy(self, path: str, loaded: Any, who: str) -> dict:
-        """Run loop: the loaded policy becomes the champion and the learner's weights, checkpointed at once.
-
-        Why a checkpoint: a restart resumes learning from the newest checkpoint, which would otherwise
-        still hold the weights from before the load.  The learner is held between two updates meanwhile
-        (``Learner.paused``: its thread lives on), its owed updates are dropped and counted, and its Adam
-        moments, which belong to the old weights, are reset.
-        """
-        from flgd.learning.learner import LearnerBusy
-        from flgd.learning.policy_file import PolicyFileError
-
-        lr = self.learner
-        step = self.runner.step if self.runner else 0
-        checkpoint_error = ""
-        with self._learning_lock:
-            try:
-                with lr.paused(LEARNER_QUIET_TIMEOUT):
-                    before = {k: v.detach().clone() for k, v in lr.online.state_dict().items()}
-                    try:
-                        lr.online.load_state_dict(loaded.network.state_dict())  # fits the running network?
-                    except (RuntimeError, ValueError) as exc:
-                        lr.online.load_state_dict(before)
-                        raise ProtocolError("failed", f"policy not loaded, the running policy stays: {path}: "
-                                                      f"weights do not fit the running network: {exc}") from None
-                    if self.gate is not None:
-                        try:
-                            self.gate.load_champion(loaded.network, loaded.metadata, f"policy {path}", step, who)
-                        except (StoreError, OSError, PolicyFileError) as exc:
-                            lr.online.load_state_dict(before)
-                            raise ProtocolError("failed", f"policy not loaded, the running policy stays: the "
-                                                          f"gate could not record it: {exc}") from None
-                    else:
-                        self.agent.network.load_state_dict(loaded.network.state_dict())
-                        lr.set_anchor(loaded.network)  # with a gate its champion change does this
-                    lr.load_weights(loaded.network, publish=False)
-                    lr.reset_trainer_state()
-                    owed = lr.drop_backlog()
-                    if owed:
-                        log.info("policy load: %d owed learner updates dropped", owed)
-                    offset = int(loaded.metadata.get("training_steps", 0)) - step  # ε goes on from its steps
-                    self.agent.exploration_offset = offset
-                    self.policy_source = f"policy {path} (loaded at step {step} by {who})"
-                    try:
-                        if self.store is not None:
-                            self.store.set_counter("exploration_offset", offset)
-                        self._write_checkpoint(lr.snapshot(), lr.updates)
-                    except (StoreError, OSError, PolicyFileError) as exc:  # storage errors also mean FAULT
-                        checkpoint_error = str(exc)
-            except LearnerBusy as exc:
-                raise ProtocolError("busy", f"policy not loaded, the running policy stays: {exc} (the learner "
-                                            f"keeps running; try again)") from None
-        self._event("policy", f"loaded {path} by {who}")
-        if checkpoint_error:
-            raise ProtocolError("failed", f"policy {path} is loaded and acting, but its checkpoint could not be "
-                                          f"written ({checkpoint_error}), so a restart would resume learning from "
-                                          f"the previous one; fix the state directory {self.state_dir}, flgctl "
-                                          f"reset, then load the policy again")
-        return {"loaded": path, "checkpoint": self.last_checkpoint, "dropped_updates": owed,
-                "champion": None if self.gate is None else self.gate.champion.id,
-                "metadata": {k: v for k, v in loaded.metadata.items()
-                             if isinstance(v, (str, int, float, bool, type(None)))}}
-
-    def _gate_command(self, cmd: str, who: str) -> dict:
-        """Run loop: a manual promote, reject or rollback, recorded with who asked."""
-        from flgd.gatekeeper import GateError
-        from flgd.learning.policy_file import PolicyFileError
-
-        if self.gate is None:
-            raise ProtocolError("failed", f"{cmd}: the gate is not available ({self.store_problem or 'no store'})")
-        step = self.runner.step if self.runner else 0
-        try:
-            if cmd == "policy_promote":
-                out = self.gate.promote(step, who, f"promoted by {who}")
-            elif cmd == "policy_reject":
-                out = self.gate.reject(step, who)
-            else:
-                out = self.gate.rollback(step, who, f"rolled back by {who}")
-        except GateError as exc:
-            raise ProtocolError("failed", f"{cmd.replace('_', ' ')}: {exc}") from None
-        except (StoreError, OSError, PolicyFileError) as exc:
-            raise ProtocolError("failed", f"{cmd.replace('_', ' ')}: the gate could not record it: {exc}") from None
-        self._event("policy", f"{cmd.replace('_', ' ')} by {who}: {out}")
-        return out
-
-    def _policy_save(self, path: str | None) -> dict:
-        from flgd.learning.policy_file import PolicyFileError, save_policy
-
-        # The daemon writes only inside its state directory: a client of another uid must not be able
-        # to make it overwrite arbitrary files.  flgctl copies a saved policy out with the user's rights.
-        if path is None:
-            stamp = _dt.datetime.now(_dt.timezone.utc).strftime("%Y%m%dT%H%M%S%fZ")
-            path = str(self.state_dir / "policies" / f"policy-{stamp}-u{self.learner.updates}.safetensors")
-        elif not os.path.isabs(path):
-            raise ProtocolError("bad_request", f"policy_save: path must be absolute, got {path!r}")
-        else:
-            real, root = os.path.realpath(path), os.path.realpath(self.state_dir)
-            if os.path.commonpath([real, root]) != root or real == root:
-                raise ProtocolError("bad_request", f"policy_save: {path} is outside the state directory {root}; "
-                                                   "omit the path (flgctl policy save FILE copies the file out)")
-        stats = self.summary()
-        # the acting policy (the champion), copied between decisions; the learner's own weights are in checkpoints
-        acting = self._in_loop(lambda: {"network": copy.deepcopy(self.agent.network)})["network"]
-        champion = self.gate.champion if self.gate is not None else None
-        meta = {"training_steps": max(0, int(self.runner.step if self.runner else 0) + self.agent.exploration_offset),
-                "cell": self.config.name or self.backend,
-                "rolling_success": stats.get("grasp_success_last_50"),
-                "learner_updates": int(self.learner.updates),
-                "source": champion.origin if champion is not None else self.policy_source,
-                "gate_policy": None if champion is None else champion.id}
-        try:
-            save_policy(path, acting, meta)
-        except (PolicyFileError, OSError) as exc:
-            raise ProtocolError("failed", f"policy not saved to {path}: {exc}") from None
-        self._event("policy", f"saved {path}")
-        return {"saved": path, "learner_updates": int(self.learner.updates),
-                "champion": None if champion is None else champion.id}
-
-    def _swap_backend(self, name: str) -> dict:
-        """Run loop: connect the new cell first; keep the old one if that fails."""
-        assert self.runner is not None
-        try:
-            new = make_cell(self._cell_config(self.runner.step), backend=name)
-        except Exception as exc:
-            raise ProtocolError("failed", f"backend {name!r} did not connect; still on {self.backend!r}: "
-                                          f"{type(exc).__name__}: {exc}") from None
-        old, old_name = self.cell, self.backend
-        self.cell, self.backend = new, name
-        self.runner.cell, self.runner.backend = new, name
-        self.runner.forget_state()
-        self.agent.reset_episode()
-        if old is not None:
-            try:
-                old.close()
-            except Exception as exc:
-                log.error("closing the %s cell failed: %s", old_name, exc)
-        self._event("backend", f"{old_name} -> {name}")
-        # A new cell never starts moving on its own: the operator looks at it, then starts it.
-        try:
-            self.state.transition(State.PAUSED, f"backend swapped {old_name} -> {name}: flgctl start to run on it",
-                                  allowed_from=frozenset({State.RUNNING}))
-        except IllegalTransition:
-            pass  # not running (idle, paused, in fault): the state stays as it was
-        return {"backend": name, "previous": old_name}
-
-    def _snapshot(self) -> dict:
-        from flgd.visualize import ActionGlyph, encode_png, qmap_picture
-
-        runner = self.runner
-        assert runner is not None
-        last = runner.last_decided
-        note = "last decision"
-        if last is None:
-            if self.state.state is State.FAULT:
-                raise ProtocolError("failed", "snapshot: no decision yet and the cell is in FAULT")
-            return self._in_loop(self._fresh_snapshot)
-        hm, decision, step = last
-        image = qmap_picture(hm.color, hm.height, decision.q_maps, decision.grasp_mask, decision.move_mask,
-                             decision.action, caption=f"{note}: step {step}, rule {decision.rule}, "
-                                                  f"Q {decision.q_value:.3f}",
-                             glyph=ActionGlyph.from_config(self.config), unknown=hm.unknown,
-                             suppressed=decision.suppressed)
-        return {"png_base64": base64.b64encode(encode_png(image)).decode("ascii"), "source": note, "step": step,
-                "action": dataclasses.asdict(decision.action), "q_value": decision.q_value}
-
-    def _fresh_snapshot(self) -> dict:
-        """Run loop: capture and evaluate the network without acting (no decision state changes)."""
-        from flgd.visualize import ActionGlyph, encode_png, greedy_action, qmap_picture
-
-        assert self.runner is not None
-        try:
-            hm = self.runner.perceive_now()
-        except CellFault as exc:
-            self._fault(f"cell fault during snapshot capture: {exc}")
-            raise ProtocolError("failed", f"snapshot: capture failed: {exc}") from None
-        self.agent.maybe_swap_weights()
-        q = self.agent.q_maps(hm)
-        gmask, mmask = self.agent.masks(hm.height)
-        action = None
-        if gmask.any():
-            action = greedy_action(q, gmask, mmask, hm.height, self.config.rewards.shift_height)
-        note = "fresh capture, greedy action (not executed)"
-        image = qmap_picture(hm.color, hm.height, q, gmask, mmask, action, caption=note,
-                             glyph=ActionGlyph.from_config(self.config), unknown=hm.unknown,
-                             suppressed=self.agent.memory.footprint() if self.agent.memory.enforced else None)
-        return {"png_base64": base64.b64encode(encode_png(image)).decode("ascii"), "source": note,
-                "action": None if action is None else dataclasses.asdict(action),
-                "q_value": None if action is None else float(q[action.rotation, action.channel, action.row,
-                                                               action.col])}
