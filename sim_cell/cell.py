@@ -76,7 +76,6 @@ clutter that alone aborted about half of all evaluation runs).
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -89,55 +88,26 @@ from flgd.geometry import ToolPose
 from flgd.plans import GripperCommand, MeasureWidth, MoveL
 from flgd.safety import CheckedPlan
 from sim_cell import camera as simcam
-from sim_cell import kinematics, motion, objects, packed, scenes, shapes
+from sim_cell import free_space, kinematics, motion, objects, scene_maker, scenes
+from sim_cell.gripper_contacts import GripperContacts
+from sim_cell.randomisation import Randomiser
 from sim_cell.robot import FINGER_SPEED, GRIPPER_TCP_OFFSET, READY_JOINTS, SimRobot
+from sim_cell.scene_maker import PRESET_DIR, preset_scenes
+from sim_cell.stability import FALLEN_DEPTH, SLEEP_MOTION, Stability
+from sim_cell.stability import Unstable as _Unstable
 
 __all__ = ["SimCell", "ObjectState", "PRESET_DIR", "preset_scenes"]
 
-PRESET_DIR = Path(__file__).resolve().parent / "scenes"
 CONTROL_SUBSTEPS = 8        # physics steps per IK tick (30 Hz line samples at 240 Hz physics)
 SOLVER_ITERATIONS = 20      # enough for resting piles, pushes and free fingers
 GRIP_SOLVER_ITERATIONS = 150  # while fingers squeeze an object; fewer let pads sink into it (module doc)
-FREE_MARGIN = 0.02          # m between the swept gripper box and any object for a free move
-GRIPPER_HALF_SIZE = 0.075   # m, gripper + open fingers around the TCP in x/y
 CARRY_TRIAL_TICKS = 10      # control ticks (0.33 s) a freshly gripped object is simulated before a jump
-SIDE_CONTACT_NZ = 0.5       # |vertical part| of a pad contact normal below which it is a side (gripping) contact
 GRIPPER_TIMEOUT = 0.8       # s for a finger motion to come to rest
-MAX_OBJECT_SPEED = 4.0      # m/s; faster = unstable
-MAX_PENETRATION = 0.015     # m of interpenetration that is unstable when it lasts PENETRATION_CHECKS deep checks
-PENETRATION_CHECKS = 3      # deep checks (0.2 s apart): a finger wedging a prism can dip it 15-30 mm for a moment
-GROSS_PENETRATION = 0.04    # m: unstable at once
 PRESS_DEPTH = 0.006           # m an object may be squeezed into the table/another object
 YIELD_DEPTH = 0.003           # m of squeeze at which an intended press starts to give way
 PROTECTIVE_STOP_FORCE = 100.0  # N of vertical push on the gripper that stops the arm (UR: 150 N at the TCP)
 TABLE_MARGIN = 0.15         # m of table beyond the workspace on each side
-# An object whose centre is this far below the table top has fallen off the table (there is no floor):
-# it is out of the cell at once.  Left falling, it passed MAX_OBJECT_SPEED after 0.8 m and the scene was
-# reset as "unstable" -- 1 run in 10 of the shipped policy on 20 blocks, a block that slipped out of the
-# fingers at the home pose and rolled off the table edge.
-FALLEN_DEPTH = 0.05         # m
-DROP_MARGIN = 0.05          # m inside the workspace edge where random objects are dropped
-# A dropped scene is stepped until every object is still (the camera and the first grasp must not
-# meet a block still rolling or rocking; one at the edge rolled out during the first action, counted
-# as "lost"), at most this long after the fixed 0.5 s settle.
-STILL_SPEED = 0.01          # m/s
-STILL_SPIN = 0.2            # rad/s
-MAX_EXTRA_SETTLE = 2.0      # s
 MAX_SETTLE_AFTER_PLAN = 1.0  # s the world runs on after a plan while something still moves
-# Sleeping: an object still for SLEEP_CHECKS stability checks in a row (0.2 s) and touching neither the
-# gripper nor anything awake-and-moving is put to sleep (the solver skips it: a resting 20-block pile
-# costs 0.08 ms per step asleep against 4.7 ms awake at 150 iterations).  Bullet wakes it when an
-# awake body touches it; the cell wakes everything near an object it removes or moves by hand.
-# Still enough to sleep: |v|^2 + |w|^2 (m/s, rad/s) below SLEEP_MOTION, i.e. slower than 5 mm/s and
-# 0.005 rad/s.  The same number is Bullet's own rule (sleep after 2 s below it, wake above it), so a
-# body put to sleep here is not woken again by Bullet at its next step.
-SLEEP_MOTION = 0.005 ** 2
-SLEEP_CHECKS = 6            # consecutive checks (8 physics steps apart)
-WAKE_MARGIN = 0.02          # m around a removed or moved object within which sleepers are woken
-
-# VPG-like block colours (tableau), jittered per object
-_PALETTE = np.array([[78, 121, 167], [89, 161, 79], [156, 117, 95], [242, 142, 43], [237, 201, 72],
-                     [186, 176, 172], [255, 87, 89], [176, 122, 161], [118, 183, 178], [255, 157, 167]]) / 255.0
 
 
 @dataclass(frozen=True)
@@ -150,11 +120,6 @@ class ObjectState:
     orientation: tuple[float, float, float, float]
     points: np.ndarray   # corner points in the base frame
     top: float           # highest point, m in the base frame
-
-
-def preset_scenes() -> list[Path]:
-    """The highly cluttered scenes shipped in sim_cell/scenes/."""
-    return sorted(PRESET_DIR.glob("*.yaml"))
 
 
 class SimCell(Cell):
@@ -174,14 +139,12 @@ class SimCell(Cell):
         if self._client < 0:
             raise CellFault("pybullet: cannot open a physics client")
         seeds = np.random.SeedSequence(config.sim.seed).spawn(2)
-        self._scene_rng = np.random.default_rng(seeds[0])
         self._noise_rng = np.random.default_rng(seeds[1])
         self._object_count = config.sim.objects
         # What the current objects came from, for logs ("random 20", "packed 9", "scene pile"):
         # a training log must tell a packed scene from a drop.
         self.scene_kind = "none"
-        self._object_groups = objects.resolve_object_groups(config.sim.object_set)
-        self._natural_extents: dict[str, tuple[float, float, float]] = {}
+        self._randomiser = Randomiser(config, np.random.default_rng(seeds[0]), self._client)
         self._objects: dict[int, objects.SpawnedObject] = {}
         self._held: set[int] = set()
         self._carry_tried: set[int] = set()   # gripped objects whose grip survived a simulated trial carry
@@ -191,9 +154,6 @@ class SimCell(Cell):
         self._sim_time = 0.0
         self._steps = 0
         self._iterations = SOLVER_ITERATIONS
-        self._deep_contacts: dict[tuple[int, int], int] = {}  # body pair -> consecutive deep checks
-        self._still_checks: dict[int, int] = {}  # body -> consecutive stability checks it was still
-        self._insomniac: set[int] = set()        # bodies woken by hand, may sleep again from the next check
         self._light = ((0.3, -0.2, 1.0), 0.6, 0.4)
         # Perception is told the configured camera; the picture is taken from where the camera truly is.
         self._camera = simcam.CameraModel.from_config(config.camera)
@@ -214,6 +174,8 @@ class SimCell(Cell):
             [centre[0], centre[1], ws.z[0] - half[2]], physicsClientId=c)
         p.changeDynamics(self._table, -1, lateralFriction=0.6, physicsClientId=c)
         self._robot = SimRobot(c)
+        self._stability = Stability(c, self._objects, self._robot.body, ws.z[0])
+        self._contacts = GripperContacts(c, self._robot, self._objects, self._table)
         home = config.robot.home
         self._home_pose = ToolPose.top_down(*home.position, home.yaw)
         q = kinematics.nearest_solution(
@@ -271,7 +233,7 @@ class SimCell(Cell):
             self._check_open()
             if body not in self._objects:
                 raise ValueError(f"remove_object: no object with body id {body} in the scene")
-            self._wake_near(body)
+            self._stability.wake_near(body)
             p.removeBody(body, physicsClientId=self._client)
             self._objects.pop(body)
             self._held.discard(body)
@@ -361,7 +323,7 @@ class SimCell(Cell):
             self._check_open()
             if self.config.sim.scene:
                 self.load_scene(self.config.sim.scene)
-            elif self.config.sim.packed_scenes > 0 and self._scene_rng.random() < self.config.sim.packed_scenes:
+            elif self.config.sim.packed_scenes > 0 and self._randomiser.rng.random() < self.config.sim.packed_scenes:
                 self.make_packed()
             else:
                 self.make_clutter(self._object_count)
@@ -400,25 +362,7 @@ class SimCell(Cell):
         returns the number of objects placed.  Relative names are looked up in sim_cell/scenes/ too."""
         with self._lock:
             self._check_open()
-            if not isinstance(scene, scenes.Scene):
-                path = Path(scene)
-                if not path.exists() and (PRESET_DIR / path).exists():
-                    path = PRESET_DIR / path
-                scene = scenes.load_scene(path, vpg_meshes)
-            self._clear_objects()
-            origin = scenes.workspace_origin(self._ws)
-            try:
-                for spec in scene.objects:
-                    placed = spec.moved(np.asarray(spec.position) + origin, spec.orientation)
-                    self._add(placed)
-                self._settle(0.25)
-            except (_Unstable, ValueError) as exc:
-                self._clear_objects()
-                self.scene_kind = "none"
-                raise scenes.SceneError(f"scene {scene.source or '<in memory>'}: {exc}") from None
-            self.stats["scenes"] += 1
-            self.scene_kind = f"scene {Path(scene.source).stem if scene.source else '<in memory>'} ({len(self._objects)})"
-            return len(self._objects)
+            return scene_maker.load_scene(self, scene, vpg_meshes)
 
     def save_scene(self, path: str | Path) -> None:
         """Write the current objects and poses as a scene file (workspace frame)."""
@@ -427,12 +371,8 @@ class SimCell(Cell):
             scenes.save_scene(self.current_scene(), path)
 
     def current_scene(self) -> scenes.Scene:
-        origin = scenes.workspace_origin(self._ws)
-        out = []
-        for obj in self._objects.values():
-            pos, orn = p.getBasePositionAndOrientation(obj.body, physicsClientId=self._client)
-            out.append(obj.spec.moved(np.asarray(pos) - origin, orn))
-        return scenes.Scene(objects=tuple(out))
+        """The current objects and poses as a scene (workspace frame)."""
+        return scene_maker.current_scene(self)
 
     def object_states(self) -> list[ObjectState]:
         """Ground truth of every object in the scene, in the base frame."""
@@ -512,77 +452,7 @@ class SimCell(Cell):
                 self._check_stable(deep=(self._steps % 48 == 0))
 
     def _check_stable(self, deep: bool) -> None:
-        c = self._client
-        for body in self._insomniac:
-            if body in self._objects:
-                p.changeDynamics(body, -1, activationState=p.ACTIVATION_STATE_ENABLE_SLEEPING, physicsClientId=c)
-        self._insomniac = set()
-        drowsy = []
-        for body in list(self._objects):
-            pos, _ = p.getBasePositionAndOrientation(body, physicsClientId=c)
-            lin, ang = p.getBaseVelocity(body, physicsClientId=c)
-            if not all(map(math.isfinite, (*pos, *lin))):
-                raise _Unstable(f"object {body} has a non-finite state")
-            if pos[2] < self._ws.z[0] - FALLEN_DEPTH:   # fell off the table: gone, as _remove_outside has it
-                self._remove(body, "grasped_out" if body in self._held else "left_workspace")
-                continue
-            speed = math.sqrt(sum(v * v for v in lin))
-            if speed > MAX_OBJECT_SPEED:
-                raise _Unstable(f"object {body} flies at {speed:.1f} m/s")
-            if pos[2] > self._ws.z[0] + 1.0:
-                raise _Unstable(f"object {body} thrown {pos[2]:.2f} m up")
-            if speed * speed + sum(v * v for v in ang) < SLEEP_MOTION:
-                n = self._still_checks.get(body, 0) + 1
-                self._still_checks[body] = n
-                if n % SLEEP_CHECKS == 0:
-                    drowsy.append(body)
-            else:
-                self._still_checks[body] = 0
-        if drowsy:
-            self._put_to_sleep(drowsy)
-        if deep:
-            # A deep contact the solver resolves within a few checks is a transient (a closing finger
-            # wedging a sloped block into the table); one that persists, or is gross, is not.
-            deep_now: dict[tuple[int, int], float] = {}
-            for cp in p.getContactPoints(physicsClientId=c):
-                if cp[8] < -MAX_PENETRATION and (cp[1] in self._objects or cp[2] in self._objects):
-                    pair = (min(cp[1], cp[2]), max(cp[1], cp[2]))
-                    deep_now[pair] = max(deep_now.get(pair, 0.0), -cp[8])
-            self._deep_contacts = {pair: self._deep_contacts.get(pair, 0) + 1 for pair in deep_now}
-            for pair, depth in deep_now.items():
-                if depth > GROSS_PENETRATION or self._deep_contacts[pair] >= PENETRATION_CHECKS:
-                    lasting = "" if depth > GROSS_PENETRATION else f" for {self._deep_contacts[pair]} checks"
-                    self._deep_contacts = {}
-                    raise _Unstable(f"bodies {pair[0]} and {pair[1]} interpenetrate by {depth * 1000:.0f} mm"
-                                    f"{lasting}")
-
-    def _put_to_sleep(self, bodies: list[int]) -> None:
-        """Let still objects sleep, except what the gripper touches or holds (it squeezes or carries them)."""
-        c = self._client
-        touched = {cp[2] for cp in p.getContactPoints(bodyA=self._robot.body, physicsClientId=c)}
-        for body in bodies:
-            if body not in touched and body not in self._held:
-                p.changeDynamics(body, -1, activationState=p.ACTIVATION_STATE_SLEEP, physicsClientId=c)
-
-    def _wake_near(self, body: int) -> None:
-        """Wake every object within WAKE_MARGIN of ``body``'s bounds (it is about to be removed or moved)."""
-        c = self._client
-        lo, hi = objects.body_aabb(body, c)
-        lo, hi = lo - WAKE_MARGIN, hi + WAKE_MARGIN
-        for other in self._objects:
-            if other == body:
-                continue
-            a, b = objects.body_aabb(other, c)
-            if np.all(a <= hi) and np.all(b >= lo):
-                self._wake(other)
-
-    def _wake(self, body: int) -> None:
-        """Wake ``body`` for sure: a plain wake-up request is undone by its still-sleeping island, so
-        sleeping is switched off until the next stability check (at least one step later)."""
-        p.changeDynamics(body, -1, activationState=p.ACTIVATION_STATE_WAKE_UP | p.ACTIVATION_STATE_DISABLE_SLEEPING,
-                         physicsClientId=self._client)
-        self._insomniac.add(body)
-        self._still_checks[body] = 0
+        self._stability.check(deep, self._held, self._remove_lost)
 
     def _settle(self, seconds: float) -> None:
         try:
@@ -592,69 +462,15 @@ class SimCell(Cell):
             raise
 
     # -- motions
-    def _between_pads(self) -> set[int]:
-        """Objects squeezed between the finger pads right now (gripped, whether or not measured yet):
-        touched by both pads through side contacts.  Closed fingers pressing on a top face (a shift)
-        touch it from above and do not count."""
-        c, rb = self._client, self._robot
-        sides = []
-        for link in rb.finger_links:
-            sides.append({cp[2] for cp in p.getContactPoints(bodyA=rb.body, linkIndexA=link, physicsClientId=c)
-                          if abs(cp[7][2]) < SIDE_CONTACT_NZ})
-            if not sides[-1]:
-                return set()
-        return {b for b in sides[0] & sides[1] if b in self._objects}
-
     def _in_gripper(self) -> set[int]:
         """What moves with the gripper: the measured held objects plus whatever is between the pads."""
-        return self._held | self._between_pads()
-
-    def _obstacles(self, carried: set[int]) -> list[tuple[np.ndarray, np.ndarray]]:
-        """Bounding boxes of every object not carried by the gripper."""
-        return [objects.body_aabb(b, self._client) for b in self._objects if b not in carried]
-
-    def _carry_extent(self, tcp: np.ndarray, carried: set[int]) -> tuple[float, float]:
-        """(xy half-size around the TCP, depth below the TCP) of the gripper with what it carries."""
-        half, below = GRIPPER_HALF_SIZE, 0.0
-        for body in carried:
-            lo, hi = objects.body_aabb(body, self._client)
-            half = max(half, float(np.max(np.abs(np.concatenate([lo[:2], hi[:2]]) - np.tile(tcp[:2], 2)))))
-            below = max(below, float(tcp[2] - lo[2]))
-        return half, below
-
-    def _clear(self, pts: np.ndarray, half: float, below: float, boxes) -> bool:
-        """Whether the box swept by the gripper (+ held objects) along ``pts`` keeps FREE_MARGIN to all ``boxes``."""
-        lo = pts.min(axis=0) - (half + FREE_MARGIN)
-        hi = pts.max(axis=0) + (half + FREE_MARGIN)
-        lowest = pts[:, 2].min() - below - FREE_MARGIN
-        for a, b in boxes:
-            if a[0] < hi[0] and b[0] > lo[0] and a[1] < hi[1] and b[1] > lo[1] and b[2] > lowest:
-                return False
-        return True
+        return self._held | self._contacts.between_pads()
 
     def _free_span(self, traj: motion.Trajectory, carried: set[int], from_end: bool) -> int:
         """Number of ticks at the start (or end) of a line that cannot touch anything."""
-        pts = traj.tcp[:, :3, 3]
-        half, below = self._carry_extent(self._tcp()[:3, 3], carried)
-        boxes = self._obstacles(carried)
-        n = len(pts)
-        order = range(n - 1, -1, -1) if from_end else range(n)
-        count = 0
-        lo = np.full(3, np.inf)
-        hi = np.full(3, -np.inf)
-        for i in order:
-            lo, hi = np.minimum(lo, pts[i]), np.maximum(hi, pts[i])
-            if not self._clear(np.stack([lo, hi]), half, below, boxes):
-                break
-            count += 1
-        return count
-
-    def _touching_gripper(self, carried: set[int]) -> bool:
-        """Whether the gripper touches any object it does not carry."""
-        for cp in p.getContactPoints(bodyA=self._robot.body, physicsClientId=self._client):
-            if cp[3] in self._robot.gripper_links and cp[2] in self._objects and cp[2] not in carried:
-                return True
-        return False
+        half, below = free_space.carry_extent(self._client, self._tcp()[:3, 3], carried)
+        boxes = free_space.obstacles(self._client, self._objects, carried)
+        return free_space.free_span(traj.tcp[:, :3, 3], half, below, boxes, from_end)
 
     def _jump(self, q: np.ndarray, seconds: float, carried: set[int]) -> None:
         """Put the arm at ``q`` without physics; carried objects move rigidly with the TCP."""
@@ -662,7 +478,7 @@ class SimCell(Cell):
         before = self._tcp()
         moving = []
         for body in carried & set(self._objects):   # (one may have fallen off the table meanwhile)
-            self._wake_near(body)   # whatever rested on or against it loses that support
+            self._stability.wake_near(body)   # whatever rested on or against it loses that support
             pos, orn = p.getBasePositionAndOrientation(body, physicsClientId=c)
             t = np.eye(4)
             t[:3, :3] = np.asarray(p.getMatrixFromQuaternion(orn)).reshape(3, 3)
@@ -675,7 +491,7 @@ class SimCell(Cell):
             p.resetBasePositionAndOrientation(body, t[:3, 3].tolist(), objects.quaternion_from_matrix(t[:3, :3]),
                                               physicsClientId=c)
             p.resetBaseVelocity(body, [0, 0, 0], [0, 0, 0], physicsClientId=c)
-            self._wake(body)
+            self._stability.wake(body)
         self._sim_time += seconds
 
     def _run_line(self, traj: motion.Trajectory, stop_force: float = 0.0) -> bool:
@@ -688,7 +504,7 @@ class SimCell(Cell):
         # gripped but not yet carried through a trial: its first ticks are simulated so a weak grip can slip
         on_trial = carried - self._held - self._carry_tried
         first = 0
-        if not on_trial and not self._touching_gripper(carried) and not self._moving(exclude=carried):
+        if not on_trial and not self._contacts.touching(carried) and not self._stability.moving(exclude=carried):
             free_head = self._free_span(traj, carried, from_end=False)
             if free_head >= len(joints):
                 self._jump(joints[-1], traj.duration, carried)
@@ -716,7 +532,7 @@ class SimCell(Cell):
                     self._hold_still()
                     return True
             target = nxt
-            force, depth = self._pressing()
+            force, depth = self._contacts.pressing()
             give = self._press_allowance - self._press_yield
             if force > PROTECTIVE_STOP_FORCE or depth > PRESS_DEPTH + give:
                 self._robot.command_arm(self._robot.joints())
@@ -738,7 +554,7 @@ class SimCell(Cell):
         """A guarded move's contact test: the gripper pushed up by ``stop_force`` N, or an object it
         touches squeezed ``YIELD_DEPTH`` into its support (pybullet's soft contacts give before the
         force builds up)."""
-        force, depth = self._pressing()
+        force, depth = self._contacts.pressing()
         return force > stop_force or depth > YIELD_DEPTH
 
     def _hold_still(self) -> None:
@@ -762,36 +578,19 @@ class SimCell(Cell):
         lift, has been carried for ``CARRY_TRIAL_TICKS`` and is still between both pads."""
         if on_trial:
             if (not straight_up or simulated_ticks < CARRY_TRIAL_TICKS
-                    or not on_trial <= self._between_pads()):
+                    or not on_trial <= self._contacts.between_pads()):
                 return False
             self._carry_tried |= on_trial
-        return not self._touching_gripper(carried) and not self._moving(exclude=carried)
-
-    def _pressing(self) -> tuple[float, float]:
-        """(vertical force on the gripper N, deepest object penetration m while the gripper
-        touches an object).  Rigid blocks squeezed between gripper and table would stop a
-        real arm at once; pybullet's soft contacts let them sink instead, so depth counts too."""
-        total = 0.0
-        touched: set[int] = set()
-        for cp in p.getContactPoints(bodyA=self._robot.body, physicsClientId=self._client):
-            if cp[3] in self._robot.gripper_links:
-                total += abs(cp[7][2]) * cp[9]
-                if cp[2] in self._objects:
-                    touched.add(cp[2])
-        depth = 0.0
-        for body in touched:  # only what the gripper presses on: a deep contact elsewhere is not its doing
-            for cp in p.getContactPoints(bodyA=body, physicsClientId=self._client):
-                if cp[2] != self._robot.body:
-                    depth = max(depth, -cp[8])
-        return total, depth
+        return not self._contacts.touching(carried) and not self._stability.moving(exclude=carried)
 
     def _run_gripper(self, width: float, force: float) -> None:
         opening = width > self._robot.finger_target_width() + 1e-4 or width > self._robot.width() + 1e-3
         if opening and self._held:
             self._release_held()
         self._carry_tried.clear()
-        if not self._in_gripper() and not self._touching_gripper(set()) and self._clear(
-                self._tcp()[None, :3, 3], GRIPPER_HALF_SIZE, 0.0, self._obstacles(set())):
+        if not self._in_gripper() and not self._contacts.touching(set()) and free_space.clear(
+                self._tcp()[None, :3, 3], free_space.GRIPPER_HALF_SIZE, 0.0,
+                free_space.obstacles(self._client, self._objects, set())):
             # nothing within reach of the fingers: set them without stepping the physics
             travel = abs(width - self._robot.width()) / 2.0
             self._robot.set_fingers(width, force)
@@ -802,7 +601,7 @@ class SimCell(Cell):
         steps = int(GRIPPER_TIMEOUT / self._dt)
         for k in range(0, steps, 4):
             # the costly solver only once a closing pad touches something (free travel needs none)
-            self._set_solver(squeeze=closing and self._pads_touch())
+            self._set_solver(squeeze=closing and self._contacts.pads_touch())
             self._step(4)
             if k >= 12 and self._robot.finger_speed() < 2e-3:
                 break
@@ -819,13 +618,6 @@ class SimCell(Cell):
             if still >= 2:
                 return
             self._step(4)
-
-    def _pads_touch(self) -> bool:
-        """Whether a finger pad touches any object."""
-        c, rb = self._client, self._robot
-        return any(cp[2] in self._objects
-                   for link in rb.finger_links
-                   for cp in p.getContactPoints(bodyA=rb.body, linkIndexA=link, physicsClientId=c))
 
     def _set_solver(self, squeeze: bool | None = None) -> None:
         """More solver iterations only while the fingers press on something (costly otherwise)."""
@@ -844,24 +636,8 @@ class SimCell(Cell):
         self._held.clear()
 
     def _note_held(self) -> None:
-        """What the width measurement found in the gripper: objects touching both pads, and also objects
-        pinched together between them (one per pad, pressed against each other) if none touches the table."""
-        c, rb = self._client, self._robot
-        pads = [{cp[2] for cp in p.getContactPoints(bodyA=rb.body, linkIndexA=link, physicsClientId=c)
-                 if cp[2] in self._objects} for link in rb.finger_links]
-        held = pads[0] & pads[1]
-        # grow groups of mutually touching objects from the left pad's; a group reaching the right pad is held
-        group, frontier = set(pads[0]), list(pads[0])
-        while frontier:
-            b = frontier.pop()
-            for cp in p.getContactPoints(bodyA=b, physicsClientId=c):
-                if cp[2] in self._objects and cp[2] not in group:
-                    group.add(cp[2])
-                    frontier.append(cp[2])
-        if group & pads[1] and not any(p.getContactPoints(bodyA=b, bodyB=self._table, physicsClientId=c)
-                                       for b in group):
-            held |= group
-        self._held = held
+        """What the width measurement found in the gripper is held (see ``GripperContacts.held``)."""
+        self._held = self._contacts.held()
 
     def _go_home(self) -> None:
         gr = self.config.gripper
@@ -896,10 +672,10 @@ class SimCell(Cell):
         return obj.body
 
     def _remove(self, body: int, reason: str) -> None:
-        self._wake_near(body)
+        self._stability.wake_near(body)
         p.removeBody(body, physicsClientId=self._client)
         self._objects.pop(body, None)
-        self._still_checks.pop(body, None)
+        self._stability.forget(body)
         self._held.discard(body)
         self.stats[reason] += 1
 
@@ -907,9 +683,7 @@ class SimCell(Cell):
         for body in list(self._objects):
             p.removeBody(body, physicsClientId=self._client)
         self._objects.clear()
-        self._deep_contacts = {}
-        self._still_checks = {}
-        self._insomniac = set()
+        self._stability.reset()
         self._held.clear()
         if self._client is not None:
             self._set_solver(squeeze=False)   # a scene reset mid-squeeze must not drop the next pile at 150
@@ -921,150 +695,34 @@ class SimCell(Cell):
             pos, _ = p.getBasePositionAndOrientation(body, physicsClientId=self._client)
             inside = ws.x[0] <= pos[0] <= ws.x[1] and ws.y[0] <= pos[1] <= ws.y[1] and pos[2] > ws.z[0] - FALLEN_DEPTH
             if not inside:
-                self._remove(body, "grasped_out" if body in self._held else "left_workspace")
+                self._remove_lost(body)
 
-    def _randomise_domain(self) -> None:
-        rng, sim = self._scene_rng, self.config.sim
-        if sim.domain_randomization:
-            shade = rng.uniform(*sim.table_shade)
-            tint = rng.uniform(-0.05, 0.05, 3)
-            p.changeVisualShape(self._table, -1, rgbaColor=[*np.clip(shade + tint, 0, 1), 1.0],
-                                physicsClientId=self._client)
-            p.changeDynamics(self._table, -1, lateralFriction=float(rng.uniform(0.4, 0.8)),
-                             physicsClientId=self._client)
-            direction = (float(rng.uniform(-0.5, 0.5)), float(rng.uniform(-0.5, 0.5)), 1.0)
-            self._light = (direction, float(rng.uniform(*sim.light_ambient)), float(rng.uniform(*sim.light_diffuse)))
-
-    def _random_spec(self) -> objects.ObjectSpec:
-        rng = self._scene_rng
-        kind = objects.draw_object_kind(self._object_groups, rng)
-        colour = self._object_colour(rng)
-        dr = self.config.sim.domain_randomization
-        friction = float(rng.uniform(*self.config.sim.object_friction)) if dr else 0.6
-        if kind.startswith("block:"):
-            shape = kind.split(":", 1)[1]
-            return self._block_spec(shape, shapes.random_block_dims(shape, rng), colour, friction)
-        if kind.startswith(objects.MESH_PREFIX):
-            path = kind[len(objects.MESH_PREFIX):]
-            density = float(rng.uniform(400, 900)) if dr else 600.0
-            mass = max(objects.mesh_volume(path) * density, 0.02)
-            return objects.ObjectSpec(mesh=path, color=colour, mass=mass, friction=friction)
-        if kind not in self._natural_extents:
-            self._natural_extents[kind] = objects.natural_extents(kind, self._client)
-        scale = objects.graspable_scale(self._natural_extents[kind], float(rng.uniform(0.05, 0.09)),
-                                        self.config.gripper.open_width, self.config.learning.rotations)
-        mass = float(rng.uniform(0.03, 0.15)) if dr else None
-        return objects.ObjectSpec(urdf=kind, scale=scale, color=colour, mass=mass, friction=friction)
-
-    def _object_colour(self, rng: np.random.Generator) -> tuple[float, float, float]:
-        """A palette colour, jittered, plus the cell's ``sim.object_color_shift``."""
-        base = _PALETTE[int(rng.integers(len(_PALETTE)))] + rng.uniform(-0.06, 0.06, 3)
-        return tuple(np.clip(base + np.asarray(self.config.sim.object_color_shift), 0, 1).tolist())
-
-    def _block_spec(self, shape: str, dims: tuple[float, ...], colour: tuple[float, float, float] | None = None,
-                    friction: float | None = None) -> objects.ObjectSpec:
-        """A procedural block with this cell's colours, densities and frictions (random where the
-        domain is randomised); ``colour``/``friction`` given when the caller drew them already."""
-        rng = self._scene_rng
-        dr = self.config.sim.domain_randomization
-        if colour is None:
-            colour = self._object_colour(rng)
-        if friction is None:
-            friction = float(rng.uniform(*self.config.sim.object_friction)) if dr else 0.6
-        density = float(rng.uniform(400, 900)) if dr else 600.0
-        volume = float(np.prod(shapes.make_block(shape, dims).extents)) * 0.7
-        return objects.ObjectSpec(shape=shape, size=dims, color=colour, mass=max(volume * density, 0.02),
-                                  friction=friction)
+    def _remove_lost(self, body: int) -> None:
+        """An object out of the cell: carried out when held, else it left the workspace."""
+        self._remove(body, "grasped_out" if body in self._held else "left_workspace")
 
     def make_packed(self, groups: int | None = None) -> int:
         """Replace the objects by a packed arrangement (sim_cell.packed): rows of blocks laid flush.
         Returns the count."""
         with self._lock:
             self._check_open()
-            self._clear_objects()
-            self._randomise_domain()
-            ws = self._ws
-            scene = packed.packed_scene(self._scene_rng, (ws.x[1] - ws.x[0]) / 2, (ws.y[1] - ws.y[0]) / 2,
-                                        DROP_MARGIN - 0.02, self._block_spec, groups)
-            origin = scenes.workspace_origin(ws)
-            packed_ok = True
-            try:
-                for spec in scene.objects:
-                    self._add(spec.moved(np.asarray(spec.position) + origin, spec.orientation))
-                self._settle(0.25)
-            except _Unstable:   # counted by _settle; a dropped scene instead, as reset_scene would
-                self._clear_objects()
-                self._drop_random_objects(self._object_count)
-                packed_ok = False
-            self._remove_outside()
-            self.stats["scenes"] += 1
-            self.scene_kind = f"packed {len(self._objects)}" if packed_ok else f"random {self._object_count}"
-            return len(self._objects)
+            return scene_maker.make_packed(self, groups)
 
     def make_clutter(self, n: int, spread: float | None = None) -> int:
         """Replace the objects by ``n`` random ones dropped within +-``spread`` m of the workspace
         centre (None = the whole workspace); a small spread piles them up.  Returns the count."""
         with self._lock:
             self._check_open()
-            self._clear_objects()
-            self._randomise_domain()
-            self._drop_random_objects(n, spread)
-            self.stats["scenes"] += 1
-            self.scene_kind = f"random {n}"
-            return len(self._objects)
-
-    def _drop_random_objects(self, n: int, spread: float | None = None) -> None:
-        """Drop ``n`` objects one after another at random places, VPG-style, and let them settle."""
-        rng, ws = self._scene_rng, self._ws
-        centre = scenes.workspace_origin(ws)
-        attempts = 0
-        while len(self._objects) < n and attempts < 3:
-            attempts += 1
-            for _ in range(n - len(self._objects)):
-                spec = self._random_spec()
-                if spread is None:
-                    x = rng.uniform(ws.x[0] + DROP_MARGIN, ws.x[1] - DROP_MARGIN)
-                    y = rng.uniform(ws.y[0] + DROP_MARGIN, ws.y[1] - DROP_MARGIN)
-                else:
-                    x = centre[0] + rng.uniform(-spread, spread)
-                    y = centre[1] + rng.uniform(-spread, spread)
-                top = max([self._ws.z[0]] + [objects.body_aabb(b, self._client)[1][2] for b in self._objects])
-                z = top + 0.06
-                q = p.getQuaternionFromEuler([float(v) for v in rng.uniform(-math.pi, math.pi, 3)])
-                self._add(spec.moved((x, y, z), q))
-                self._step(int(0.12 / self._dt))
-            try:
-                self._step(int(0.5 / self._dt))
-                self._settle_until_still(MAX_EXTRA_SETTLE)
-            except _Unstable:
-                self.stats["unstable_resets"] += 1
-                self._clear_objects()
-                continue
-            self._remove_outside()
-
-    def _moving(self, exclude: set[int] | frozenset[int] = frozenset()) -> list[int]:
-        """Objects (other than ``exclude``) moving faster than STILL_SPEED or turning faster than STILL_SPIN."""
-        out = []
-        for body in self._objects:
-            if body in exclude:
-                continue
-            lin, ang = p.getBaseVelocity(body, physicsClientId=self._client)
-            if np.linalg.norm(lin) > STILL_SPEED or np.linalg.norm(ang) > STILL_SPIN:
-                out.append(body)
-        return out
+            return scene_maker.make_clutter(self, n, spread)
 
     def _settle_until_still(self, limit: float) -> None:
         """Step in 0.1 s chunks until no object moves, for at most ``limit`` s."""
         chunk = int(round(0.1 / self._dt))
         waited = 0.0
-        while waited < limit and self._moving():
+        while waited < limit and self._stability.moving():
             self._step(chunk)
             waited += 0.1
 
 
 class _CollisionStop(Exception):
     """The arm stopped on contact, like the UR's protective stop."""
-
-
-class _Unstable(Exception):
-    """The physics went wrong; the scene must not be learned from."""

@@ -43,7 +43,7 @@ def cube_at(cell: SimCell, x: float, y: float, size=(0.06, 0.03, 0.03), yaw: flo
 def wake(cell: SimCell, body: int) -> None:
     """Wake a body before poking its state with raw pybullet calls: a sleeping body ignores them
     (its island zeroes a velocity set by hand); the wake takes effect after one physics step."""
-    cell._wake(body)
+    cell._stability.wake(body)
     cell._step(1)
 
 
