@@ -17,6 +17,7 @@ from typing import Callable
 
 import numpy as np
 
+from flgd.backends import backend_factory, backend_names, register_backend
 from flgd.config import CellConfig
 from flgd.geometry import ToolPose
 from flgd.safety import CheckedPlan
@@ -192,29 +193,24 @@ class Cell(abc.ABC):
 
 
 CellFactory = Callable[[CellConfig], Cell]
-_REGISTRY: dict[str, str | CellFactory] = {
-    # name -> "module:attribute", imported on first use so that a machine
-    # without a cell's libraries can still run the others.
-    "sim": "sim_cell.cell:SimCell",
-    "ur5e": "flgd.hardware.ur5e_cell:UR5eCell",
-}
 
 
 def register_cell(name: str, factory: str | CellFactory) -> None:
-    """Register a cell factory (a callable, or "module:attribute" imported lazily)."""
-    _REGISTRY[name] = factory
+    """Register a cell factory (a callable, or "module:attribute" imported lazily) in ``flgd.backends``."""
+    register_backend(name, factory)
 
 
 def available_cells() -> list[str]:
-    return sorted(_REGISTRY)
+    """The registered backend names (``flgd.backends``); whether one loads here is found by ``make_cell``."""
+    return backend_names()
 
 
 def make_cell(config: CellConfig, backend: str | None = None) -> Cell:
     """Create the cell named by ``backend`` (default: the config's backend)."""
     name = backend or config.backend
-    if name not in _REGISTRY:
+    factory = backend_factory(name)
+    if factory is None:
         raise ValueError(f"unknown cell backend {name!r}; available: {', '.join(available_cells())}")
-    factory = _REGISTRY[name]
     if isinstance(factory, str):
         module_name, _, attr = factory.partition(":")
         try:

@@ -189,3 +189,19 @@ def test_a_config_without_a_gate_section_gets_the_shipped_gate(tmp_path):
     bare = tmp_path / "bare.yaml"
     bare.write_text("backend: sim\n")
     assert load_config(bare).gate == shipped
+
+
+def test_validating_a_backend_imports_no_cell_safety_or_plans_module() -> None:
+    """The config is the bottom layer: checking ``backend:`` and ``gripper.driver`` reads the backend names from
+    the leaf ``flgd.backends``, never from the cell registry (which imports safety, plans and the config)."""
+    script = ("import sys, flgd.config as c\n"
+              "c.config_from_dict({'backend': 'ur5e', 'gripper': {'driver': 'rg2_xmlrpc'}})\n"
+              "try:\n"
+              "    c.config_from_dict({'backend': 'ur5', 'gripper': {'driver': 'sim'}})\n"
+              "except c.ConfigError as exc:\n"
+              "    print(exc.problems[0])\n"
+              "print(sorted(m for m in ('flgd.cell', 'flgd.safety', 'flgd.plans') if m in sys.modules))\n")
+    result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=60, cwd=ROOT)
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.splitlines() == [
+        "backend: got 'ur5', expected one of 'sim', 'ur5e'; did you mean 'ur5e'?", "[]"]

@@ -647,11 +647,11 @@ def test_a_device_error_found_only_at_learner_construction_is_still_a_clear_exit
                                                                                   capsys, keep_logging):
     """Defence in depth: should the config check be bypassed, the learner's error is a ConfigError that
     ``flgd run`` reports (not a traceback) before anything moves."""
-    import flgd.config as config_module
+    import flgd.config.rules as config_rules
     from flgd.daemon import run
 
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
-    monkeypatch.setattr(config_module, "_check_device", lambda cfg, problems: None)
+    monkeypatch.setattr(config_rules, "_check_device", lambda cfg, problems: None)
     path = _cuda_config(tmp_path)
     before = {sig: signal.getsignal(sig) for sig in (signal.SIGTERM, signal.SIGINT)}
     assert run.main(["--config", str(path), "--socket", str(tmp_path / "s.sock"), "--no-status-line"]) == 1
