@@ -75,20 +75,10 @@ def status_text(ctl: Controller) -> str:
     return text
 
 
-def _learner_status(lr: Any) -> dict[str, Any]:
-    """The learner's part of the status (a daemon whose setup has not built one reports an idle learner)."""
-    if lr is None:
-        return {"updates": 0, "running": False, "stopped_why": "", "handovers": 0, "prior": None, "backlog": 0,
-                "dropped": 0, "error": None}
-    return {"updates": lr.updates, "running": bool(lr.running), "stopped_why": "" if lr.running else lr.stopped_why,
-            "handovers": lr.handovers, "prior": None if lr.prior is None else {
-                "path": lr.prior.path, "transitions": len(lr.prior), "share": lr.prior_share,
-                "drawn": lr.prior_drawn},
-            "backlog": lr.pending, "dropped": lr.dropped_updates, "error": lr.last_error}
-
-
 def status(ctl: Controller) -> dict[str, Any]:
     """``flgctl status``: state, policy, learner, gate, store, last cycle, calibration and failure memory."""
+    from flgd.learning.learner import no_learner_status
+
     rec = ctl.last_record
     last = None
     if rec is not None:
@@ -101,7 +91,6 @@ def status(ctl: Controller) -> dict[str, Any]:
             stored = ctl.store.transition_count()
         except StoreError:
             stored = None
-    learner = _learner_status(ctl.learner)
     return {
         "state": ctl.state.state.value,
         "cause": ctl.state.cause,
@@ -118,17 +107,10 @@ def status(ctl: Controller) -> dict[str, Any]:
         "cycle_in_flight": ctl.cycle_in_flight,
         "replay_size": len(ctl.replay) if ctl.replay is not None else 0,
         "stored_transitions": stored,
-        "learner_updates": learner["updates"],
-        "learner_running": learner["running"],
-        "learner_stopped_why": learner["stopped_why"],
-        "learner_handovers": learner["handovers"],
-        "learner_prior": learner["prior"],
+        **(ctl.learner.status() if ctl.learner is not None else no_learner_status()),
         "learning": "finetune" if ctl.fine_tune else "learning",
         "learning_why": ctl.learning_why,
         "gate": None if ctl.gate is None else ctl.gate.status(),
-        "learner_backlog": learner["backlog"],  # scheduled updates not run yet
-        "learner_dropped": learner["dropped"],  # backlog was full
-        "learner_error": learner["error"],
         "resumed_from_updates": ctl.resumed_from_updates,
         "trainer_state": ctl.trainer_state,
         "last_checkpoint": ctl.last_checkpoint,
