@@ -50,8 +50,6 @@ import time
 from pathlib import Path
 from typing import Any
 
-import yaml
-
 from benchmarks._daemon_runs import (REPO, action_rows, gate_counts, grasp_outcomes, grasp_steps, loop_counts,
                                      run_controller, run_workers, steps_done)
 
@@ -65,29 +63,27 @@ SETTABLE = ("finetune.", "learning.", "gate.", "exploration.")
 
 
 def parse_settings(items: list[str]) -> dict[str, Any]:
-    """``KEY=VALUE`` strings (VALUE read as YAML) as a dict; ValueError naming the item that is not one."""
+    """``KEY=VALUE`` strings (``flgd.overrides``: VALUE read as YAML) as a dict; ValueError naming the item that is
+    not one."""
+    from flgd.overrides import parse_override
+
     out: dict[str, Any] = {}
     for item in items:
-        key, sep, text = item.partition("=")
-        key = key.strip()
-        if not sep or not key:
-            raise ValueError(f"--set {item!r}: expected KEY=VALUE, e.g. finetune.learning_rate=3e-5")
+        try:
+            key, value = parse_override(item)
+        except ValueError:
+            raise ValueError(f"--set {item!r}: expected KEY=VALUE, e.g. finetune.learning_rate=3e-5") from None
         if not key.startswith(SETTABLE):
             raise ValueError(f"--set {item!r}: only learner settings ({', '.join(k + '*' for k in SETTABLE)}) may "
                              "be set; the cell itself is chosen with --shifted")
-        value = yaml.safe_load(text)
-        if isinstance(value, str):   # YAML 1.1 reads 3e-5 (no dot) as a string
-            try:
-                value = float(value)
-            except ValueError:
-                pass
         out[key] = value
     return out
 
 
 def row_config(row: str, seed: int, state_dir: Path, shifted: Path, settings: dict[str, Any]):
     """The config a row's run uses: its cell's config, the seed, pacing, the row's one change and ``settings``."""
-    from flgd.config import config_from_dict, config_to_dict, load_config
+    from flgd.config import load_config
+    from flgd.overrides import apply_overrides
 
     if row not in ROWS:
         raise ValueError(f"row: got {row!r}, expected one of {', '.join(ROWS)}")
@@ -95,16 +91,7 @@ def row_config(row: str, seed: int, state_dir: Path, shifted: Path, settings: di
     path = shifted if cell == "shifted" else TRAIN_CONFIG
     cfg = load_config(path)
     if settings and variant != "frozen":
-        data = config_to_dict(cfg)
-        for key, value in settings.items():
-            *parents, leaf = key.split(".")
-            node = data
-            for name in parents:
-                node = node.setdefault(name, {})
-                if not isinstance(node, dict):
-                    raise ValueError(f"--set {key}: {name} is not a section")
-            node[leaf] = value
-        cfg = config_from_dict(data, source=f"{path} with --set {', '.join(settings)}")
+        cfg = apply_overrides(cfg, settings, source=f"{path} with --set {', '.join(settings)}", label="--set ")
     cfg = dataclasses.replace(
         cfg, state_dir=str(state_dir), sim=dataclasses.replace(cfg.sim, seed=seed),
         learning=dataclasses.replace(cfg.learning, seed=seed, threads=1, wait_for_updates=True))

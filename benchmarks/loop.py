@@ -29,7 +29,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-import yaml
+from flgd.overrides import apply_overrides, parse_override
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_CELLS = (REPO / "cell_config" / "sim.yaml", REPO / "benchmarks" / "cells" / "noisy-depth.yaml",
@@ -40,35 +40,27 @@ METRICS = ("grasp_success", "picks_per_action", "completion", "longest_failure_s
 
 
 def parse_variant(text: str) -> tuple[str, dict[str, Any]]:
-    """``NAME:KEY=VALUE,...`` -> (NAME, {KEY: value}); values are read as YAML (numbers, true/false, text)."""
+    """``NAME:KEY=VALUE,...`` -> (NAME, {KEY: value}); values are read as YAML (numbers, true/false, text;
+    ``flgd.overrides``)."""
     name, _, rest = text.partition(":")
     if not name or not name.replace("-", "").replace("_", "").isalnum():
         raise ValueError(f"--variants {text!r}: expected NAME:KEY=VALUE,... with a plain NAME")
     settings: dict[str, Any] = {}
     for item in filter(None, rest.split(",")):
-        key, eq, value = item.partition("=")
-        if not eq or "." not in key:
-            raise ValueError(f"--variants {text!r}: {item!r} is not KEY=VALUE with a dotted KEY")
-        settings[key] = yaml.safe_load(value)
+        try:
+            key, value = parse_override(item)
+        except ValueError:
+            raise ValueError(f"--variants {text!r}: {item!r} is not KEY=VALUE with a dotted KEY") from None
+        settings[key] = value
     return name, settings
 
 
 def variant_config(cell: Path, settings: dict[str, Any]):
     """The cell's config with the variant's settings (checked as any config is)."""
-    from flgd.config import config_from_dict, config_to_dict, load_config
+    from flgd.config import load_config
 
-    data = config_to_dict(load_config(cell))
-    for key, value in settings.items():
-        *parents, leaf = key.split(".")
-        node = data
-        for part in parents:
-            node = node.get(part)
-            if not isinstance(node, dict):
-                raise ValueError(f"{key}: {part} is not a config section")
-        if leaf not in node:
-            raise ValueError(f"{key}: no such config key")
-        node[leaf] = value
-    return config_from_dict(data, source=f"{cell} with {', '.join(f'{k}={v}' for k, v in settings.items())}")
+    return apply_overrides(load_config(cell), settings,
+                           source=f"{cell} with {', '.join(f'{k}={v}' for k, v in settings.items())}")
 
 
 def run_one(config: Any, policy: Path, scenes: list, runs: int, seed: int) -> list[dict]:
