@@ -12,7 +12,7 @@ before any motion when it cannot; and a decided action is written to the
 action log as an intent (outcome ``pending``) before the cell is told to move,
 then completed with its outcome.  An intent that cannot be written stops the
 cycle before the motion; a completion that cannot be written leaves the intent,
-which the store marks ``interrupted`` (flgd/store.py).
+which the store marks ``interrupted`` (flgd/store/).
 
 One capture per cycle: the frame taken after an action is both the "after" of
 its move judgement and the state the next decision is made on (the next state

@@ -36,7 +36,7 @@ def _rate(rows: list[tuple]) -> float | None:
 
 
 def _deleted(store: Store) -> dict[str, int]:
-    """What the action-log retention deleted (flgd/store.py), so that totals never go down."""
+    """What the action-log retention deleted (flgd/store/retention.py), so that totals never go down."""
     names = ("actions_deleted", *DELETED_TOTALS)
     marks = ", ".join("?" * len(names))
     found = dict(store.query(f"SELECT name, value FROM counters WHERE name IN ({marks})", names))
