@@ -1,7 +1,8 @@
-"""How a cell's learning parts are put together: network, replay, agent and learner.
+"""How a cell's learning parts are made: network, replay, agent, learner, gate, and a continued run's seeds.
 
-The daemon (``flgd run``) and ``flgd train`` both build their learning state
-here, so that resuming from a state directory means the same thing for both:
+``flgd.learning_stack.LearningStack`` puts them together, the one way for the
+daemon (``flgd run``), ``flgd eval --learn``, ``flgd train`` and the benches, so
+that resuming from a state directory means the same thing for all of them:
 the newest readable checkpoint wins over a given policy, which wins over a
 fresh network; the replay is rebuilt from the store's newest transitions with
 their stored priorities, and the priorities the learner sets are written back.
@@ -19,33 +20,39 @@ from flgd.store import CheckpointDir, Store, StoreError
 
 __all__ = ["StartingNetwork", "starting_network", "fresh_network", "rebuild_replay", "configured_prior",
            "build_agent_and_learner",
-           "attach_gate", "continuation_seed", "continuing_config"]
+           "attach_gate", "resume_seed", "continuing_config"]
 
 log = logging.getLogger("flgd")
 
 
-def continuation_seed(seed: int, step: int) -> int:
-    """The seed of a run that continues at action ``step``: drawn from (seed, step), so that a restarted daemon
-    meets new simulated scenes and makes new exploration draws instead of replaying those it began with (a cell
-    and an agent rebuilt from the configured seed deal the run's first scenes and draws again).  Step 0 keeps
-    ``seed``: a first start is reproducible from its config alone."""
+def resume_seed(seed: int, at: int, stream: int | None = None) -> int:
+    """The seed of a random stream in a run that continues at ``at``: the one resume-seed rule.
+
+    ``at`` is where the run continues: a restarted daemon's next action (one draw per configured seed), a
+    resumed ``flgd train``'s segment (one draw per ``stream``: learning, sim, replay, agent, curriculum).  At
+    the start (``at`` 0) the configured seed itself, so a first start is reproducible from its config alone;
+    after it a draw from (seed, at[, stream]), so that a continued run meets new simulated scenes and makes
+    new exploration draws instead of replaying those it began with.  (The daemon's draws are 31-bit and the
+    segments' 32-bit, each as it was before both used this rule: a resumed run draws what it drew.)"""
     import numpy as np
 
-    if step <= 0:
+    if at <= 0:
         return int(seed)
-    return int(np.random.SeedSequence([int(seed), int(step)]).generate_state(1)[0] >> 1)
+    if stream is None:
+        return int(np.random.SeedSequence([int(seed), int(at)]).generate_state(1)[0] >> 1)
+    return int(np.random.SeedSequence([int(seed), int(at), int(stream)]).generate_state(1)[0])
 
 
 def continuing_config(config: CellConfig, step: int) -> CellConfig:
     """``config`` with the simulator's and the learning's (agent, replay, learner) seeds of a run continuing at
-    ``step`` (``continuation_seed``); the same config at step 0."""
+    ``step`` (``resume_seed``); the same config at step 0."""
     import dataclasses
 
     if step <= 0:
         return config
     return dataclasses.replace(
-        config, sim=dataclasses.replace(config.sim, seed=continuation_seed(config.sim.seed, step)),
-        learning=dataclasses.replace(config.learning, seed=continuation_seed(config.learning.seed, step)))
+        config, sim=dataclasses.replace(config.sim, seed=resume_seed(config.sim.seed, step)),
+        learning=dataclasses.replace(config.learning, seed=resume_seed(config.learning.seed, step)))
 
 
 @dataclass(frozen=True)

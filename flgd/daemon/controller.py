@@ -32,12 +32,13 @@ from typing import Any, Callable
 from flgd.memory import trim_heap
 from flgd.calibration_watch import CalibrationWatch
 from flgd.cell import Cell, CellFault, StopPending, make_cell
-from flgd.config import CellConfig, fine_tunes, learner_settings
+from flgd.config import CellConfig, fine_tunes
 from flgd.cycle import CycleRecord, CycleRunner
 from flgd.daemon import commands
 from flgd.daemon.notify import Notifier
 from flgd.daemon.protocol import ProtocolError, Request
 from flgd.daemon.state import IllegalTransition, State, StateChange, StateMachine
+from flgd.learning_stack import CheckpointMeta, LearningStack
 from flgd.safety import PlanRefused
 from flgd.store import CheckpointDir, Store, StoreError
 
@@ -55,40 +56,46 @@ class StartupError(RuntimeError):
     """The daemon cannot start (bad policy, cell does not connect, state dir locked ...)."""
 
 
+def _learning_part(name: str, doc: str) -> property:
+    """A part of the controller's learning stack (``Controller.learning``), read and set under its old name."""
+    return property(lambda self: getattr(self.learning, name), lambda self, value: setattr(self.learning, name, value),
+                    doc=doc)
+
+
 class Controller:
     """Owns everything the daemon runs; ``setup`` then ``run_loop``; ``handle`` serves requests."""
+
+    agent = _learning_part("agent", "the acting agent")
+    learner = _learning_part("learner", "the background learner")
+    replay = _learning_part("replay", "the learner's replay")
+    prior = _learning_part("prior", "the fine-tune's prior sample (finetune.prior_sample), loaded in setup")
+    gate = _learning_part("gate", "the Gatekeeper (None while the store is unusable)")
+    gate_note = _learning_part("gate_note", "what the acting policy is, as the gate restored it")
+    policy_source = _learning_part("source", "what the learner started from")
+    resumed_from_updates = _learning_part("resumed_from_updates", "the update count the learner continued from")
+    trainer_state = _learning_part("trainer_state", "what the learner's target network and Adam moments started from")
+    last_checkpoint = _learning_part("last_checkpoint", "the newest checkpoint resumed from or written")
 
     def __init__(self, config: CellConfig, *, policy_path: str | None = None, autostart: bool = False,
                  notifier: Notifier | None = None, checkpoint_keep: int = 3):
         self.config = config
         self.policy_arg = policy_path if policy_path is not None else (config.policy or None)
         self.fine_tune, self.learning_why = fine_tunes(dataclasses.replace(config, policy=self.policy_arg or ""))
-        # what the agent and learner run with; the few-moves phase is `flgd train --curriculum`'s alone
-        tuned = learner_settings(config, self.fine_tune)
-        self.learn_config = dataclasses.replace(tuned, exploration=dataclasses.replace(tuned.exploration,
-                                                                                       curriculum_steps=0))
         self.autostart = autostart
         self.notifier = notifier or Notifier({})
         self.state = StateMachine(State.IDLE)
         self.state.add_listener(self._on_state_change)
         self.state_dir = Path(config.state_dir)
         self.checkpoints = CheckpointDir(self.state_dir / "checkpoints", keep=checkpoint_keep)
+        # replay, agent, learner, gate and prior sample (flgd/learning_stack.py), on the store once it is open
+        self.learning = LearningStack(config, fine_tune=self.fine_tune, state_dir=self.state_dir,
+                                      checkpoints=self.checkpoints, checkpoint_callback=self._write_checkpoint)
         self.store: Store | None = None
         self.store_problem = ""
         self.cell: Cell | None = None
         self.backend = config.backend
-        self.agent: Any = None
-        self.learner: Any = None
-        self.prior: Any = None  # the fine-tune's prior sample (finetune.prior_sample), loaded in setup
-        self.gate: Any = None  # the Gatekeeper (None while the store is unusable)
-        self.gate_note = ""
         self._start_network: Any = None
-        self.replay: Any = None
         self.runner: CycleRunner | None = None
-        self.policy_source = ""
-        self.resumed_from_updates = 0
-        self.trainer_state = "fresh"  # what the learner's target network and Adam moments started from
-        self.last_checkpoint: str = ""
         self.last_record: CycleRecord | None = None
         self.last_stuck: dict[str, Any] | None = None  # the newest time the cell declared itself stuck
         cw = config.calibration_watch
@@ -181,12 +188,12 @@ class Controller:
                                max_bytes=sc.max_bytes or None, action_log_days=sc.action_log_days,
                                min_free_bytes=sc.min_free_bytes)
             self.store_problem = ""
-            return True
         except StoreError as exc:
             self.store = None
             self.store_problem = str(exc)
             log.error("%s", exc)
-            return False
+        self.learning.store = self.store
+        return self.store is not None
 
     def _next_step(self) -> int:
         return self.store.next_step() if self.store is not None else 0
@@ -195,56 +202,39 @@ class Controller:
         """Resume from the newest readable checkpoint; else the given policy; else a fresh network."""
         from flgd.learning.policy_file import PolicyFileError
         from flgd.learning.trunk import TrunkFileError
-        from flgd.wiring import starting_network
 
         try:
-            start = starting_network(self.config, self.checkpoints, self.policy_arg)
+            return self.learning.start_from(self.policy_arg)
         except (PolicyFileError, TrunkFileError) as exc:
             raise StartupError(str(exc)) from exc
-        self.resumed_from_updates = start.resumed_from_updates
-        self.policy_source = start.source
-        if start.checkpoint is not None:
-            self.last_checkpoint = str(start.checkpoint)
-        return start.network
 
     def _load_prior(self, network: Any) -> None:
         """The fine-tune's prior sample (``finetune.prior_sample``), loaded once for every learner built."""
         from flgd.learning.prior_sample import PriorSampleError
-        from flgd.wiring import configured_prior
 
         try:
-            self.prior = configured_prior(self.learn_config, network.rotations, self.fine_tune)
+            self.learning.load_prior(network.rotations)
         except PriorSampleError as exc:
             raise StartupError(f"finetune.prior_sample: {exc}") from exc
 
     def _build_learning(self, network: Any, step: int) -> None:
         """Replay, agent and learner for a run at action ``step``: their random draws (exploration, replay
         sampling, mirroring) continue from seeds drawn for that action, not from the run's first ones."""
-        from flgd.wiring import build_agent_and_learner, continuing_config, rebuild_replay
-
-        config = continuing_config(self.learn_config, step)
-        self.replay, problem = rebuild_replay(config, self.store)
+        problem = self.learning.build(network, step)
         if problem:
             self.store_problem = problem
-        self.agent, self.learner = build_agent_and_learner(
-            config, network, self.replay, checkpoint_callback=self._write_checkpoint,
-            updates=self.resumed_from_updates, store=self.store, fine_tune=self.fine_tune, prior=self.prior)
-        self.learner.mailbox = None  # nothing is handed over before the gate is attached (``_build_gate``)
 
     def _build_gate(self) -> None:
         """The gatekeeper on the store: the agent acts with the stored champion (or the configured policy on a
         first start), and the learner hands its weights to the gate -- or, with the gate off, to the agent."""
         from flgd.gatekeeper import GateError
         from flgd.learning.policy_file import PolicyFileError
-        from flgd.wiring import attach_gate
 
         if self.store is None:
             self.gate = None
             return
         try:
-            self.gate, self.gate_note = attach_gate(
-                self.learn_config, self.store, self.agent, self.learner, self.state_dir, self._next_step(),
-                fine_tune=self.fine_tune, configured=self._configured_policy, fresh=self._fresh_policy)
+            self.learning.attach_gate(self._next_step(), configured=self._configured_policy, fresh=self._fresh_policy)
         except (GateError, PolicyFileError) as exc:
             raise StartupError(f"no policy to act with: {exc}") from exc
         except (StoreError, OSError) as exc:
@@ -279,56 +269,32 @@ class Controller:
         return self._start_network, {"training_steps": 0}, self.policy_source
 
     def _restore_trainer_state(self) -> None:
-        """Give a resumed learner back its target network and Adam moments, saved with its checkpoint.
+        """Give a resumed learner back its target network and Adam moments, saved with its checkpoint
+        (``LearningStack.restore_trainer_state``); what it started from is in the log and status."""
+        from flgd.training.state import TRAINER_STATE
 
-        Only a trainer state written with the very checkpoint the daemon resumed from is used; anything
-        else (none, another update count, unreadable, not fitting the network) leaves the learner as
-        built, target = the checkpoint's weights and fresh moments, and says why in the log and status.
-        """
-        from flgd.training.state import TRAINER_STATE, load_trainer_state, restore_learner
-
-        path = self.state_dir / TRAINER_STATE
-        if not self.last_checkpoint:
-            self.trainer_state = "fresh (no checkpoint to resume)"
-            return
-        if not path.exists():
-            self.trainer_state = f"fresh ({path.name} not found)"
-            log.info("trainer state: %s", self.trainer_state)
-            return
-        try:
-            state = load_trainer_state(path)
-            if state.updates != self.resumed_from_updates:
-                self.trainer_state = (f"fresh ({path.name} is of update {state.updates}, the checkpoint of "
-                                      f"{self.resumed_from_updates})")
-                log.warning("trainer state: %s", self.trainer_state)
-                return
-            restore_learner(self.learner, state)
-        except (OSError, ValueError, RuntimeError, KeyError) as exc:
-            self.learner.reset_trainer_state()
-            self.trainer_state = f"fresh ({path}: {exc})"
+        outcome = self.learning.restore_trainer_state()
+        if outcome.restored:
+            log.info("trainer state %s from %s", self.trainer_state, self.state_dir / TRAINER_STATE)
+        elif outcome.problem:
             log.warning("trainer state not used: %s", self.trainer_state)
-            return
-        self.trainer_state = f"restored at update {state.updates}"
-        log.info("trainer state %s from %s", self.trainer_state, path)
+        elif outcome.other_update is not None:
+            log.warning("trainer state: %s", self.trainer_state)
+        elif self.last_checkpoint:
+            log.info("trainer state: %s", self.trainer_state)
 
     # ================================================================== checkpoints
     def _write_checkpoint(self, network: Any, updates: int) -> None:
         """Learner thread: write a checkpoint; a storage failure puts the daemon in FAULT."""
-        from flgd.learning.policy_file import save_policy
-
         step = self.runner.step if self.runner is not None else 0
         step += int(getattr(self.agent, "exploration_offset", 0) or 0)  # the policy's own count, not the daemon's
-        meta = {"training_steps": max(0, int(step)), "cell": self.config.name or self.backend,
-                "learner_updates": int(updates), "source": self.policy_source}
+        meta = CheckpointMeta(step, self.config.name or self.backend, updates, self.policy_source)
         try:
-            path = self.checkpoints.write(lambda p: save_policy(p, network, meta), updates)
-            if self.store is not None:
-                self.store.set_counter("learner_updates", updates)
+            path = self.learning.write_checkpoint(network, updates, meta)
         except (StoreError, OSError) as exc:
             self._learning_problem = f"checkpoint failed: {exc}"
             self._wake.set()
             raise
-        self.last_checkpoint = str(path)
         log.info("checkpoint %s", path)
         self._write_trainer_state()
 
@@ -339,13 +305,8 @@ class Controller:
         not in it: the store has them.  A failure here is logged, not a fault: the checkpoint holds
         what was learned, and a restart without this file only restarts the optimizer.
         """
-        import numpy as np
-
-        from flgd.training.state import TRAINER_STATE, save_trainer_state
-
         try:
-            save_trainer_state(self.state_dir / TRAINER_STATE, self.learner, np.zeros(0, dtype=np.int64),
-                               np.zeros(0, dtype=np.float64))
+            self.learning.write_trainer_state()
         except (OSError, RuntimeError) as exc:
             log.error("trainer state not saved (a restart will start Adam afresh): %s", exc)
 
@@ -408,8 +369,7 @@ class Controller:
         if self.gate is not None:
             from flgd.learning.policy_file import PolicyFileError
             try:
-                self.runner.wait_for_learner()  # paced: the hand-over this cycle's updates make is taken now
-                self.gate.after_cycle(record)
+                self.learning.after_cycle(record, self.runner)  # paced: this cycle's hand-over is taken now
             except (StoreError, OSError, PolicyFileError) as exc:
                 self._fault(f"the gate could not record its decision: {exc}")
                 return
@@ -545,8 +505,7 @@ class Controller:
         """After the loop: stop learning, save a final checkpoint, flush the store, release the cell."""
         if self.learner is not None:
             self.learner.stop(timeout=30.0, why="the daemon is stopping")
-            last = CheckpointDir.updates_of(Path(self.last_checkpoint)) if self.last_checkpoint else -1
-            if self.learner.updates > last and self.learner.updates > 0 and self.store is not None:
+            if self.learning.owes_checkpoint() and self.store is not None:
                 try:
                     self._write_checkpoint(self.learner.snapshot(), self.learner.updates)
                 except Exception as exc:
@@ -629,16 +588,12 @@ class Controller:
             if not self._open_store():
                 self._fault(self.store_problem)
                 raise ProtocolError("failed", f"reset: {self.store_problem}")
-            with self._learning_lock:
-                self.learner.stop(timeout=30.0, why="rebuilt after the store was reopened")
-                updates = self.learner.updates
-                self._build_learning(self.learner.snapshot(), self._next_step())
-                self.learner.updates = updates  # checkpoints keep counting on
-                self.runner.store, self.runner.replay, self.runner.learner = self.store, self.replay, self.learner
-                self.runner.agent = self.agent
+            with self._learning_lock:  # the learner goes on from its weights; nothing handed over until the gate
+                problem = self.learning.rebuild(self._next_step())
+                if problem:
+                    self.store_problem = problem
+                self.learning.connect(self.runner)
                 self.runner.step = self._next_step()
-                self.gate = None
-                self.learner.start()  # it hands nothing over until the gate is attached (mailbox None)
         if self.gate is None:  # the store came back (now or at an earlier reset whose gate failed)
             try:
                 self._build_gate()

@@ -19,10 +19,10 @@ while the anti-repeat and two-failures rules stay on -- they are part of the
 policy.  With ``learn`` the agent explores and learns online exactly as the
 daemon does when it is given a policy: the ``finetune`` learner settings, epsilon
 continuing from the policy's training steps (capped at ``finetune.max_epsilon``),
-a background ``Learner`` handing its weights over every ``gate.handover_every``
-updates to the champion/challenger gate (or, with the gate off, to the agent),
-all built by the daemon's own ``flgd.wiring`` functions on a store in a temporary
-directory.  Nothing is written to the config's state directory.
+no few-moves curriculum phase, a background ``Learner`` handing its weights over
+every ``gate.handover_every`` updates to the champion/challenger gate (or, with the
+gate off, to the agent), all built by the daemon's own ``flgd.learning_stack`` on
+a store in a temporary directory.  Nothing is written to the config's state directory.
 
 The cycle resets the scene when the workspace is empty; here that only marks
 the end of the run (``EpisodeCell``), so that the next run's scene is exactly
@@ -178,6 +178,7 @@ class Evaluator:
         if self.config.learning.threads > 0:
             torch.set_num_threads(self.config.learning.threads)
         self.replay = self.learner = self.gate = self.store = None
+        self.learning: Any = None  # the learning stack (flgd.learning_stack) with ``learn``
         self._learn_dir: tempfile.TemporaryDirectory | None = None
         if options.learn:
             self._start_learning(network, training_steps)
@@ -190,25 +191,21 @@ class Evaluator:
                                   store=self.store, step=0, backend="sim")
 
     def _start_learning(self, network: Any, training_steps: int) -> None:
-        """The daemon's learning stack for a given policy (flgd.wiring), on a store in a temporary directory."""
-        from flgd.config import learner_settings
-        from flgd.learning.replay import PrioritizedReplay
+        """The daemon's learning stack for a given policy (flgd.learning_stack, its learner settings and curriculum
+        rule included), on a store in a temporary directory."""
+        from flgd.learning_stack import LearningStack
         from flgd.store import Store
-        from flgd.wiring import attach_gate, build_agent_and_learner, configured_prior
 
         self._learn_dir = tempfile.TemporaryDirectory(prefix="flgd-eval-learn-")
-        self.config = learner_settings(self.config, True)
-        lc = self.config.learning
-        self.store = Store(self._learn_dir.name, keep_transitions=lc.replay_capacity)
-        self.replay = PrioritizedReplay.from_config(lc)
-        self.agent, self.learner = build_agent_and_learner(self.config, network, self.replay,
-                                                           checkpoint_callback=None, store=self.store,
-                                                           agent_seed=self.options.seed, fine_tune=True,
-                                                           prior=configured_prior(self.config, network.rotations,
-                                                                                  True))
+        stack = LearningStack(self.config, fine_tune=True, state_dir=self._learn_dir.name)
+        self.config = stack.config
+        self.store = stack.store = Store(self._learn_dir.name, keep_transitions=self.config.learning.replay_capacity)
+        stack.load_prior(network.rotations)
+        stack.build(network, agent_seed=self.options.seed)
         policy = (network, {"training_steps": int(training_steps)}, "the evaluated policy")
-        self.gate, _ = attach_gate(self.config, self.store, self.agent, self.learner, self._learn_dir.name, 0,
-                                   fine_tune=True, configured=lambda: policy, fresh=lambda: policy)
+        stack.attach_gate(0, configured=lambda: policy, fresh=lambda: policy)
+        self.learning = stack
+        self.replay, self.agent, self.learner, self.gate = stack.replay, stack.agent, stack.learner, stack.gate
         self.learner.start()
 
     # ------------------------------------------------------------------ cells
@@ -303,9 +300,8 @@ class Evaluator:
         while not end:
             try:
                 record = self.runner.run_once()
-                if self.gate is not None:
-                    self.runner.wait_for_learner()  # paced: this cycle's hand-over is taken now, not by timing
-                    self.gate.after_cycle(record)
+                if self.learning is not None:  # paced: this cycle's hand-over is taken now, not by timing
+                    self.learning.after_cycle(record, self.runner)
             except CellFault as exc:
                 end, note = "fault", str(exc)
                 try:

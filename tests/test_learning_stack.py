@@ -1,0 +1,76 @@
+"""The one learning stack (flgd/learning_stack.py) and the one override helper (flgd/overrides.py): what the
+daemon, ``flgd eval --learn``, ``flgd train`` and the benches share."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import pytest
+
+from flgd.config import load_config
+from flgd.learning_stack import CheckpointMeta, learning_config
+from flgd.overrides import apply_overrides, parse_override, yaml_value
+
+REPO = Path(__file__).resolve().parents[1]
+SIM = REPO / "cell_config" / "sim.yaml"
+
+
+def _with_curriculum(tmp_path):
+    cfg = load_config(SIM)
+    return dataclasses.replace(cfg, state_dir=str(tmp_path / "state"),
+                               exploration=dataclasses.replace(cfg.exploration, curriculum_steps=500))
+
+
+def test_eval_learn_runs_with_the_daemons_curriculum_rule(tmp_path):
+    """What ``flgd eval --learn`` measures is what the daemon does: the few-moves phase is ``flgd train
+    --curriculum``'s alone, so a config that sets it acts without it in both (the evaluator's copy kept it)."""
+    from flgd.daemon.controller import Controller
+    from flgd.evaluation.evaluator import EvalOptions, Evaluator
+    from flgd.learning.networks import build_network
+
+    cfg = _with_curriculum(tmp_path)
+    daemon = Controller(cfg)
+    assert daemon.learning.config.exploration.curriculum_steps == 0
+    net = build_network(cfg.learning.network, rotations=cfg.learning.rotations, seed=0)
+    with Evaluator(cfg, net, EvalOptions(runs=1, learn=True)) as ev:
+        assert ev.agent.config.exploration.curriculum_steps == 0
+        assert ev.agent.config.exploration == daemon.learning.config.exploration
+        assert ev.config.learning.learning_rate == daemon.learning.config.learning.learning_rate == \
+            cfg.finetune.learning_rate
+
+
+def test_only_flgd_train_keeps_the_few_moves_phase(tmp_path):
+    cfg = _with_curriculum(tmp_path)
+    assert learning_config(cfg, False).exploration.curriculum_steps == 0
+    assert learning_config(cfg, True).exploration.curriculum_steps == 0
+    assert learning_config(cfg, False, few_moves=True) is cfg
+
+
+def test_checkpoint_metadata_is_one_record_for_the_daemon_and_training_runs():
+    daemon = CheckpointMeta(-3, "sim", 40, "policy P").as_dict()
+    assert daemon == {"training_steps": 0, "cell": "sim", "learner_updates": 40, "source": "policy P"}
+    run = CheckpointMeta(12, "sim", 40, "flgd train r", {"method": "FLG", "seed": 3}).as_dict()
+    assert run["training_steps"] == 12 and run["method"] == "FLG" and run["seed"] == 3
+
+
+def test_overrides_read_yaml_values_and_exponent_numbers_as_floats():
+    assert parse_override("finetune.learning_rate=3e-5") == ("finetune.learning_rate", 3e-5)
+    assert parse_override("gate.enabled=false") == ("gate.enabled", False)
+    assert parse_override("camera.depth_fill=none") == ("camera.depth_fill", "none")
+    assert yaml_value("1E4") == 1e4 and yaml_value("inf-ish") == "inf-ish"
+    for bad in ("finetune.learning_rate", "nodot=1", "=3", ".x=1"):
+        with pytest.raises(ValueError):
+            parse_override(bad)
+
+
+def test_overrides_are_checked_as_a_config_is():
+    cfg = load_config(SIM)
+    changed = apply_overrides(cfg, {"finetune.learning_rate": 3e-5, "gate.share": 0.3}, source="test")
+    assert changed.finetune.learning_rate == 3e-5 and changed.gate.share == 0.3
+    with pytest.raises(ValueError, match="--set finetune.lerning_rate: no such config key"):
+        apply_overrides(cfg, {"finetune.lerning_rate": 1.0}, source="test", label="--set ")
+    with pytest.raises(ValueError, match="nosection is not a config section"):
+        apply_overrides(cfg, {"nosection.x": 1}, source="test")
+    with pytest.raises(ValueError, match="learning_rate"):
+        apply_overrides(cfg, {"finetune.learning_rate": -1.0}, source="test")
