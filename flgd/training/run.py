@@ -4,8 +4,8 @@ Nothing here is a second training loop: each step is ``CycleRunner.run_once``
 (the daemon's cycle) followed by ``Learner.update_pending`` -- the
 ``learning.updates_per_action`` updates the daemon's learner thread would run,
 but in this thread, so a run does not depend on thread timing.  Network,
-replay, agent and learner are built by ``flgd.wiring`` exactly as the daemon
-builds them.
+replay, agent and learner are built by ``flgd.learning_stack`` exactly as the
+daemon builds them.
 
 Run directory (``--out``), also the store's state directory:
 
@@ -36,10 +36,8 @@ state are written, exit code 130.  A second Ctrl-C exits at once; the store
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import datetime as _dt
-import fcntl
 import json
 import logging
 import math
@@ -49,7 +47,6 @@ import sys
 import time
 import traceback
 from collections import deque
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -57,6 +54,12 @@ import numpy as np
 
 from flgd.atomic_file import write_atomically
 from flgd.config import CellConfig, ConfigError, dump_config, load_sim_config
+from flgd.learning_stack import CheckpointMeta, LearningStack
+from flgd.store import CheckpointDir
+from flgd.training.settings import (RUN_FILE, TRAIN_VARIANTS, TRUNK_NETWORKS, RunFileError, RunSettings,
+                                    command_line, effective_config, read_run_info, settings_from_command_line,
+                                    variant_network)
+from flgd.wiring import resume_seed
 
 __all__ = ["TRAIN_VARIANTS", "TRUNK_NETWORKS", "variant_network", "RunSettings", "RunFileError", "TrainingRun", "effective_config", "read_run_info",
            "main", "EXIT_INTERRUPTED"]
@@ -64,126 +67,10 @@ __all__ = ["TRAIN_VARIANTS", "TRUNK_NETWORKS", "variant_network", "RunSettings",
 log = logging.getLogger("flgd.train")
 
 EXIT_OK, EXIT_ERROR, EXIT_USAGE, EXIT_INTERRUPTED = 0, 1, 2, 130
-RUN_FILE = "run.json"
 CONFIG_FILE = "config.yaml"
 LOG_FILE = "actions.csv"
 CURVE_FILE = "curve.png"
 MAX_CONSECUTIVE_FAULTS = 5
-
-# variant -> (network on the fast trunk, masks, paper method).  The variant picks the head and the masks;
-# the config's learning.network picks the trunk (TRUNK_NETWORKS), so the paper's DenseNet-121 trains too.
-TRAIN_VARIANTS: dict[str, tuple[str, bool, str]] = {
-    "flg": ("fast", True, "FLG"),
-    "dpen": ("fast", False, "DPEN"),
-    "rho-fcn": ("rho-fcn-fast", True, "rho-FCN"),
-}
-# trunk -> variant -> learning.network.  Each learning.network names one trunk (rho-fcn is the VPG head on the
-# DenseNet-121, rho-fcn-fast the same head on the fast trunk).
-TRUNK_NETWORKS: dict[str, dict[str, str]] = {
-    "fast": {"flg": "fast", "dpen": "fast", "rho-fcn": "rho-fcn-fast"},
-    "densenet121": {"flg": "densenet121", "dpen": "densenet121", "rho-fcn": "rho-fcn"},
-}
-_TRUNK_OF = {net: trunk for trunk, nets in TRUNK_NETWORKS.items() for net in nets.values()}
-
-
-def variant_network(variant: str, network: str) -> str:
-    """The learning.network that trains ``variant`` on the trunk of the config's ``network``
-    (fast or densenet121; its head, FLG or VPG, is the variant's)."""
-    if variant not in TRAIN_VARIANTS:
-        raise ValueError(f"variant: got {variant!r}, expected one of {', '.join(sorted(TRAIN_VARIANTS))}")
-    if network not in _TRUNK_OF:
-        raise ValueError(f"learning.network: got {network!r}, expected one of {', '.join(sorted(_TRUNK_OF))}")
-    return TRUNK_NETWORKS[_TRUNK_OF[network]][variant]
-
-
-@dataclass(frozen=True)
-class RunSettings:
-    variant: str = "flg"
-    objects: int = 10
-    steps: int = 1000
-    seed: int = 0
-    curriculum: bool = False
-    grasp_only: bool = False
-    init_policy: str = ""  # a new run starts from this policy file's weights (fresh replay and optimizer)
-    give_up_after: int = 0  # new scene after this many actions in a row without a successful grasp (0 = never)
-
-    def describe(self) -> str:
-        scene = "curriculum 10->20 objects + presets" if self.curriculum else f"{self.objects} objects"
-        mode = ", grasp only" if self.grasp_only else ""
-        start = f", from {self.init_policy}" if self.init_policy else ""
-        give_up = f", new scene after {self.give_up_after} actions without a grasp" if self.give_up_after else ""
-        return f"{self.variant} ({TRAIN_VARIANTS[self.variant][2]}), {scene}{mode}, seed {self.seed}{start}{give_up}"
-
-
-class RunFileError(ValueError):
-    """A run directory's run.json that cannot be used; the message names the file, the problem and what to do."""
-
-
-def read_run_info(out: Path) -> dict | None:
-    """The run.json of run directory ``out``, None if it has none; a damaged one is a ``RunFileError``.
-
-    Never guess: a run.json that does not parse or is not a run's record must not be taken for "no run"
-    (a new run would be started over the old one's store and checkpoints)."""
-    path = Path(out) / RUN_FILE
-    if not path.exists():
-        return None
-    fix = (f"the run in {path.parent} was not changed; restore {RUN_FILE} (its settings are also in "
-           f"the policy metadata of checkpoints/) or start the run in another directory")
-    from flgd.training.records import read_json_record
-
-    try:
-        info = read_json_record(path, fix)
-    except ValueError as exc:
-        raise RunFileError(str(exc)) from None
-    if not isinstance(info, dict):
-        raise RunFileError(f"{path}: expected a JSON object (settings, segments, status), got "
-                           f"{type(info).__name__}; {fix}")
-    settings = info.get("settings")
-    if not isinstance(settings, dict):
-        raise RunFileError(f"{path}: key 'settings': expected an object of the run's settings, got "
-                           f"{'nothing' if settings is None else type(settings).__name__}; {fix}")
-    defaults = dataclasses.asdict(RunSettings())
-    for key, value in settings.items():
-        if key not in defaults:
-            continue
-        want = type(defaults[key])
-        ok = isinstance(value, want) and (want is bool or not isinstance(value, bool))
-        if key == "variant" and ok and value not in TRAIN_VARIANTS:
-            raise RunFileError(f"{path}: settings.variant: got {value!r}, expected one of "
-                               f"{sorted(TRAIN_VARIANTS)}; {fix}")
-        if not ok:
-            raise RunFileError(f"{path}: settings.{key}: got {value!r}, expected {want.__name__}; {fix}")
-    if not isinstance(info.get("segments", []), list):
-        raise RunFileError(f"{path}: key 'segments': expected a list, got {type(info['segments']).__name__}; "
-                           f"{fix}")
-    return info
-
-
-def _derived_seed(seed: int, segment: int, stream: int) -> int:
-    """Segment 0 uses ``seed`` itself; a resumed segment gets fresh, reproducible streams."""
-    if segment == 0:
-        return seed
-    return int(np.random.SeedSequence([seed, segment, stream]).generate_state(1)[0])
-
-
-def effective_config(base: CellConfig, settings: RunSettings, out: Path, segment: int = 0) -> CellConfig:
-    """The cell config of a run: variant, objects, seeds, curriculum and the run directory as state dir.
-    The variant sets the head and the masks, ``base.learning.network`` the trunk (``variant_network``)."""
-    from flgd.curriculum import Curriculum
-
-    _, masks, _ = TRAIN_VARIANTS[settings.variant]
-    network = variant_network(settings.variant, base.learning.network)
-    cfg = dataclasses.replace(
-        base,
-        state_dir=str(out),
-        policy="",
-        learning=dataclasses.replace(base.learning, network=network, seed=_derived_seed(settings.seed, segment, 1)),
-        exploration=dataclasses.replace(base.exploration, masks=masks, grasp_only=settings.grasp_only),
-        sim=dataclasses.replace(base.sim, objects=settings.objects, seed=_derived_seed(settings.seed, segment, 2),
-                                scene=""))
-    if settings.curriculum:
-        cfg = Curriculum().apply_to_config(cfg)
-    return cfg
 
 
 def rolling(outcomes: deque, window: int) -> float | None:
@@ -246,10 +133,21 @@ class TrainingRun:
         self.scene_count = 0
         # (objects, scene kind) of the scene the current cycle acts on, noted before the runner resets it
         self._cycle_scene: tuple[int | None, str] = (None, "")
-        self.last_checkpoint_updates = -1
         self.consecutive_faults = 0
         self.actions_without_grasp = 0  # in the current scene (give_up_after)
         self._lock_fd: int | None = None
+        # the daemon's learning stack; the priorities live in the trainer state (written with each checkpoint)
+        self.learning = LearningStack(self.config, fine_tune=False, state_dir=out, few_moves=True,
+                                      checkpoints=CheckpointDir(out / "checkpoints", keep=1_000_000),
+                                      checkpoint_callback=self._checkpoint, priorities_in_store=False)
+        # built by ``setup``
+        self.store: Any = None
+        self.replay: Any = None
+        self.agent: Any = None
+        self.learner: Any = None
+        self.actions: Any = None  # the ActionLog (actions.csv)
+        self.cell: Any = None
+        self.runner: Any = None
 
     # ------------------------------------------------------------------ setup
     def _load_run_info(self) -> dict:
@@ -258,12 +156,12 @@ class TrainingRun:
     def _write_run_info(self, status: str) -> None:
         info = dict(self.run_info)
         info.update({"settings": dataclasses.asdict(self.settings), "status": status,
-                     "step": self.runner.step if hasattr(self, "runner") else info.get("step", 0),
-                     "updates": self.learner.updates if hasattr(self, "learner") else info.get("updates", 0),
+                     "step": self.runner.step if self.runner is not None else info.get("step", 0),
+                     "updates": self.learner.updates if self.learner is not None else info.get("updates", 0),
                      "rolling_success_50": rolling(self.grasps, 50),
                      "rolling_success_200": rolling(self.grasps, 200),
                      "updated": _now()})
-        if hasattr(self, "learner"):  # how the double-DQN a' of the targets was found (this segment)
+        if self.learner is not None:  # how the double-DQN a' of the targets was found (this segment)
             info["next_argmax"] = {"reused": self.learner.argmax_reused, "computed": self.learner.argmax_computed}
         self.run_info = info
         write_atomically(self.out / RUN_FILE, (json.dumps(info, indent=2) + "\n").encode(), mode=0o644)
@@ -282,31 +180,27 @@ class TrainingRun:
 
         from flgd.cell import make_cell
         from flgd.cycle import CycleRunner
-        from flgd.store import CheckpointDir, Store
+        from flgd.store import Store
         from flgd.training.actionlog import ActionLog
-        from flgd.wiring import build_agent_and_learner, rebuild_replay, starting_network
+        from flgd.training.state import remove_temporary as remove_trainer_state_temporaries
 
         self.out.mkdir(parents=True, exist_ok=True)
         self._take_lock()
         if self.config.learning.threads > 0:
             torch.set_num_threads(self.config.learning.threads)
         self._write_config()
-        self.store = Store(self.out, keep_transitions=self.config.learning.replay_capacity)
-        self.checkpoints = CheckpointDir(self.out / "checkpoints", keep=1_000_000)
-        self.checkpoints.remove_temporary()
-        from flgd.training.state import remove_temporary as remove_trainer_state_temporaries
-
+        self.store = self.learning.store = Store(self.out, keep_transitions=self.config.learning.replay_capacity)
+        self.learning.checkpoints.remove_temporary()
         remove_trainer_state_temporaries(self.out)
-        start = starting_network(self.config, self.checkpoints, self.settings.init_policy or None)
-        self.last_checkpoint_updates = start.resumed_from_updates if start.checkpoint else -1
-        replay_seed = _derived_seed(self.settings.seed, self.segment, 3)
-        self.replay, problem = rebuild_replay(self.config, self.store, seed=replay_seed)
+        learning = self.learning
+        network = learning.start_from(self.settings.init_policy or None)
+        problem = learning.build(network, replay_seed=resume_seed(self.settings.seed, self.segment, 3),
+                                 agent_seed=resume_seed(self.settings.seed, self.segment, 4))
         if problem:
             raise RuntimeError(problem)
-        self.agent, self.learner = build_agent_and_learner(
-            self.config, start.network, self.replay, checkpoint_callback=self._checkpoint,
-            updates=start.resumed_from_updates, agent_seed=_derived_seed(self.settings.seed, self.segment, 4))
-        self._restore_trainer_state(start.resumed_from_updates if start.checkpoint else None)
+        learning.hand_to_agent()  # no gate: the learner's weights act as they are handed over
+        self.replay, self.agent, self.learner = learning.replay, learning.agent, learning.learner
+        self._restore_trainer_state()
 
         self.actions = ActionLog(self.out / LOG_FILE)
         self.actions.reconcile(self.store.action_log())
@@ -325,7 +219,7 @@ class TrainingRun:
             curriculum = Curriculum()
             cell.set_object_count(curriculum.object_count(step))
             cell.reset_scene()
-            rng = np.random.default_rng(_derived_seed(self.settings.seed, self.segment, 5))
+            rng = np.random.default_rng(resume_seed(self.settings.seed, self.segment, 5))
             cell = CurriculumCell(cell, curriculum, lambda: self.runner.step, preset_scenes(), rng)
             cell.scene_kind = f"random {curriculum.object_count(step)}"
         self.cell = cell
@@ -337,7 +231,7 @@ class TrainingRun:
         # edited between segments (more updates per action, another object set) says so
         sim = self.config.sim
         segments.append({"started": _now(), "from_step": step, "from_updates": self.learner.updates,
-                         "source": start.source, "code": _code_version(),
+                         "source": learning.source, "code": _code_version(),
                          "learning": dataclasses.asdict(self.config.learning),
                          "exploration": dataclasses.asdict(self.config.exploration),
                          "objects": {"object_set": sim.object_set, "domain_randomization": sim.domain_randomization,
@@ -348,36 +242,16 @@ class TrainingRun:
         self._write_run_info("running")
         self.store.record_event("train", f"segment {self.segment} from step {step}: {self.settings.describe()}")
         self.progress.message(f"flgd train: {self.settings.describe()} -> {self.out} "
-                              f"({'resumed at step ' + str(step) if self.segment else 'new run'}; {start.source})")
+                              f"({'resumed at step ' + str(step) if self.segment else 'new run'}; {learning.source})")
 
-    def _restore_trainer_state(self, checkpoint_updates: int | None) -> None:
-        from flgd.training.state import TRAINER_STATE, load_trainer_state, restore_learner
-
-        path = self.out / TRAINER_STATE
-        if checkpoint_updates is None or not path.exists():
-            return
-        try:
-            state = load_trainer_state(path)
-        except (OSError, ValueError, RuntimeError) as exc:
-            self.progress.message(f"flgd train: trainer state not used ({exc}); fresh optimizer state")
-            return
-        if state.updates != checkpoint_updates:
-            self.progress.message(f"flgd train: trainer state is of update {state.updates}, the checkpoint of "
-                                  f"{checkpoint_updates}: fresh optimizer state, default priorities")
-            return
-        restore_learner(self.learner, state)
-        saved = dict(zip(state.priority_ids.tolist(), state.priorities.tolist()))
-        eps = self.config.learning.priority_epsilon
-        for slot, tid in enumerate(self._slot_tags()):
-            if tid in saved:
-                self.replay.update_priorities([slot], [max(0.0, saved[tid] - eps)])
-
-    def _slot_tags(self) -> list[int | None]:
-        """The store's transition id in each replay slot, read from the replay itself.
-
-        Not counted alongside: a cycle that raises after its transition was added (a scene reset
-        failing, say) would shift such a count and attach saved priorities to other transitions."""
-        return [self.replay.tag(i) for i in range(len(self.replay))]
+    def _restore_trainer_state(self) -> None:
+        """The resumed learner's target network, Adam moments and priorities (``LearningStack``); what else, said."""
+        outcome = self.learning.restore_trainer_state()
+        if outcome.problem:
+            self.progress.message(f"flgd train: trainer state not used ({outcome.problem}); fresh optimizer state")
+        elif outcome.other_update is not None:
+            self.progress.message(f"flgd train: trainer state is of update {outcome.other_update}, the checkpoint of "
+                                  f"{self.learning.resumed_from_updates}: fresh optimizer state, default priorities")
 
     def _write_config(self) -> None:
         """config.yaml, atomically (a kill mid-write must not leave a file the resume cannot load), and
@@ -394,28 +268,20 @@ class TrainingRun:
     # ------------------------------------------------------------------ checkpoints
     def _checkpoint(self, network: Any, updates: int) -> None:
         """Learner callback (inside an update): policy file + trainer state + curve."""
-        from flgd.learning.policy_file import save_policy
-        from flgd.training.state import TRAINER_STATE, save_trainer_state
-
         r50, r200 = rolling(self.grasps, 50), rolling(self.grasps, 200)
-        meta = {"training_steps": int(self.runner.step), "cell": self.config.name or self.config.backend,
-                "rolling_success": r200 if r200 is not None else r50,
-                "rolling_success_50": r50, "rolling_success_200": r200,
-                "method": TRAIN_VARIANTS[self.settings.variant][2], "train_variant": self.settings.variant,
-                "learner_updates": int(updates), "seed": self.settings.seed,
-                "curriculum": self.settings.curriculum, "objects": self.settings.objects,
-                "grasp_only": self.settings.grasp_only, "source": f"flgd train {self.out.name}"}
-        self.checkpoints.write(lambda p: save_policy(p, network, meta), updates)
-        tagged = [(slot, tid) for slot, tid in enumerate(self._slot_tags()) if tid is not None]
-        save_trainer_state(self.out / TRAINER_STATE, self.learner,
-                           np.array([tid for _, tid in tagged], dtype=np.int64),
-                           np.array([self.replay.priority(slot) for slot, _ in tagged], dtype=np.float64))
-        self.store.set_counter("learner_updates", updates)
-        self.last_checkpoint_updates = updates
+        run = {"rolling_success": r200 if r200 is not None else r50,
+               "rolling_success_50": r50, "rolling_success_200": r200,
+               "method": TRAIN_VARIANTS[self.settings.variant][2], "train_variant": self.settings.variant,
+               "seed": self.settings.seed, "curriculum": self.settings.curriculum, "objects": self.settings.objects,
+               "grasp_only": self.settings.grasp_only}
+        meta = CheckpointMeta(int(self.runner.step), self.config.name or self.config.backend, updates,
+                              f"flgd train {self.out.name}", run)
+        self.learning.write_checkpoint(network, updates, meta)
+        self.learning.write_trainer_state()
         self.write_curve()
 
     def final_checkpoint(self) -> None:
-        if self.learner.updates > max(0, self.last_checkpoint_updates):
+        if self.learning.owes_checkpoint():
             self._checkpoint(self.learner.online, self.learner.updates)
         else:
             self.write_curve()
@@ -564,7 +430,7 @@ class TrainingRun:
         return text
 
     def close(self) -> None:
-        for closer in (getattr(self, "cell", None), getattr(self, "store", None)):
+        for closer in (self.cell, self.store):
             if closer is not None:
                 try:
                     closer.close()
@@ -620,58 +486,8 @@ def _duration(seconds: float) -> str:
 
 # ---------------------------------------------------------------------- command line
 
-def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
-        prog="flgd train", description="Train a policy headless in sim_cell (the daemon's cycle, agent and "
-                                       "learner; synchronous updates).  Run again with the same --out to resume.")
-    p.add_argument("--config", help="cell config YAML (backend sim); optional when resuming --out")
-    p.add_argument("--variant", choices=sorted(TRAIN_VARIANTS),
-                   help="flg (default), dpen (no masks), rho-fcn (VPG head); the trunk is the config's "
-                        "learning.network (fast or densenet121, the paper's)")
-    p.add_argument("--objects", type=int, help="objects per random scene (default 10; not with --curriculum)")
-    p.add_argument("--steps", type=int, help="train until this many steps (actions) in total (default 1000)")
-    p.add_argument("--seed", type=int, help="seed of the sim, network, agent and replay (default 0)")
-    p.add_argument("--out", required=True, help="run directory (created; resumed if it holds a run)")
-    p.add_argument("--curriculum", action="store_true", default=None,
-                   help="paper IV-A curriculum: few moves for 500 steps, 10 -> 20 objects from step 400, "
-                        "preset piles after 1500 steps")
-    p.add_argument("--grasp-only", action="store_true", default=None, help="never move (paper's Grasping-only)")
-    p.add_argument("--init-policy", metavar="FILE",
-                   help="start a new run from this policy file (e.g. to fine-tune the shipped policy on other "
-                        "objects) instead of a fresh network; the replay and optimizer start empty")
-    p.add_argument("--give-up-after", type=int, metavar="N",
-                   help="start a new scene after N actions in a row without a successful grasp (default 0: never; "
-                        "a run started without it keeps never)")
-    p.add_argument("--threads", type=int, help="torch CPU threads (default: learning.threads of the config)")
-    p.add_argument("--log-every", type=int, default=25, help="steps between plain progress lines (no terminal)")
-    return p
-
-
-def _settings(args: argparse.Namespace, previous: dict | None) -> RunSettings:
-    """Settings from the command line, checked against a run being resumed."""
-    given = {"variant": args.variant, "objects": args.objects, "steps": args.steps, "seed": args.seed,
-             "curriculum": args.curriculum, "grasp_only": args.grasp_only,
-             "init_policy": None if args.init_policy is None else str(Path(args.init_policy).resolve()),
-             "give_up_after": args.give_up_after}
-    if previous:
-        for key, value in given.items():
-            before = previous.get(key, getattr(RunSettings(), key))  # a key newer than the run: its default
-            if key != "steps" and value is not None and value != before:
-                raise ValueError(f"--{key.replace('_', '-')}: got {value!r}, but the run in --out was started "
-                                 f"with {before!r}; use another --out for other settings")
-        merged = {**dataclasses.asdict(RunSettings()), **previous, **{k: v for k, v in given.items() if v is not None}}
-        return RunSettings(**{f.name: merged[f.name] for f in dataclasses.fields(RunSettings)})
-    defaults = RunSettings()
-    s = RunSettings(**{k: (getattr(defaults, k) if v is None else v) for k, v in given.items()})
-    if s.curriculum and args.objects is not None:
-        raise ValueError("--objects: the curriculum sets the object count (10 -> 20); drop one of the two")
-    if s.curriculum:
-        s = dataclasses.replace(s, objects=10)
-    return s
-
-
 def main(argv: list[str]) -> int:
-    args = _parser().parse_args(argv)
+    args = command_line().parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     out = Path(args.out).resolve()
     try:
@@ -680,7 +496,7 @@ def main(argv: list[str]) -> int:
         print(f"flgd train: {exc}", file=sys.stderr)
         return EXIT_USAGE
     try:
-        settings = _settings(args, previous_info.get("settings") if previous_info else None)
+        settings = settings_from_command_line(args, previous_info.get("settings") if previous_info else None)
         for name in ("objects", "steps", "seed", "give_up_after"):
             v = getattr(settings, name)
             if v < 0 or (name == "objects" and not 1 <= v <= 60):
@@ -740,7 +556,7 @@ def main(argv: list[str]) -> int:
     except Exception as exc:
         progress.finish()
         print(f"flgd train: {type(exc).__name__}: {exc}", file=sys.stderr)
-        if hasattr(run, "learner") and hasattr(run, "runner"):
+        if run.runner is not None:
             try:
                 run.final_checkpoint()
                 run._write_run_info("failed")
