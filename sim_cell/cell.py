@@ -72,11 +72,11 @@ starting with "unstable" and naming the plan step (``stats["unstable_resets"]``)
 A single deep check is not enough: a closing finger wedging a prism or half-disk
 into the table dips it 15-30 mm for a moment, which the solver resolves (in 20-block
 clutter that alone aborted about half of all evaluation runs).
+In their own modules: world, stability, scene_maker, randomisation, gripper_contacts, free_space.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -91,35 +91,20 @@ from sim_cell import camera as simcam
 from sim_cell import free_space, kinematics, motion, objects, scene_maker, scenes
 from sim_cell.gripper_contacts import GripperContacts
 from sim_cell.randomisation import Randomiser
-from sim_cell.robot import FINGER_SPEED, GRIPPER_TCP_OFFSET, READY_JOINTS, SimRobot
+from sim_cell.robot import FINGER_SPEED, GRIPPER_TCP_OFFSET, READY_JOINTS
 from sim_cell.scene_maker import PRESET_DIR, preset_scenes
-from sim_cell.stability import FALLEN_DEPTH, SLEEP_MOTION, Stability
 from sim_cell.stability import Unstable as _Unstable
+from sim_cell.world import ObjectState, World
 
 __all__ = ["SimCell", "ObjectState", "PRESET_DIR", "preset_scenes"]
 
 CONTROL_SUBSTEPS = 8        # physics steps per IK tick (30 Hz line samples at 240 Hz physics)
-SOLVER_ITERATIONS = 20      # enough for resting piles, pushes and free fingers
-GRIP_SOLVER_ITERATIONS = 150  # while fingers squeeze an object; fewer let pads sink into it (module doc)
 CARRY_TRIAL_TICKS = 10      # control ticks (0.33 s) a freshly gripped object is simulated before a jump
 GRIPPER_TIMEOUT = 0.8       # s for a finger motion to come to rest
 PRESS_DEPTH = 0.006           # m an object may be squeezed into the table/another object
 YIELD_DEPTH = 0.003           # m of squeeze at which an intended press starts to give way
 PROTECTIVE_STOP_FORCE = 100.0  # N of vertical push on the gripper that stops the arm (UR: 150 N at the TCP)
-TABLE_MARGIN = 0.15         # m of table beyond the workspace on each side
 MAX_SETTLE_AFTER_PLAN = 1.0  # s the world runs on after a plan while something still moves
-
-
-@dataclass(frozen=True)
-class ObjectState:
-    """One object as the simulator knows it (for oracles, tests and curricula, never for the policy)."""
-
-    body: int
-    label: str
-    position: tuple[float, float, float]
-    orientation: tuple[float, float, float, float]
-    points: np.ndarray   # corner points in the base frame
-    top: float           # highest point, m in the base frame
 
 
 class SimCell(Cell):
@@ -135,47 +120,6 @@ class SimCell(Cell):
                              f"expected {list(GRIPPER_TCP_OFFSET)!r} for the simulated RG2 (urdf/rg2.urdf)")
         self._tcp_offset = off
         self._dt = config.sim.time_step
-        self._client = p.connect(p.DIRECT)
-        if self._client < 0:
-            raise CellFault("pybullet: cannot open a physics client")
-        seeds = np.random.SeedSequence(config.sim.seed).spawn(2)
-        self._noise_rng = np.random.default_rng(seeds[1])
-        self._object_count = config.sim.objects
-        # What the current objects came from, for logs ("random 20", "packed 9", "scene pile"):
-        # a training log must tell a packed scene from a drop.
-        self.scene_kind = "none"
-        self._randomiser = Randomiser(config, np.random.default_rng(seeds[0]), self._client)
-        self._objects: dict[int, objects.SpawnedObject] = {}
-        self._held: set[int] = set()
-        self._carry_tried: set[int] = set()   # gripped objects whose grip survived a simulated trial carry
-        self._press_allowance = 0.0           # m of intended press of the running plan (a shift's press)
-        self._press_yield = 0.0               # m the compliant wrist has given way during that press
-        self.stats = {"grasped_out": 0, "left_workspace": 0, "unstable_resets": 0, "scenes": 0}
-        self._sim_time = 0.0
-        self._steps = 0
-        self._iterations = SOLVER_ITERATIONS
-        self._light = ((0.3, -0.2, 1.0), 0.6, 0.4)
-        # Perception is told the configured camera; the picture is taken from where the camera truly is.
-        self._camera = simcam.CameraModel.from_config(config.camera)
-        self._true_camera = simcam.CameraModel.from_config(config.camera, config.sim.camera_pose_error)
-        self._depth_noise = simcam.DepthNoise.from_config(config.sim)
-        ws = config.workspace
-        self._ws = ws
-        c = self._client
-        p.resetSimulation(physicsClientId=c)
-        p.setGravity(0, 0, -9.81, physicsClientId=c)
-        p.setPhysicsEngineParameter(fixedTimeStep=self._dt, numSolverIterations=SOLVER_ITERATIONS, deterministicOverlappingPairs=1,
-                                    physicsClientId=c)
-        half = [(ws.x[1] - ws.x[0]) / 2 + TABLE_MARGIN, (ws.y[1] - ws.y[0]) / 2 + TABLE_MARGIN, 0.05]
-        centre = scenes.workspace_origin(ws)
-        self._table = p.createMultiBody(
-            0, p.createCollisionShape(p.GEOM_BOX, halfExtents=half, physicsClientId=c),
-            p.createVisualShape(p.GEOM_BOX, halfExtents=half, rgbaColor=[0.45, 0.45, 0.45, 1], physicsClientId=c),
-            [centre[0], centre[1], ws.z[0] - half[2]], physicsClientId=c)
-        p.changeDynamics(self._table, -1, lateralFriction=0.6, physicsClientId=c)
-        self._robot = SimRobot(c)
-        self._stability = Stability(c, self._objects, self._robot.body, ws.z[0])
-        self._contacts = GripperContacts(c, self._robot, self._objects, self._table)
         home = config.robot.home
         self._home_pose = ToolPose.top_down(*home.position, home.yaw)
         q = kinematics.nearest_solution(
@@ -183,6 +127,23 @@ class SimCell(Cell):
         if q is None:
             raise ValueError(f"{config.source}: robot.home: {list(home.position)!r} is out of the UR5e's reach")
         self._home_joints = q
+        self._world = World(config, q)
+        self._robot = self._world.robot
+        self._contacts = GripperContacts(self._world.client, self._robot, self._world.objects, self._world.table)
+        seeds = np.random.SeedSequence(config.sim.seed).spawn(2)
+        self._noise_rng = np.random.default_rng(seeds[1])
+        self._object_count = config.sim.objects
+        # What the current objects came from, for logs ("random 20", "packed 9", "scene pile"):
+        # a training log must tell a packed scene from a drop.
+        self.scene_kind = "none"
+        self._randomiser = Randomiser(config, np.random.default_rng(seeds[0]), self._world.client)
+        self._carry_tried: set[int] = set()   # gripped objects whose grip survived a simulated trial carry
+        self._press_allowance = 0.0           # m of intended press of the running plan (a shift's press)
+        self._press_yield = 0.0               # m the compliant wrist has given way during that press
+        # Perception is told the configured camera; the picture is taken from where the camera truly is.
+        self._camera = simcam.CameraModel.from_config(config.camera)
+        self._true_camera = simcam.CameraModel.from_config(config.camera, config.sim.camera_pose_error)
+        self._depth_noise = simcam.DepthNoise.from_config(config.sim)
         self._robot.teleport(q, config.gripper.open_width)
         self._closed = False
         if config.sim.scene:
@@ -207,11 +168,11 @@ class SimCell(Cell):
         with self._lock:
             self._check_open()
             cfg = self.config.camera
-            direction, ambient, diffuse = self._light
+            direction, ambient, diffuse = self._randomiser.light
             if labelled:
                 color, depth, seg = simcam.render_labelled(self._client, self._true_camera, direction, ambient=ambient,
                                                            diffuse=diffuse)
-                labels = np.where(np.isin(seg, list(self._objects)), seg, 0).astype(np.int32)
+                labels = np.where(np.isin(seg, list(self._world.objects)), seg, 0).astype(np.int32)
             else:
                 color, depth = simcam.render(self._client, self._true_camera, direction, ambient=ambient,
                                              diffuse=diffuse)
@@ -231,14 +192,14 @@ class SimCell(Cell):
         """
         with self._lock:
             self._check_open()
-            if body not in self._objects:
+            if body not in self._world.objects:
                 raise ValueError(f"remove_object: no object with body id {body} in the scene")
-            self._stability.wake_near(body)
+            self._world.stability.wake_near(body)
             p.removeBody(body, physicsClientId=self._client)
-            self._objects.pop(body)
-            self._held.discard(body)
+            self._world.objects.pop(body)
+            self._world.held.discard(body)
             try:
-                self._settle(settle)
+                self._world.settle(settle)
             except _Unstable:
                 self.reset_scene()
                 return False
@@ -338,17 +299,12 @@ class SimCell(Cell):
         """True when no object is left in the workspace."""
         with self._lock:
             self._check_open()
-            self._remove_outside()
-            return len(self._objects) == 0
+            self._world.remove_outside()
+            return len(self._world.objects) == 0
 
     def close(self) -> None:
         with self._lock:
-            if self._client is not None:
-                try:
-                    p.disconnect(physicsClientId=self._client)
-                except p.error:
-                    pass
-                self._client = None
+            self._world.close()
 
     # -- for curricula, tests and benchmarks
     def set_object_count(self, n: int) -> None:
@@ -362,7 +318,13 @@ class SimCell(Cell):
         returns the number of objects placed.  Relative names are looked up in sim_cell/scenes/ too."""
         with self._lock:
             self._check_open()
-            return scene_maker.load_scene(self, scene, vpg_meshes)
+            scene = scene_maker.read_scene(scene, vpg_meshes)
+            try:
+                self.scene_kind = scene_maker.place_scene(self._world, scene)
+            except scenes.SceneError:
+                self.scene_kind = "none"
+                raise
+            return len(self._world.objects)
 
     def save_scene(self, path: str | Path) -> None:
         """Write the current objects and poses as a scene file (workspace frame)."""
@@ -372,45 +334,53 @@ class SimCell(Cell):
 
     def current_scene(self) -> scenes.Scene:
         """The current objects and poses as a scene (workspace frame)."""
-        return scene_maker.current_scene(self)
+        return scene_maker.current_scene(self._world)
 
     def object_states(self) -> list[ObjectState]:
         """Ground truth of every object in the scene, in the base frame."""
         with self._lock:
             self._check_open()
-            out = []
-            for obj in self._objects.values():
-                pos, orn = p.getBasePositionAndOrientation(obj.body, physicsClientId=self._client)
-                pts = obj.world_points(self._client)
-                out.append(ObjectState(body=obj.body, label=obj.spec.label, position=tuple(pos),
-                                       orientation=tuple(orn), points=pts, top=float(pts[:, 2].max())))
-            return out
+            return self._world.object_states()
 
     def add_object(self, spec: objects.ObjectSpec, settle: float = 0.25) -> int:
         """Put one object (pose in the base frame) into the scene; returns its body id."""
         with self._lock:
             self._check_open()
-            body = self._add(spec)
-            self._settle(settle)
+            body = self._world.add(spec)
+            self._world.settle(settle)
             return body
 
     def simulate(self, seconds: float) -> None:
         """Let the world run for ``seconds`` with the arm holding still."""
         with self._lock:
             self._check_open()
-            self._step(int(round(seconds / self._dt)))
+            self._world.step(int(round(seconds / self._dt)))
 
     @property
     def object_count(self) -> int:
-        return len(self._objects)
+        return len(self._world.objects)
 
     @property
     def sim_time(self) -> float:
-        return self._sim_time
+        return self._world.sim_time
+
+    @property
+    def stats(self) -> dict[str, int]:
+        """Counts of objects ``grasped_out`` and ``left_workspace``, ``unstable_resets`` and ``scenes`` laid out."""
+        return self._world.stats
 
     # ================================================================== internals
+    @property
+    def _client(self) -> int | None:
+        """The pybullet client (None once closed), for raw pybullet calls of tests and oracles."""
+        return self._world.client
+
+    @property
+    def _sim_time(self) -> float:
+        return self._world.sim_time
+
     def _check_open(self) -> None:
-        if self._client is None:
+        if self._world.client is None:
             raise CellFault("the simulated cell is closed")
 
     @staticmethod
@@ -439,37 +409,15 @@ class SimCell(Cell):
                 q, pose = traj.joints[-1], goal
         return out
 
-    # -- stepping and safety of the simulation
-    def _step(self, n: int, before_step=None) -> None:
-        c = self._client
-        for k in range(n):
-            if before_step is not None:
-                before_step(k)
-            p.stepSimulation(physicsClientId=c)
-            self._sim_time += self._dt
-            self._steps += 1
-            if self._steps % 8 == 0:
-                self._check_stable(deep=(self._steps % 48 == 0))
-
-    def _check_stable(self, deep: bool) -> None:
-        self._stability.check(deep, self._held, self._remove_lost)
-
-    def _settle(self, seconds: float) -> None:
-        try:
-            self._step(int(round(seconds / self._dt)))
-        except _Unstable:
-            self.stats["unstable_resets"] += 1
-            raise
-
     # -- motions
     def _in_gripper(self) -> set[int]:
         """What moves with the gripper: the measured held objects plus whatever is between the pads."""
-        return self._held | self._contacts.between_pads()
+        return self._world.held | self._contacts.between_pads()
 
     def _free_span(self, traj: motion.Trajectory, carried: set[int], from_end: bool) -> int:
         """Number of ticks at the start (or end) of a line that cannot touch anything."""
         half, below = free_space.carry_extent(self._client, self._tcp()[:3, 3], carried)
-        boxes = free_space.obstacles(self._client, self._objects, carried)
+        boxes = free_space.obstacles(self._client, self._world.objects, carried)
         return free_space.free_span(traj.tcp[:, :3, 3], half, below, boxes, from_end)
 
     def _jump(self, q: np.ndarray, seconds: float, carried: set[int]) -> None:
@@ -477,8 +425,8 @@ class SimCell(Cell):
         c = self._client
         before = self._tcp()
         moving = []
-        for body in carried & set(self._objects):   # (one may have fallen off the table meanwhile)
-            self._stability.wake_near(body)   # whatever rested on or against it loses that support
+        for body in carried & set(self._world.objects):   # (one may have fallen off the table meanwhile)
+            self._world.stability.wake_near(body)   # whatever rested on or against it loses that support
             pos, orn = p.getBasePositionAndOrientation(body, physicsClientId=c)
             t = np.eye(4)
             t[:3, :3] = np.asarray(p.getMatrixFromQuaternion(orn)).reshape(3, 3)
@@ -491,8 +439,8 @@ class SimCell(Cell):
             p.resetBasePositionAndOrientation(body, t[:3, 3].tolist(), objects.quaternion_from_matrix(t[:3, :3]),
                                               physicsClientId=c)
             p.resetBaseVelocity(body, [0, 0, 0], [0, 0, 0], physicsClientId=c)
-            self._stability.wake(body)
-        self._sim_time += seconds
+            self._world.stability.wake(body)
+        self._world.sim_time += seconds
 
     def _run_line(self, traj: motion.Trajectory, stop_force: float = 0.0) -> bool:
         """Follow ``traj``; True when a guarded line (``stop_force`` N > 0) stopped at a contact."""
@@ -502,9 +450,9 @@ class SimCell(Cell):
             return False
         carried = self._in_gripper()
         # gripped but not yet carried through a trial: its first ticks are simulated so a weak grip can slip
-        on_trial = carried - self._held - self._carry_tried
+        on_trial = carried - self._world.held - self._carry_tried
         first = 0
-        if not on_trial and not self._contacts.touching(carried) and not self._stability.moving(exclude=carried):
+        if not on_trial and not self._contacts.touching(carried) and not self._world.stability.moving(exclude=carried):
             free_head = self._free_span(traj, carried, from_end=False)
             if free_head >= len(joints):
                 self._jump(joints[-1], traj.duration, carried)
@@ -516,7 +464,7 @@ class SimCell(Cell):
         straight_up = bool(np.allclose(traj.tcp[0, :3, :3], traj.tcp[-1, :3, :3], atol=1e-6)
                            and np.linalg.norm(traj.tcp[-1, :2, 3] - traj.tcp[0, :2, 3]) < 1e-3
                            and traj.tcp[-1, 2, 3] > traj.tcp[0, 2, 3])
-        self._set_solver()
+        self._world.set_solver()
         target = self._yielded(traj, first)
         for i in range(first, n):
             if i >= last and i > first and self._may_jump(carried, on_trial, straight_up, i - first):
@@ -527,7 +475,7 @@ class SimCell(Cell):
             for sub in range(CONTROL_SUBSTEPS):
                 a = (sub + 1) / CONTROL_SUBSTEPS
                 self._robot.command_arm(target * (1 - a) + nxt * a, vel)
-                self._step(1)
+                self._world.step(1)
                 if stop_force > 0.0 and sub % 2 == 1 and self._met_resistance(stop_force):
                     self._hold_still()
                     return True
@@ -547,7 +495,7 @@ class SimCell(Cell):
         for _ in range(10):
             if np.max(np.abs(self._robot.joints() - end)) < 2e-4:
                 break
-            self._step(2)
+            self._world.step(2)
         return False
 
     def _met_resistance(self, stop_force: float) -> bool:
@@ -560,7 +508,7 @@ class SimCell(Cell):
     def _hold_still(self) -> None:
         """Stop the arm where it is, as a controller's stopL does, and let it settle."""
         self._robot.command_arm(self._robot.joints())
-        self._step(8)
+        self._world.step(8)
 
     def _yielded(self, traj: motion.Trajectory, i: int) -> np.ndarray:
         """Joint target of tick ``i``, raised by the give of a compliant press (see ``_press_yield``)."""
@@ -581,28 +529,28 @@ class SimCell(Cell):
                     or not on_trial <= self._contacts.between_pads()):
                 return False
             self._carry_tried |= on_trial
-        return not self._contacts.touching(carried) and not self._stability.moving(exclude=carried)
+        return not self._contacts.touching(carried) and not self._world.stability.moving(exclude=carried)
 
     def _run_gripper(self, width: float, force: float) -> None:
         opening = width > self._robot.finger_target_width() + 1e-4 or width > self._robot.width() + 1e-3
-        if opening and self._held:
+        if opening and self._world.held:
             self._release_held()
         self._carry_tried.clear()
         if not self._in_gripper() and not self._contacts.touching(set()) and free_space.clear(
                 self._tcp()[None, :3, 3], free_space.GRIPPER_HALF_SIZE, 0.0,
-                free_space.obstacles(self._client, self._objects, set())):
+                free_space.obstacles(self._client, self._world.objects, set())):
             # nothing within reach of the fingers: set them without stepping the physics
             travel = abs(width - self._robot.width()) / 2.0
             self._robot.set_fingers(width, force)
-            self._sim_time += travel / FINGER_SPEED
+            self._world.sim_time += travel / FINGER_SPEED
             return
         self._robot.command_gripper(width, force)
         closing = width < self._robot.width() - 1e-3
         steps = int(GRIPPER_TIMEOUT / self._dt)
         for k in range(0, steps, 4):
             # the costly solver only once a closing pad touches something (free travel needs none)
-            self._set_solver(squeeze=closing and self._contacts.pads_touch())
-            self._step(4)
+            self._world.set_solver(squeeze=closing and self._contacts.pads_touch())
+            self._world.step(4)
             if k >= 12 and self._robot.finger_speed() < 2e-3:
                 break
 
@@ -617,27 +565,18 @@ class SimCell(Cell):
             still = still + 1 if self._robot.finger_speed() < 2e-3 else 0
             if still >= 2:
                 return
-            self._step(4)
-
-    def _set_solver(self, squeeze: bool | None = None) -> None:
-        """More solver iterations only while the fingers press on something (costly otherwise)."""
-        if squeeze is None:
-            squeeze = self._robot.finger_target_width() < self._robot.width() - 2e-3
-        iterations = GRIP_SOLVER_ITERATIONS if squeeze else SOLVER_ITERATIONS
-        if iterations != self._iterations:
-            p.setPhysicsEngineParameter(numSolverIterations=iterations, physicsClientId=self._client)
-            self._iterations = iterations
+            self._world.step(4)
 
     def _release_held(self) -> None:
         """Opening the gripper on a held object hands it out of the cell (carried out)."""
-        for body in list(self._held):
-            if body in self._objects:
-                self._remove(body, "grasped_out")
-        self._held.clear()
+        for body in list(self._world.held):
+            if body in self._world.objects:
+                self._world.remove(body, "grasped_out")
+        self._world.held.clear()
 
     def _note_held(self) -> None:
         """What the width measurement found in the gripper is held (see ``GripperContacts.held``)."""
-        self._held = self._contacts.held()
+        self._world.held = self._contacts.held()
 
     def _go_home(self) -> None:
         gr = self.config.gripper
@@ -645,7 +584,7 @@ class SimCell(Cell):
             self._run_gripper(gr.open_width, gr.force)
             pose = self._tcp()
             up = pose.copy()
-            up[2, 3] = max(pose[2, 3], self._ws.z[0] + self.config.robot.lift_height)
+            up[2, 3] = max(pose[2, 3], self.config.workspace.z[0] + self.config.robot.lift_height)
             tick = CONTROL_SUBSTEPS * self._dt
             rb = self.config.robot
             first = motion.plan_line(self._robot.joints(), pose, up, rb.speed, rb.acceleration, tick, self._tcp_offset)
@@ -655,73 +594,31 @@ class SimCell(Cell):
             self._run_line(second)
         except (motion.Unreachable, _Unstable, _CollisionStop):
             self._robot.teleport(self._home_joints, gr.open_width)
-        self._held.clear()
-        self._remove_outside()
-
-    # -- objects
-    def _add(self, spec: objects.ObjectSpec) -> int:
-        obj = objects.spawn(self._client, spec)
-        scale = self.config.sim.object_mass_scale
-        if scale != 1.0:
-            for link in range(-1, p.getNumJoints(obj.body, physicsClientId=self._client)):
-                mass = p.getDynamicsInfo(obj.body, link, physicsClientId=self._client)[0]
-                p.changeDynamics(obj.body, link, mass=mass * scale, physicsClientId=self._client)
-        p.changeDynamics(obj.body, -1, activationState=p.ACTIVATION_STATE_ENABLE_SLEEPING,
-                         sleepThreshold=SLEEP_MOTION, physicsClientId=self._client)
-        self._objects[obj.body] = obj
-        return obj.body
-
-    def _remove(self, body: int, reason: str) -> None:
-        self._stability.wake_near(body)
-        p.removeBody(body, physicsClientId=self._client)
-        self._objects.pop(body, None)
-        self._stability.forget(body)
-        self._held.discard(body)
-        self.stats[reason] += 1
-
-    def _clear_objects(self) -> None:
-        for body in list(self._objects):
-            p.removeBody(body, physicsClientId=self._client)
-        self._objects.clear()
-        self._stability.reset()
-        self._held.clear()
-        if self._client is not None:
-            self._set_solver(squeeze=False)   # a scene reset mid-squeeze must not drop the next pile at 150
-            self._robot.teleport(self._home_joints, self.config.gripper.open_width)
-
-    def _remove_outside(self) -> None:
-        ws = self._ws
-        for body in list(self._objects):
-            pos, _ = p.getBasePositionAndOrientation(body, physicsClientId=self._client)
-            inside = ws.x[0] <= pos[0] <= ws.x[1] and ws.y[0] <= pos[1] <= ws.y[1] and pos[2] > ws.z[0] - FALLEN_DEPTH
-            if not inside:
-                self._remove_lost(body)
-
-    def _remove_lost(self, body: int) -> None:
-        """An object out of the cell: carried out when held, else it left the workspace."""
-        self._remove(body, "grasped_out" if body in self._held else "left_workspace")
+        self._world.held.clear()
+        self._world.remove_outside()
 
     def make_packed(self, groups: int | None = None) -> int:
         """Replace the objects by a packed arrangement (sim_cell.packed): rows of blocks laid flush.
         Returns the count."""
         with self._lock:
             self._check_open()
-            return scene_maker.make_packed(self, groups)
+            self.scene_kind = scene_maker.make_packed(self._world, self._randomiser, groups, self._object_count)
+            return len(self._world.objects)
 
     def make_clutter(self, n: int, spread: float | None = None) -> int:
         """Replace the objects by ``n`` random ones dropped within +-``spread`` m of the workspace
         centre (None = the whole workspace); a small spread piles them up.  Returns the count."""
         with self._lock:
             self._check_open()
-            return scene_maker.make_clutter(self, n, spread)
+            self.scene_kind = scene_maker.make_clutter(self._world, self._randomiser, n, spread)
+            return len(self._world.objects)
 
+    # -- the world, as execute uses it
     def _settle_until_still(self, limit: float) -> None:
-        """Step in 0.1 s chunks until no object moves, for at most ``limit`` s."""
-        chunk = int(round(0.1 / self._dt))
-        waited = 0.0
-        while waited < limit and self._stability.moving():
-            self._step(chunk)
-            waited += 0.1
+        self._world.settle_until_still(limit)
+
+    def _remove_outside(self) -> None:
+        self._world.remove_outside()
 
 
 class _CollisionStop(Exception):

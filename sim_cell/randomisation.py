@@ -22,17 +22,19 @@ _PALETTE = np.array([[78, 121, 167], [89, 161, 79], [156, 117, 95], [242, 142, 4
 
 
 class Randomiser:
-    """Draws the random parts of a cell's scenes from ``rng`` (the cell's scene generator)."""
+    """Draws the random parts of a cell's scenes from ``rng`` (the cell's scene generator); ``light`` is
+    the scene's light, as last drawn."""
 
     def __init__(self, config: CellConfig, rng: np.random.Generator, client: int):
         self.rng = rng
+        self.light: Light = ((0.3, -0.2, 1.0), 0.6, 0.4)   # what the camera renders with
         self._config = config
         self._client = client
         self._object_groups = objects.resolve_object_groups(config.sim.object_set)
         self._natural_extents: dict[str, tuple[float, float, float]] = {}
 
-    def randomise_domain(self, table: int, light: Light) -> Light:
-        """A new table shade and friction, and the light to render with (``light`` when not randomised)."""
+    def randomise_domain(self, table: int) -> None:
+        """A new table shade and friction, and a new ``light`` (nothing changes when not randomised)."""
         rng, sim = self.rng, self._config.sim
         if sim.domain_randomization:
             shade = rng.uniform(*sim.table_shade)
@@ -42,8 +44,7 @@ class Randomiser:
             p.changeDynamics(table, -1, lateralFriction=float(rng.uniform(0.4, 0.8)),
                              physicsClientId=self._client)
             direction = (float(rng.uniform(-0.5, 0.5)), float(rng.uniform(-0.5, 0.5)), 1.0)
-            light = (direction, float(rng.uniform(*sim.light_ambient)), float(rng.uniform(*sim.light_diffuse)))
-        return light
+            self.light = (direction, float(rng.uniform(*sim.light_ambient)), float(rng.uniform(*sim.light_diffuse)))
 
     def random_spec(self) -> objects.ObjectSpec:
         """One random object of ``sim.object_set`` (pose still to be chosen)."""

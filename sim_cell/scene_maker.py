@@ -1,25 +1,23 @@
 """Scene making for the simulated cell: random drops (VPG-style), packed rows, scene files.
 
-Each function lays out the objects of one ``SimCell``, under its lock, through the cell's own world
-operations (clear, add, step, settle, remove what left the workspace), which stay with the cell because
-plan execution uses them too.  The random parts come from the cell's ``Randomiser`` and its scene
-generator, drawn in a fixed order, so that a seed gives the same scenes.
+Each function lays out the objects of one cell's ``World`` (clearing it first); the random parts
+come from the cell's ``Randomiser`` and its scene generator, drawn in a fixed order, so that a seed
+gives the same scenes.  The functions return the scene's kind for the logs ("random 20", "packed 9",
+"scene pile-20-a (20)").
 """
 
 from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 import pybullet as p
 
 from sim_cell import objects, packed, scenes
+from sim_cell.randomisation import Randomiser
 from sim_cell.stability import Unstable
-
-if TYPE_CHECKING:
-    from sim_cell.cell import SimCell
+from sim_cell.world import World
 
 PRESET_DIR = Path(__file__).resolve().parent / "scenes"
 DROP_MARGIN = 0.05          # m inside the workspace edge where random objects are dropped
@@ -34,101 +32,99 @@ def preset_scenes() -> list[Path]:
     return sorted(PRESET_DIR.glob("*.yaml"))
 
 
-def make_packed(cell: SimCell, groups: int | None) -> int:
-    """Replace ``cell``'s objects by a packed arrangement (see ``SimCell.make_packed``); returns the count."""
-    cell._clear_objects()
-    _randomise_domain(cell)
-    ws = cell._ws
-    scene = packed.packed_scene(cell._randomiser.rng, (ws.x[1] - ws.x[0]) / 2, (ws.y[1] - ws.y[0]) / 2,
-                                DROP_MARGIN - 0.02, cell._randomiser.block_spec, groups)
+def make_packed(world: World, randomiser: Randomiser, groups: int | None, fallback_count: int) -> str:
+    """A packed arrangement (sim_cell.packed): rows of blocks laid flush; one that is unstable
+    gives way to ``fallback_count`` dropped objects."""
+    world.clear()
+    randomiser.randomise_domain(world.table)
+    ws = world.ws
+    scene = packed.packed_scene(randomiser.rng, (ws.x[1] - ws.x[0]) / 2, (ws.y[1] - ws.y[0]) / 2,
+                                DROP_MARGIN - 0.02, randomiser.block_spec, groups)
     origin = scenes.workspace_origin(ws)
     packed_ok = True
     try:
         for spec in scene.objects:
-            cell._add(spec.moved(np.asarray(spec.position) + origin, spec.orientation))
-        cell._settle(0.25)
-    except Unstable:   # counted by _settle; a dropped scene instead, as reset_scene would
-        cell._clear_objects()
-        drop_random_objects(cell, cell._object_count)
+            world.add(spec.moved(np.asarray(spec.position) + origin, spec.orientation))
+        world.settle(0.25)
+    except Unstable:   # counted by settle; a dropped scene instead, as reset_scene would
+        world.clear()
+        drop_random_objects(world, randomiser, fallback_count)
         packed_ok = False
-    cell._remove_outside()
-    cell.stats["scenes"] += 1
-    cell.scene_kind = f"packed {len(cell._objects)}" if packed_ok else f"random {cell._object_count}"
-    return len(cell._objects)
+    world.remove_outside()
+    world.stats["scenes"] += 1
+    return f"packed {len(world.objects)}" if packed_ok else f"random {fallback_count}"
 
 
-def make_clutter(cell: SimCell, n: int, spread: float | None) -> int:
-    """Replace ``cell``'s objects by ``n`` dropped ones (see ``SimCell.make_clutter``); returns the count."""
-    cell._clear_objects()
-    _randomise_domain(cell)
-    drop_random_objects(cell, n, spread)
-    cell.stats["scenes"] += 1
-    cell.scene_kind = f"random {n}"
-    return len(cell._objects)
+def make_clutter(world: World, randomiser: Randomiser, n: int, spread: float | None) -> str:
+    """``n`` random objects dropped within +-``spread`` m of the workspace centre (None = anywhere)."""
+    world.clear()
+    randomiser.randomise_domain(world.table)
+    drop_random_objects(world, randomiser, n, spread)
+    world.stats["scenes"] += 1
+    return f"random {n}"
 
 
-def _randomise_domain(cell: SimCell) -> None:
-    cell._light = cell._randomiser.randomise_domain(cell._table, cell._light)
-
-
-def drop_random_objects(cell: SimCell, n: int, spread: float | None = None) -> None:
+def drop_random_objects(world: World, randomiser: Randomiser, n: int, spread: float | None = None) -> None:
     """Drop ``n`` objects one after another at random places, VPG-style, and let them settle."""
-    rng, ws = cell._randomiser.rng, cell._ws
+    rng, ws = randomiser.rng, world.ws
     centre = scenes.workspace_origin(ws)
     attempts = 0
-    while len(cell._objects) < n and attempts < 3:
+    while len(world.objects) < n and attempts < 3:
         attempts += 1
-        for _ in range(n - len(cell._objects)):
-            spec = cell._randomiser.random_spec()
+        for _ in range(n - len(world.objects)):
+            spec = randomiser.random_spec()
             if spread is None:
                 x = rng.uniform(ws.x[0] + DROP_MARGIN, ws.x[1] - DROP_MARGIN)
                 y = rng.uniform(ws.y[0] + DROP_MARGIN, ws.y[1] - DROP_MARGIN)
             else:
                 x = centre[0] + rng.uniform(-spread, spread)
                 y = centre[1] + rng.uniform(-spread, spread)
-            top = max([ws.z[0]] + [objects.body_aabb(b, cell._client)[1][2] for b in cell._objects])
+            top = max([ws.z[0]] + [objects.body_aabb(b, world.client)[1][2] for b in world.objects])
             z = top + 0.06
             q = p.getQuaternionFromEuler([float(v) for v in rng.uniform(-math.pi, math.pi, 3)])
-            cell._add(spec.moved((x, y, z), q))
-            cell._step(int(0.12 / cell._dt))
+            world.add(spec.moved((x, y, z), q))
+            world.step(int(0.12 / world.dt))
         try:
-            cell._step(int(0.5 / cell._dt))
-            cell._settle_until_still(MAX_EXTRA_SETTLE)
+            world.step(int(0.5 / world.dt))
+            world.settle_until_still(MAX_EXTRA_SETTLE)
         except Unstable:
-            cell.stats["unstable_resets"] += 1
-            cell._clear_objects()
+            world.stats["unstable_resets"] += 1
+            world.clear()
             continue
-        cell._remove_outside()
+        world.remove_outside()
 
 
-def load_scene(cell: SimCell, scene: str | Path | scenes.Scene, vpg_meshes: str | Path | None) -> int:
-    """Replace ``cell``'s objects by a scene (see ``SimCell.load_scene``); returns the number placed."""
-    if not isinstance(scene, scenes.Scene):
-        path = Path(scene)
-        if not path.exists() and (PRESET_DIR / path).exists():
-            path = PRESET_DIR / path
-        scene = scenes.load_scene(path, vpg_meshes)
-    cell._clear_objects()
-    origin = scenes.workspace_origin(cell._ws)
+def read_scene(scene: str | Path | scenes.Scene, vpg_meshes: str | Path | None) -> scenes.Scene:
+    """A Scene, a scene YAML file, or a VPG test case .txt; relative names are looked up in sim_cell/scenes/ too."""
+    if isinstance(scene, scenes.Scene):
+        return scene
+    path = Path(scene)
+    if not path.exists() and (PRESET_DIR / path).exists():
+        path = PRESET_DIR / path
+    return scenes.load_scene(path, vpg_meshes)
+
+
+def place_scene(world: World, scene: scenes.Scene) -> str:
+    """The objects of ``scene`` at their poses; raises SceneError (and leaves no objects) when they do not fit."""
+    world.clear()
+    origin = scenes.workspace_origin(world.ws)
     try:
         for spec in scene.objects:
             placed = spec.moved(np.asarray(spec.position) + origin, spec.orientation)
-            cell._add(placed)
-        cell._settle(0.25)
+            world.add(placed)
+        world.settle(0.25)
     except (Unstable, ValueError) as exc:
-        cell._clear_objects()
-        cell.scene_kind = "none"
+        world.clear()
         raise scenes.SceneError(f"scene {scene.source or '<in memory>'}: {exc}") from None
-    cell.stats["scenes"] += 1
-    cell.scene_kind = f"scene {Path(scene.source).stem if scene.source else '<in memory>'} ({len(cell._objects)})"
-    return len(cell._objects)
+    world.stats["scenes"] += 1
+    return f"scene {Path(scene.source).stem if scene.source else '<in memory>'} ({len(world.objects)})"
 
 
-def current_scene(cell: SimCell) -> scenes.Scene:
-    """``cell``'s objects and their poses as a scene (workspace frame)."""
-    origin = scenes.workspace_origin(cell._ws)
+def current_scene(world: World) -> scenes.Scene:
+    """The world's objects and their poses as a scene (workspace frame)."""
+    origin = scenes.workspace_origin(world.ws)
     out = []
-    for obj in cell._objects.values():
-        pos, orn = p.getBasePositionAndOrientation(obj.body, physicsClientId=cell._client)
+    for obj in world.objects.values():
+        pos, orn = p.getBasePositionAndOrientation(obj.body, physicsClientId=world.client)
         out.append(obj.spec.moved(np.asarray(pos) - origin, orn))
     return scenes.Scene(objects=tuple(out))

@@ -43,8 +43,8 @@ def cube_at(cell: SimCell, x: float, y: float, size=(0.06, 0.03, 0.03), yaw: flo
 def wake(cell: SimCell, body: int) -> None:
     """Wake a body before poking its state with raw pybullet calls: a sleeping body ignores them
     (its island zeroes a velocity set by hand); the wake takes effect after one physics step."""
-    cell._stability.wake(body)
-    cell._step(1)
+    cell._world.stability.wake(body)
+    cell._world.step(1)
 
 
 def state(cell: SimCell, body: int):
@@ -256,7 +256,7 @@ def test_a_momentary_deep_contact_is_tolerated_a_lasting_one_is_unstable(empty_c
     def deep_check_with(dip: float) -> None:
         p.resetBasePositionAndOrientation(body, (pos[0], pos[1], pos[2] - dip), orn, physicsClientId=c)
         p.performCollisionDetection(physicsClientId=c)
-        empty_cell._check_stable(deep=True)
+        empty_cell._world.check_stable(deep=True)
 
     deep_check_with(0.02)
     deep_check_with(0.02)
@@ -399,7 +399,7 @@ def test_the_width_is_read_once_the_fingers_have_stopped(empty_cell):
     robot = empty_cell._robot
     robot.set_fingers(0.085, 40.0)
     robot.command_gripper(0.0, 40.0)
-    empty_cell._step(4)
+    empty_cell._world.step(4)
     assert robot.finger_speed() > 2e-3 and robot.width() > 0.03  # mid-stroke
     empty_cell._fingers_at_rest()
     assert robot.finger_speed() < 2e-3

@@ -134,10 +134,10 @@ def test_defaults_draw_the_training_cell_as_before():
     with SimCell(make_config(objects=4, seed=11)) as cell:
         states = cell.object_states()
         assert np.allclose(cell._true_camera.pose, cell._camera.pose)
-        table = p.getVisualShapeData(cell._table, physicsClientId=cell._client)[0][7]
+        table = p.getVisualShapeData(cell._world.table, physicsClientId=cell._client)[0][7]
         assert np.allclose(table[:3], (0.5956, 0.5783, 0.5346), atol=2e-4)
-        assert p.getDynamicsInfo(cell._table, -1, physicsClientId=cell._client)[1] == pytest.approx(0.6803, abs=2e-4)
-        direction, ambient, diffuse = cell._light
+        assert p.getDynamicsInfo(cell._world.table, -1, physicsClientId=cell._client)[1] == pytest.approx(0.6803, abs=2e-4)
+        direction, ambient, diffuse = cell._randomiser.light
         assert np.allclose(direction, (-0.1976, -0.4486, 1.0), atol=2e-4)
         assert (ambient, diffuse) == (pytest.approx(0.7335, abs=2e-4), pytest.approx(0.336, abs=2e-4))
         assert len(states) == len(before)

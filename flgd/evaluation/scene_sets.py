@@ -180,7 +180,7 @@ def _urdf_file(name: str) -> Path:
 
 
 # The simulator removes an object whose centre is below this height (workspace frame, m) as having
-# fallen off the table (sim_cell.cell's _remove_outside: z > table - 0.05).
+# fallen off the table (sim_cell.world's remove_outside: z > table - 0.05).
 _LOWEST_Z = -0.05
 
 
