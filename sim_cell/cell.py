@@ -84,7 +84,7 @@ import pybullet as p
 
 from flgd.cell import Cell, CellFault, ContactStop, ExecutionResult, Frame
 from flgd.config import CellConfig
-from flgd.geometry import ToolPose
+from flgd.geometry import ToolPose, pose_matrix
 from flgd.plans import GripperCommand, MeasureWidth, MoveL
 from flgd.safety import CheckedPlan
 from sim_cell import camera as simcam
@@ -121,9 +121,9 @@ class SimCell(Cell):
         self._tcp_offset = off
         self._dt = config.sim.time_step
         home = config.robot.home
-        self._home_pose = ToolPose.top_down(*home.position, home.yaw)
-        q = kinematics.nearest_solution(
-            kinematics.inverse(motion.tcp_to_flange(self._pose_matrix(self._home_pose), off)), READY_JOINTS)
+        home_pose = ToolPose.top_down(*home.position, home.yaw)
+        self._home_tcp = pose_matrix(home_pose.position, home_pose.matrix)
+        q = kinematics.nearest_solution(kinematics.inverse(motion.tcp_to_flange(self._home_tcp, off)), READY_JOINTS)
         if q is None:
             raise ValueError(f"{config.source}: robot.home: {list(home.position)!r} is out of the UR5e's reach")
         self._home_joints = q
@@ -383,31 +383,13 @@ class SimCell(Cell):
         if self._world.client is None:
             raise CellFault("the simulated cell is closed")
 
-    @staticmethod
-    def _pose_matrix(pose: ToolPose) -> np.ndarray:
-        t = np.eye(4)
-        t[:3, :3] = pose.matrix
-        t[:3, 3] = pose.position
-        return t
-
     def _tcp(self) -> np.ndarray:
         return self._robot.tcp_pose(self._tcp_offset)
 
     def _plan_lines(self, steps, first: int = 0) -> dict[int, motion.Trajectory]:
         """IK for every MoveL of the plan (from step ``first``) before anything moves."""
-        q, pose = self._robot.joints(), self._tcp()
-        out = {}
-        tick = CONTROL_SUBSTEPS * self._dt
-        for i, step in enumerate(steps):
-            if i >= first and isinstance(step, MoveL):
-                goal = self._pose_matrix(step.pose)
-                try:
-                    traj = motion.plan_line(q, pose, goal, step.speed, step.acceleration, tick, self._tcp_offset)
-                except motion.Unreachable as exc:
-                    raise motion.Unreachable(f"step {i} ({step.label or 'move'}): {exc}") from None
-                out[i] = traj
-                q, pose = traj.joints[-1], goal
-        return out
+        return motion.plan_lines(steps, self._robot.joints(), self._tcp(), CONTROL_SUBSTEPS * self._dt,
+                                 self._tcp_offset, first)
 
     # -- motions
     def _in_gripper(self) -> set[int]:
@@ -512,13 +494,7 @@ class SimCell(Cell):
 
     def _yielded(self, traj: motion.Trajectory, i: int) -> np.ndarray:
         """Joint target of tick ``i``, raised by the give of a compliant press (see ``_press_yield``)."""
-        if self._press_yield <= 0.0:
-            return traj.joints[i]
-        pose = traj.tcp[i].copy()
-        pose[2, 3] += self._press_yield
-        q = kinematics.nearest_solution(kinematics.inverse(motion.tcp_to_flange(pose, self._tcp_offset)),
-                                        traj.joints[i])
-        return traj.joints[i] if q is None else q
+        return motion.raised_joints(traj, i, self._press_yield, self._tcp_offset)
 
     def _may_jump(self, carried: set[int], on_trial: set[int], straight_up: bool, simulated_ticks: int) -> bool:
         """Whether the rest of a line (already known to be clear of obstacles) may be a jump: the
@@ -588,7 +564,7 @@ class SimCell(Cell):
             tick = CONTROL_SUBSTEPS * self._dt
             rb = self.config.robot
             first = motion.plan_line(self._robot.joints(), pose, up, rb.speed, rb.acceleration, tick, self._tcp_offset)
-            second = motion.plan_line(first.joints[-1], up, self._pose_matrix(self._home_pose), rb.speed,
+            second = motion.plan_line(first.joints[-1], up, self._home_tcp, rb.speed,
                                       rb.acceleration, tick, self._tcp_offset)
             self._run_line(first)
             self._run_line(second)

@@ -15,11 +15,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from flgd.geometry import matrix_to_rotvec
+from flgd.geometry import matrix_to_rotvec, pose_matrix
+from flgd.plans import MoveL
 from sim_cell import kinematics
 
-__all__ = ["Trajectory", "Unreachable", "trapezoid_duration", "trapezoid_fraction", "plan_line",
-           "tcp_to_flange", "flange_to_tcp"]
+__all__ = ["Trajectory", "Unreachable", "trapezoid_duration", "trapezoid_fraction", "plan_line", "plan_lines",
+           "raised_joints", "tcp_to_flange", "flange_to_tcp"]
 
 # Tool rotation rate used to time moves that mostly turn the wrist (UR's default tool speed is
 # given per translation only; a real moveL still takes time to turn).
@@ -146,6 +147,33 @@ def plan_line(q_start: np.ndarray, start: np.ndarray, goal: np.ndarray, speed: f
             raise Unreachable(f"the straight line passes a singularity near {where} "
                               f"(joint jump {steps[i]:.2f} rad in one tick)")
     return Trajectory(joints=joints, tcp=poses, tick=tick)
+
+
+def plan_lines(steps, q: np.ndarray, pose: np.ndarray, tick: float, tcp_offset: np.ndarray,
+               first: int = 0) -> dict[int, Trajectory]:
+    """Every MoveL of a plan (from step ``first``) as a line, starting at joints ``q`` and TCP ``pose``,
+    keyed by step index; raises Unreachable naming the step."""
+    out = {}
+    for i, step in enumerate(steps):
+        if i >= first and isinstance(step, MoveL):
+            goal = pose_matrix(step.pose.position, step.pose.matrix)
+            try:
+                traj = plan_line(q, pose, goal, step.speed, step.acceleration, tick, tcp_offset)
+            except Unreachable as exc:
+                raise Unreachable(f"step {i} ({step.label or 'move'}): {exc}") from None
+            out[i] = traj
+            q, pose = traj.joints[-1], goal
+    return out
+
+
+def raised_joints(traj: Trajectory, i: int, rise: float, tcp_offset: np.ndarray) -> np.ndarray:
+    """Joints of tick ``i`` with the TCP ``rise`` m higher (tick ``i``'s own where that has no IK solution)."""
+    if rise <= 0.0:
+        return traj.joints[i]
+    pose = traj.tcp[i].copy()
+    pose[2, 3] += rise
+    q = kinematics.nearest_solution(kinematics.inverse(tcp_to_flange(pose, tcp_offset)), traj.joints[i])
+    return traj.joints[i] if q is None else q
 
 
 def _rotations(rel: np.ndarray, frac: np.ndarray) -> np.ndarray:
