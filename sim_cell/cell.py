@@ -313,6 +313,22 @@ class SimCell(Cell):
             raise ValueError(f"object count: got {n!r}, expected an integer 0..60")
         self._object_count = n
 
+    def make_packed(self, groups: int | None = None) -> int:
+        """Replace the objects by a packed arrangement (sim_cell.packed): rows of blocks laid flush.
+        Returns the count."""
+        with self._lock:
+            self._check_open()
+            self.scene_kind = scene_maker.make_packed(self._world, self._randomiser, groups, self._object_count)
+            return len(self._world.objects)
+
+    def make_clutter(self, n: int, spread: float | None = None) -> int:
+        """Replace the objects by ``n`` random ones dropped within +-``spread`` m of the workspace
+        centre (None = the whole workspace); a small spread piles them up.  Returns the count."""
+        with self._lock:
+            self._check_open()
+            self.scene_kind = scene_maker.make_clutter(self._world, self._randomiser, n, spread)
+            return len(self._world.objects)
+
     def load_scene(self, scene: "str | Path | scenes.Scene", vpg_meshes: str | Path | None = None) -> int:
         """Replace the objects by a scene (a Scene, a scene YAML file, or a VPG test case .txt);
         returns the number of objects placed.  Relative names are looked up in sim_cell/scenes/ too."""
@@ -572,22 +588,6 @@ class SimCell(Cell):
             self._robot.teleport(self._home_joints, gr.open_width)
         self._world.held.clear()
         self._world.remove_outside()
-
-    def make_packed(self, groups: int | None = None) -> int:
-        """Replace the objects by a packed arrangement (sim_cell.packed): rows of blocks laid flush.
-        Returns the count."""
-        with self._lock:
-            self._check_open()
-            self.scene_kind = scene_maker.make_packed(self._world, self._randomiser, groups, self._object_count)
-            return len(self._world.objects)
-
-    def make_clutter(self, n: int, spread: float | None = None) -> int:
-        """Replace the objects by ``n`` random ones dropped within +-``spread`` m of the workspace
-        centre (None = the whole workspace); a small spread piles them up.  Returns the count."""
-        with self._lock:
-            self._check_open()
-            self.scene_kind = scene_maker.make_clutter(self._world, self._randomiser, n, spread)
-            return len(self._world.objects)
 
     # -- the world, as execute uses it
     def _settle_until_still(self, limit: float) -> None:
