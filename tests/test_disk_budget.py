@@ -25,7 +25,7 @@ from flgd.learning.replay import Transition
 from flgd.store import Store, StoreError
 
 from tests.fakes.daemon import write_config
-from tests.test_store import _hm, _row
+from tests.fakes.store_rows import action_row, random_heightmaps
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
@@ -131,10 +131,10 @@ def test_the_store_stays_under_max_bytes_by_evicting_the_oldest_transitions(tmp_
     budget = 2 << 20
     store = Store(tmp_path, max_bytes=budget)
     n = 300  # ~12.5 KB per state: about twice the budget in all
-    states = [_hm(i, shape=(64, 64)) for i in range(n + 1)]
+    states = [random_heightmaps(i, shape=(64, 64)) for i in range(n + 1)]
     largest = 0
     for i in range(n):
-        store.commit_cycle(_row(i), Transition(states[i], Action("push", 1, 2, 3), 0.5, states[i + 1], False))
+        store.commit_cycle(action_row(i), Transition(states[i], Action("push", 1, 2, 3), 0.5, states[i + 1], False))
         largest = max(largest, store.file_bytes())
     assert largest <= budget, f"the store's files reached {largest} bytes, over the budget of {budget}"
     kept = [t.step for t in store.iter_transitions()]
@@ -152,7 +152,7 @@ def test_old_action_log_rows_go_except_the_newest_and_those_the_gate_tallies(tmp
     old, now = time.time() - 400 * disk_budget.DAY, time.time()
     store = Store(tmp_path)
     for i in range(50):
-        store.commit_cycle(_row(i, time=old if i < 40 else now), None)
+        store.commit_cycle(action_row(i, time=old if i < 40 else now), None)
     store.transaction(lambda db: db.execute(
         "INSERT INTO policies(created, role, file, sha256, origin, training_steps, since_step) "
         "VALUES(0, 'champion', 'gate/p1.safetensors', 'x', 'test', 0, 30)"))
@@ -164,7 +164,7 @@ def test_old_action_log_rows_go_except_the_newest_and_those_the_gate_tallies(tmp
     lone = tmp_path / "lone"
     store = Store(lone)
     for i in range(5):
-        store.commit_cycle(_row(i, time=old), None)
+        store.commit_cycle(action_row(i, time=old), None)
     store.close()
     store = Store(lone, action_log_days=365)
     assert [r["step"] for r in store.action_log()] == [4], "the newest row keeps the step counter"
@@ -180,7 +180,7 @@ def test_totals_of_stats_and_metrics_never_go_down_when_old_rows_are_deleted(tmp
              dict(primitive="push", kind="push", success=0), dict(primitive="shift", kind="shift", success=0),
              dict(outcome="refused", primitive="grasp", kind="grasp", success=None)]
     for i in range(60):
-        store.commit_cycle(_row(i, time=old if i < 45 else now, duration=0.5 + i % 3, **kinds[i % 5]), None)
+        store.commit_cycle(action_row(i, time=old if i < 45 else now, duration=0.5 + i % 3, **kinds[i % 5]), None)
     keys = ("cycles", "actions_executed", "plans_refused", "grasp_attempts", "grasp_successes", "moves",
             "picks_per_hour", "cycle_time_total")
     before = {k: compute_stats(store)[k] for k in keys}
@@ -254,10 +254,10 @@ def test_a_budget_the_log_alone_fills_is_said_once_as_an_event_and_in_flgctl_sta
     from flgd.ctl import _human
 
     store = Store(tmp_path, max_bytes=256 << 10)
-    tiny = [_hm(i, shape=(16, 20)) for i in range(2)]  # the replay is small; the log is what fills the budget
+    tiny = [random_heightmaps(i, shape=(16, 20)) for i in range(2)]  # the replay is small; the log is what fills the budget
 
     def cycle(step: int) -> None:
-        store.commit_cycle(_row(step), Transition(tiny[step % 2], Action("push", 1, 2, 3), 0.5, tiny[1 - step % 2],
+        store.commit_cycle(action_row(step), Transition(tiny[step % 2], Action("push", 1, 2, 3), 0.5, tiny[1 - step % 2],
                                                   False))
 
     for i in range(5000):

@@ -16,7 +16,7 @@ import pytest
 
 import flgd.gatekeeper as gatekeeper
 from flgd.gatekeeper import GateFileUnreadable
-from tests.test_gatekeeper import Cell, _config, _net, _same
+from tests.fakes.gate import GateCell, gate_config, make_network, same_weights
 
 
 @pytest.fixture(autouse=True)
@@ -75,19 +75,19 @@ class Denied:
         os.chmod(self.path, self.mode)
 
 
-def _roles(c: Cell) -> dict[int, str]:
+def _roles(c: GateCell) -> dict[int, str]:
     return dict(c.store.query("SELECT id, role FROM policies"))
 
 
-def _kinds(c: Cell) -> list[str]:
+def _kinds(c: GateCell) -> list[str]:
     return [e["kind"] for e in c.gate.history(1000)]
 
 
-def _line(c: Cell, length: int) -> list:
+def _line(c: GateCell, length: int) -> list:
     """Champions #1..#length, each promoted over the one before; their networks, in order."""
     nets = [c.configured]
     for k in range(2, length + 1):
-        nets.append(_net(100 + k))
+        nets.append(make_network(100 + k))
         c.hand_over(nets[-1])
         c.gate.promote(c.step, "uid 0 pid 1", "by hand")
     assert c.gate.champion.id == length
@@ -95,7 +95,7 @@ def _line(c: Cell, length: int) -> list:
 
 
 def test_a_champion_unreadable_across_a_restart_is_not_marked_and_acts_again_once_readable(tmp_path, monkeypatch):
-    c = Cell(tmp_path, _config())
+    c = GateCell(tmp_path, gate_config())
     nets = _line(c, 2)
     roles, kinds = _roles(c), _kinds(c)
     file = tmp_path / c.gate.champion.file
@@ -108,21 +108,21 @@ def test_a_champion_unreadable_across_a_restart_is_not_marked_and_acts_again_onc
     assert _roles(c) == roles and _kinds(c) == kinds and file.is_file()
     denied.allow()
     c.reopen()
-    assert c.gate.champion.id == 2 and _same(c.agent.network, nets[1]) and _kinds(c) == kinds
+    assert c.gate.champion.id == 2 and same_weights(c.agent.network, nets[1]) and _kinds(c) == kinds
 
 
 def test_a_read_refused_once_is_tried_again(tmp_path, monkeypatch):
-    c = Cell(tmp_path, _config())
+    c = GateCell(tmp_path, gate_config())
     nets = _line(c, 2)
     denied = Denied(monkeypatch, tmp_path / c.gate.champion.file, times=1)
     c.reopen()
-    assert c.gate.champion.id == 2 and _same(c.agent.network, nets[1])
+    assert c.gate.champion.id == 2 and same_weights(c.agent.network, nets[1])
     assert "unusable" not in _kinds(c) and denied.left == 0
 
 
 @pytest.mark.parametrize("what", ["the directory", "every file"])
 def test_the_whole_gate_directory_unreadable_once_keeps_the_line_and_its_rollbacks(tmp_path, monkeypatch, what):
-    c = Cell(tmp_path, _config())
+    c = GateCell(tmp_path, gate_config())
     nets = _line(c, 4)
     roles = _roles(c)
     gate = tmp_path / "gate"
@@ -134,15 +134,15 @@ def test_the_whole_gate_directory_unreadable_once_keeps_the_line_and_its_rollbac
     c.reopen()
     assert _roles(c) == roles == {1: "retired", 2: "retired", 3: "retired", 4: "champion"}
     assert all((tmp_path / f).is_file() for (f,) in c.store.query("SELECT file FROM policies"))
-    assert _same(c.agent.network, nets[3])
+    assert same_weights(c.agent.network, nets[3])
     for back_to in (3, 2, 1):
         c.gate.rollback(c.step, "uid 0 pid 1", "by hand")
-        assert c.gate.champion.id == back_to and _same(c.agent.network, nets[back_to - 1])
+        assert c.gate.champion.id == back_to and same_weights(c.agent.network, nets[back_to - 1])
 
 
 def test_an_unreadable_challenger_is_not_dropped(tmp_path, monkeypatch):
-    c = Cell(tmp_path, _config())
-    challenger = _net(30)
+    c = GateCell(tmp_path, gate_config())
+    challenger = make_network(30)
     c.hand_over(challenger)
     for k in range(6):
         c.act(2 if k % 2 else 1, True)
@@ -151,12 +151,12 @@ def test_an_unreadable_challenger_is_not_dropped(tmp_path, monkeypatch):
         c.reopen()
     denied.allow()
     c.reopen()
-    assert c.gate.challenger.id == 2 and _same(c.agent.challenger, challenger)
+    assert c.gate.challenger.id == 2 and same_weights(c.agent.challenger, challenger)
     assert c.gate.status()["challenger"]["tally"]["actions"] == 3 and "drop" not in _kinds(c)
 
 
 def test_a_missing_gate_directory_refuses_until_restored_and_an_empty_one_gives_the_line_up(tmp_path):
-    c = Cell(tmp_path, _config())
+    c = GateCell(tmp_path, gate_config())
     nets = _line(c, 2)
     roles, gate, kept = _roles(c), tmp_path / "gate", tmp_path / "gate.kept"
     gate.rename(kept)
@@ -165,17 +165,17 @@ def test_a_missing_gate_directory_refuses_until_restored_and_an_empty_one_gives_
     assert _roles(c) == roles
     kept.rename(gate)
     c.reopen()
-    assert c.gate.champion.id == 2 and _same(c.agent.network, nets[1])
+    assert c.gate.champion.id == 2 and same_weights(c.agent.network, nets[1])
     gate.rename(kept)
     gate.mkdir()  # the operator gives the stored policies up
-    c.configured = _net(31)
+    c.configured = make_network(31)
     c.reopen()
-    assert c.gate.champion.origin == "policy P" and _same(c.agent.network, c.configured)
+    assert c.gate.champion.origin == "policy P" and same_weights(c.agent.network, c.configured)
     assert _roles(c)[1] == _roles(c)[2] == "unusable"
 
 
 def test_another_network_variant_in_the_config_refuses_and_records_nothing(tmp_path):
-    c = Cell(tmp_path, _config())
+    c = GateCell(tmp_path, gate_config())
     roles = _roles(c)
     c.config = dataclasses.replace(c.config, learning=dataclasses.replace(c.config.learning, network="rho-fcn-fast"))
     with pytest.raises(gatekeeper.GateError, match="set learning.network back to 'fast'"):
@@ -191,12 +191,12 @@ def _corrupt(file: Path) -> bytes:
 
 
 def test_a_corrupted_champion_is_marked_unusable_and_moved_aside_with_what_to_do(tmp_path):
-    c = Cell(tmp_path, _config())
+    c = GateCell(tmp_path, gate_config())
     _line(c, 2)
     file = tmp_path / c.gate.champion.file
     corrupted = _corrupt(file)
     c.reopen()
-    assert c.gate.champion.id == 1 and _same(c.agent.network, c.configured) and _roles(c)[2] == "unusable"
+    assert c.gate.champion.id == 1 and same_weights(c.agent.network, c.configured) and _roles(c)[2] == "unusable"
     aside = list((tmp_path / "gate" / "unusable").iterdir())
     assert not file.exists() and len(aside) == 1 and aside[0].read_bytes() == corrupted
     assert c.store.query("SELECT file FROM policies WHERE id=2") == [(str(aside[0].relative_to(tmp_path)),)]
@@ -208,10 +208,10 @@ def test_a_corrupted_champion_is_marked_unusable_and_moved_aside_with_what_to_do
 
 def test_only_the_newest_unusable_files_are_kept(tmp_path, monkeypatch):
     monkeypatch.setattr(gatekeeper, "KEEP_UNUSABLE", 2)
-    c = Cell(tmp_path, _config())
+    c = GateCell(tmp_path, gate_config())
     corrupted = {}
     for k in range(4):
-        c.hand_over(_net(40 + k))
+        c.hand_over(make_network(40 + k))
         c.gate.promote(c.step, "uid 0 pid 1", "by hand")
         corrupted[c.gate.champion.id] = _corrupt(tmp_path / c.gate.champion.file)
         c.reopen()

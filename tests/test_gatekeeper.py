@@ -8,80 +8,18 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import time
-from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
-from flgd.config import CellConfig
-from flgd.cycle import CycleRecord
-from flgd.gatekeeper import GateError, Gatekeeper
+from flgd.gatekeeper import GateError
 from flgd.learning.agent import Agent
-from flgd.learning.networks import build_network
 from flgd.perception import Heightmaps
 from flgd.store import Store
+from tests.fakes.gate import GateCell, gate_config, make_network, same_weights
 
 N = 32
-
-
-def _config(**gate) -> CellConfig:
-    cfg = CellConfig()
-    base = dict(share=0.5, min_attempts=10, drop_min_attempts=10, max_attempts=200, rollback_min_attempts=10,
-                promote_confidence=0.95, drop_confidence=0.95, rollback_confidence=0.95)
-    base.update(gate)
-    return dataclasses.replace(cfg, gate=dataclasses.replace(cfg.gate, **base),
-                               learning=dataclasses.replace(cfg.learning, device="cpu"))
-
-
-def _net(seed: int):
-    return build_network("fast", rotations=16, seed=seed)
-
-
-def _same(a, b) -> bool:
-    sa, sb = a.state_dict(), b.state_dict()
-    return all(torch.equal(sa[k], sb[k]) for k in sa)
-
-
-class Cell:
-    """A gate on a store in ``tmp``, as the daemon builds it; ``reopen`` is a restart."""
-
-    def __init__(self, tmp: Path, config: CellConfig, configured=None):
-        self.tmp, self.config = tmp, config
-        self.configured = configured if configured is not None else _net(1)
-        self.step = 0
-        self.open()
-
-    def open(self) -> None:
-        self.store = Store(self.tmp)
-        self.agent = Agent(self.config, _net(99), seed=0)
-        self.gate = Gatekeeper(self.config, self.store, self.agent, self.tmp)
-        self.note = self.gate.restore(self.step, self._configured, self._fresh)
-
-    def _configured(self):
-        return None if self.configured is False else (self.configured, {"training_steps": 4000}, "policy P")
-
-    def _fresh(self):
-        return _net(7), {"training_steps": 0}, "fresh network"
-
-    def reopen(self) -> None:
-        self.store.close()
-        self.open()
-
-    def hand_over(self, network) -> None:
-        self.gate.handovers.post(network.state_dict(), version=100 + self.step)
-        assert self.gate.take_handover(self.step)
-
-    def act(self, policy: int | None, success: bool, primitive: str = "grasp", outcome: str = "executed"):
-        """One cycle credited to ``policy``: committed to the store, then shown to the gate (as the daemon does)."""
-        rec = CycleRecord(outcome=outcome, step=self.step, time=time.time(), backend="sim", kind=primitive,
-                          success=success if primitive == "grasp" else None, reward=float(success),
-                          policy=policy, rule="greedy")
-        rec.action = type("A", (), {"primitive": primitive, "row": 1, "col": 1, "rotation": 0})()
-        self.store.commit_cycle(rec.row(), None)
-        self.step += 1
-        return self.gate.after_cycle(rec)
 
 
 def _scene(seed: int) -> Heightmaps:
@@ -93,19 +31,19 @@ def _scene(seed: int) -> Heightmaps:
 
 
 def test_first_start_makes_the_configured_policy_the_champion_file(tmp_path):
-    c = Cell(tmp_path, _config())
+    c = GateCell(tmp_path, gate_config())
     ch = c.gate.champion
     assert ch.id == 1 and ch.origin == "policy P" and (tmp_path / ch.file).is_file()
-    assert _same(c.agent.network, c.configured)
+    assert same_weights(c.agent.network, c.configured)
     assert [e["kind"] for e in c.gate.history()] == ["initial"]
     assert c.agent.champion_id == 1 and c.agent.challenger is None
 
 
 def test_a_better_challenger_is_promoted_and_acts(tmp_path):
-    c = Cell(tmp_path, _config())
-    better = _net(2)
+    c = GateCell(tmp_path, gate_config())
+    better = make_network(2)
     c.hand_over(better)
-    assert c.gate.challenger.id == 2 and _same(c.agent.challenger, better)
+    assert c.gate.challenger.id == 2 and same_weights(c.agent.challenger, better)
     verdict = None
     for k in range(400):
         verdict = c.act(2, True) if k % 2 else c.act(1, k % 4 == 0)  # 100 % against 50 %
@@ -113,7 +51,7 @@ def test_a_better_challenger_is_promoted_and_acts(tmp_path):
             break
     assert verdict is not None and verdict.kind == "promote"
     assert c.gate.champion.id == 2 and c.gate.champion.predecessor == 1 and c.gate.challenger is None
-    assert _same(c.agent.network, better) and c.agent.challenger is None and c.agent.champion_id == 2
+    assert same_weights(c.agent.network, better) and c.agent.challenger is None and c.agent.champion_id == 2
     promote = c.gate.history()[-1]
     assert promote["kind"] == "promote" and promote["who"] == "gate"
     assert promote["evidence"]["challenger_tally"]["successes"] >= 10
@@ -122,8 +60,8 @@ def test_a_better_challenger_is_promoted_and_acts(tmp_path):
 
 
 def test_a_worse_challenger_is_dropped_and_never_acts_again(tmp_path):
-    c = Cell(tmp_path, _config())
-    c.hand_over(_net(3))
+    c = GateCell(tmp_path, gate_config())
+    c.hand_over(make_network(3))
     file = tmp_path / c.gate.challenger.file
     verdict = None
     for k in range(400):
@@ -134,15 +72,15 @@ def test_a_worse_challenger_is_dropped_and_never_acts_again(tmp_path):
     assert c.gate.challenger is None and c.agent.challenger is None and not file.exists()
     roles = {c.agent.decide(_scene(s), 10_000).role for s in range(30)}
     assert roles == {"champion"}
-    assert _same(c.agent.network, c.configured)
+    assert same_weights(c.agent.network, c.configured)
 
 
 def test_with_a_challenger_the_share_of_decisions_is_its_own_and_epsilon_is_credited_to_neither(tmp_path):
-    cfg = _config(share=0.5)
+    cfg = gate_config(share=0.5)
     cfg = dataclasses.replace(cfg, exploration=dataclasses.replace(cfg.exploration, epsilon_start=0.3,
                                                                    epsilon_end=0.3))
-    c = Cell(tmp_path, cfg)
-    c.hand_over(_net(4))
+    c = GateCell(tmp_path, cfg)
+    c.hand_over(make_network(4))
     decisions = [c.agent.decide(_scene(s), 0) for s in range(80)]
     by = {(d.role, d.policy_id) for d in decisions if d.rule != "epsilon"}
     assert by == {("champion", 1), ("challenger", 2)}
@@ -151,10 +89,10 @@ def test_with_a_challenger_the_share_of_decisions_is_its_own_and_epsilon_is_cred
 
 
 def test_a_promoted_champion_that_falls_below_its_predecessors_record_is_rolled_back(tmp_path):
-    c = Cell(tmp_path, _config())
+    c = GateCell(tmp_path, gate_config())
     for k in range(40):
         c.act(1, k % 5 != 0)  # the first champion's tenure: 80 %
-    c.hand_over(_net(5))
+    c.hand_over(make_network(5))
     for k in range(400):
         if c.act(2, True) if k % 2 else c.act(1, k % 5 != 0):
             break
@@ -165,14 +103,14 @@ def test_a_promoted_champion_that_falls_below_its_predecessors_record_is_rolled_
         if verdict is not None:
             break
     assert verdict is not None and verdict.kind == "rollback"
-    assert c.gate.champion.id == 1 and _same(c.agent.network, c.configured)
+    assert c.gate.champion.id == 1 and same_weights(c.agent.network, c.configured)
     assert c.store.query("SELECT role FROM policies WHERE id=2") == [("rolled_back",)]
     assert c.gate.history()[-1]["evidence"]["predecessor_record"]["actions"] >= 40
 
 
 def test_a_restart_acts_with_the_champion_and_keeps_the_tallies(tmp_path):
-    c = Cell(tmp_path, _config(min_attempts=150, max_attempts=200))
-    challenger = _net(6)
+    c = GateCell(tmp_path, gate_config(min_attempts=150, max_attempts=200))
+    challenger = make_network(6)
     c.hand_over(challenger)
     for k in range(30):
         c.act(2 if k % 3 == 0 else 1, k % 2 == 0)
@@ -185,19 +123,19 @@ def test_a_restart_acts_with_the_champion_and_keeps_the_tallies(tmp_path):
     assert after["challenger"]["tally"] == before["challenger"]["tally"]
     assert after["challenger"]["champion_during_test"] == before["challenger"]["champion_during_test"]
     assert after["challenger"]["tally"]["actions"] == 10 and after["champion"]["live"]["actions"] == 20
-    assert _same(c.agent.network, c.configured) and _same(c.agent.challenger, challenger)
+    assert same_weights(c.agent.network, c.configured) and same_weights(c.agent.challenger, challenger)
 
 
 def test_a_corrupt_champion_file_falls_back_to_its_predecessor_with_an_event(tmp_path):
-    c = Cell(tmp_path, _config())
-    c.hand_over(_net(8))
+    c = GateCell(tmp_path, gate_config())
+    c.hand_over(make_network(8))
     c.gate.promote(c.step, "uid 0 pid 1", "by hand")
     file = tmp_path / c.gate.champion.file
     blob = bytearray(file.read_bytes())
     blob[-10] ^= 0xFF
     file.write_bytes(bytes(blob))
     c.reopen()
-    assert c.gate.champion.id == 1 and _same(c.agent.network, c.configured)
+    assert c.gate.champion.id == 1 and same_weights(c.agent.network, c.configured)
     kinds = [(e["kind"], e["policy"]) for e in c.gate.history()]
     assert ("unusable", 2) in kinds and kinds[-1] == ("fallback", 1)
     unusable = [e for e in c.gate.history() if e["kind"] == "unusable"][0]
@@ -205,16 +143,16 @@ def test_a_corrupt_champion_file_falls_back_to_its_predecessor_with_an_event(tmp
 
 
 def test_a_missing_champion_without_predecessor_falls_back_to_the_configured_policy(tmp_path):
-    c = Cell(tmp_path, _config())
+    c = GateCell(tmp_path, gate_config())
     (tmp_path / c.gate.champion.file).unlink()
-    c.configured = _net(9)
+    c.configured = make_network(9)
     c.reopen()
-    assert c.gate.champion.id == 2 and c.gate.champion.origin == "policy P" and _same(c.agent.network, c.configured)
+    assert c.gate.champion.id == 2 and c.gate.champion.origin == "policy P" and same_weights(c.agent.network, c.configured)
     assert [e["kind"] for e in c.gate.history()][-2:] == ["unusable", "fallback"]
 
 
 def test_no_usable_champion_and_no_configured_policy_refuses_rather_than_act_fresh(tmp_path):
-    c = Cell(tmp_path, _config())
+    c = GateCell(tmp_path, gate_config())
     (tmp_path / c.gate.champion.file).unlink()
     c.configured = False
     with pytest.raises(GateError, match="no usable champion"):
@@ -222,16 +160,16 @@ def test_no_usable_champion_and_no_configured_policy_refuses_rather_than_act_fre
 
 
 def test_without_any_policy_the_fresh_network_is_the_first_champion(tmp_path):
-    c = Cell(tmp_path, _config(), configured=False)
+    c = GateCell(tmp_path, gate_config(), configured=False)
     assert c.gate.champion.origin == "fresh network" and c.gate.champion.training_steps == 0
 
 
 def test_manual_overrides_are_recorded_with_who_asked(tmp_path):
-    c = Cell(tmp_path, _config())
-    c.hand_over(_net(10))
+    c = GateCell(tmp_path, gate_config())
+    c.hand_over(make_network(10))
     c.gate.reject(c.step, "uid 1000 pid 42")
     assert c.gate.challenger is None
-    c.hand_over(_net(11))
+    c.hand_over(make_network(11))
     c.gate.promote(c.step, "uid 1000 pid 43", "by hand")
     c.gate.rollback(c.step, "uid 1000 pid 44", "by hand")
     events = [(e["kind"], e["who"]) for e in c.gate.history()]
@@ -244,9 +182,9 @@ def test_manual_overrides_are_recorded_with_who_asked(tmp_path):
 
 
 def test_a_challenger_under_test_is_not_replaced_by_newer_hand_overs(tmp_path):
-    c = Cell(tmp_path, _config())
-    c.hand_over(_net(12))
-    newer = _net(13)
+    c = GateCell(tmp_path, gate_config())
+    c.hand_over(make_network(12))
+    newer = make_network(13)
     c.gate.handovers.post(newer.state_dict(), version=999)
     assert not c.gate.take_handover(c.step)
     assert c.gate.challenger.id == 2
@@ -255,23 +193,23 @@ def test_a_challenger_under_test_is_not_replaced_by_newer_hand_overs(tmp_path):
 
 
 def test_the_gate_off_never_takes_hand_overs_or_credits(tmp_path):
-    c = Cell(tmp_path, _config(enabled=False))
-    c.gate.handovers.post(_net(14).state_dict(), version=5)
+    c = GateCell(tmp_path, gate_config(enabled=False))
+    c.gate.handovers.post(make_network(14).state_dict(), version=5)
     assert not c.gate.take_handover(0) and c.agent.champion_id is None
     assert c.act(None, True) is None
     assert json.dumps(c.gate.status())  # status is plain JSON
 
 
 def test_a_rollback_is_checked_on_every_cycle_even_while_new_challengers_are_tested(tmp_path):
-    c = Cell(tmp_path, _config(min_attempts=500, max_attempts=500, drop_min_attempts=500))
+    c = GateCell(tmp_path, gate_config(min_attempts=500, max_attempts=500, drop_min_attempts=500))
     resets = []
     c.gate.reset_learner = resets.append
     for k in range(40):
         c.act(1, k % 5 != 0)  # the first champion's tenure: 80 %
-    c.hand_over(_net(20))
+    c.hand_over(make_network(20))
     c.gate.promote(c.step, "gate", "test")  # by the gate, as a promotion
     c.gate.by_promotion = True
-    c.hand_over(_net(21))  # the next challenger arrives at once, as hand-overs on schedule do
+    c.hand_over(make_network(21))  # the next challenger arrives at once, as hand-overs on schedule do
     verdict = None
     for k in range(600):
         verdict = c.act(2 if k % 2 else 3, k % 5 == 0)  # champion #2 now at 20 %
@@ -279,15 +217,15 @@ def test_a_rollback_is_checked_on_every_cycle_even_while_new_challengers_are_tes
             break
     assert verdict is not None and verdict.kind == "rollback"
     assert c.gate.champion.id == 1 and c.gate.challenger is None
-    assert len(resets) == 1 and _same(resets[0], c.configured)  # the learner starts again from what acts
+    assert len(resets) == 1 and same_weights(resets[0], c.configured)  # the learner starts again from what acts
 
 
 def test_a_challenger_dropped_as_worse_sends_the_learner_back_to_the_champion(tmp_path):
-    c = Cell(tmp_path, _config())
+    c = GateCell(tmp_path, gate_config())
     resets = []
     c.gate.reset_learner = resets.append
-    c.hand_over(_net(22))
-    c.gate.handovers.post(_net(23).state_dict(), version=7)  # of the rejected line: discarded with it
+    c.hand_over(make_network(22))
+    c.gate.handovers.post(make_network(23).state_dict(), version=7)  # of the rejected line: discarded with it
     for k in range(400):
         if (c.act(2, False) if k % 2 else c.act(1, True)) is not None:
             break
@@ -295,7 +233,7 @@ def test_a_challenger_dropped_as_worse_sends_the_learner_back_to_the_champion(tm
 
 
 def test_a_restart_after_an_unusable_champion_never_lets_a_fresh_network_act(tmp_path):
-    c = Cell(tmp_path, _config(), configured=False)  # from scratch: the fresh network is the first champion
+    c = GateCell(tmp_path, gate_config(), configured=False)  # from scratch: the fresh network is the first champion
     (tmp_path / c.gate.champion.file).unlink()
     for _ in range(2):  # systemd restarts the daemon after the first refusal
         with pytest.raises(GateError, match="no usable champion"):
@@ -303,9 +241,9 @@ def test_a_restart_after_an_unusable_champion_never_lets_a_fresh_network_act(tmp
 
 
 def test_a_challenger_doing_better_gets_a_rising_share_of_the_decisions(tmp_path):
-    c = Cell(tmp_path, _config(share=0.2, max_share=0.6, drop_min_attempts=10, min_attempts=200,
+    c = GateCell(tmp_path, gate_config(share=0.2, max_share=0.6, drop_min_attempts=10, min_attempts=200,
                                promote_confidence=0.999))
-    c.hand_over(_net(2))
+    c.hand_over(make_network(2))
     assert c.agent.challenger_share == 0.2
     for k in range(60):
         c.act(1, k % 2 == 0)                      # champion 50 %
@@ -321,7 +259,7 @@ def test_a_challenger_doing_better_gets_a_rising_share_of_the_decisions(tmp_path
     # a new challenger starts again at gate.share; without one, the share is 0
     c.gate.reject(c.step, "test")
     assert c.agent.challenger is None and c.agent.challenger_share == 0.0
-    c.hand_over(_net(3))
+    c.hand_over(make_network(3))
     assert c.agent.challenger_share == 0.2
 
 
@@ -330,23 +268,23 @@ def test_the_learners_anchor_is_the_champion_from_the_start_and_follows_a_promot
     from flgd.learning.replay import PrioritizedReplay
     from flgd.wiring import attach_gate
 
-    config = _config()
+    config = gate_config()
     config = dataclasses.replace(config, learning=dataclasses.replace(config.learning, anchor_weight=1.0))
     store = Store(tmp_path)
-    agent = Agent(config, _net(99), seed=0)
-    learner = Learner(config, _net(98), PrioritizedReplay.from_config(config.learning))
-    policy = _net(1)
+    agent = Agent(config, make_network(99), seed=0)
+    learner = Learner(config, make_network(98), PrioritizedReplay.from_config(config.learning))
+    policy = make_network(1)
     gate, _ = attach_gate(config, store, agent, learner, tmp_path, 0, fine_tune=True,
                           configured=lambda: (policy, {"training_steps": 4000}, "policy P"),
-                          fresh=lambda: (_net(7), {"training_steps": 0}, "fresh network"))
+                          fresh=lambda: (make_network(7), {"training_steps": 0}, "fresh network"))
 
     def anchored_to(net) -> bool:
         return all(torch.equal(learner._anchor[k], p.detach()) for k, p in net.named_parameters())
 
-    assert anchored_to(policy) and not anchored_to(_net(98))  # the champion, not the net it was built on
-    c = Cell.__new__(Cell)  # drive this gate with the test cell's helpers
+    assert anchored_to(policy) and not anchored_to(make_network(98))  # the champion, not the net it was built on
+    c = GateCell.__new__(GateCell)  # drive this gate with the test cell's helpers
     c.tmp, c.config, c.step, c.store, c.agent, c.gate = tmp_path, config, 0, store, agent, gate
-    better = _net(2)
+    better = make_network(2)
     c.hand_over(better)
     assert anchored_to(policy)  # a challenger under test does not move it
     for k in range(400):

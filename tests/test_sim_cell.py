@@ -4,27 +4,19 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from pathlib import Path
 
 import numpy as np
 import pybullet as p
 import pytest
 
 from flgd.clutter import grasp_reward
-from flgd.config import load_config
 from flgd.geometry import ToolPose
 from flgd.perception import base_to_pixel, frame_heightmaps
 from flgd.plans import MoveL, Plan, plan_grasp, plan_home, plan_push
 from flgd.safety import CheckedPlan, PlanRefused, check_plan
 from sim_cell.cell import SimCell
 from sim_cell.objects import ObjectSpec
-
-REPO = Path(__file__).resolve().parents[1]
-BASE_CFG = load_config(REPO / "cell_config" / "sim.yaml")
-
-
-def make_config(**sim):
-    return dataclasses.replace(BASE_CFG, sim=dataclasses.replace(BASE_CFG.sim, **sim))
+from tests.fakes.sim import BASE_CFG, cube_at, make_config, state
 
 
 @pytest.fixture
@@ -34,21 +26,11 @@ def empty_cell():
     cell.close()
 
 
-def cube_at(cell: SimCell, x: float, y: float, size=(0.06, 0.03, 0.03), yaw: float = 0.0) -> int:
-    q = p.getQuaternionFromEuler([0.0, 0.0, yaw])
-    return cell.add_object(ObjectSpec(shape="bar", size=size, color=(0.9, 0.2, 0.1),
-                                      position=(x, y, size[2] / 2 + 0.001), orientation=q))
-
-
 def wake(cell: SimCell, body: int) -> None:
     """Wake a body before poking its state with raw pybullet calls: a sleeping body ignores them
     (its island zeroes a velocity set by hand); the wake takes effect after one physics step."""
     cell._world.stability.wake(body)
     cell._world.step(1)
-
-
-def state(cell: SimCell, body: int):
-    return next((s for s in cell.object_states() if s.body == body), None)
 
 
 def test_grasp_at_centre_across_short_axis_succeeds_and_carries_the_block_out(empty_cell):

@@ -15,7 +15,7 @@ from flgd.plans import MoveL, Plan, plan_grasp, plan_home, plan_push, plan_shift
 from flgd.safety import check_plan
 from sim_cell.cell import SimCell
 from sim_cell.objects import ObjectSpec
-from tests.test_sim_cell import cube_at, make_config, state
+from tests.fakes.sim import cube_at, make_config, state
 
 
 @pytest.fixture

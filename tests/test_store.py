@@ -21,33 +21,19 @@ from flgd.perception import Heightmaps
 from flgd.store import HEIGHT_QUANTUM, CheckpointDir, Store, StoreError
 
 from tests.fakes.daemon import tmpfs
+from tests.fakes.store_rows import action_row, random_heightmaps
 
-
-def _hm(seed: int, shape=(32, 40)) -> Heightmaps:
-    rng = np.random.default_rng(seed)
-    height = np.zeros(shape, np.float32)
-    height[5:15, 8:20] = rng.uniform(0.01, 0.08, (10, 12)).astype(np.float32)
-    color = rng.integers(0, 255, shape + (3,), dtype=np.uint8)
-    return Heightmaps(color=color, height=height)
-
-
-def _row(step: int, **kw) -> dict:
-    row = {"step": step, "time": time.time(), "backend": "test", "outcome": "executed", "primitive": "grasp",
-           "kind": "grasp", "row": 1, "col": 2, "rotation": 3, "reward": 1.0, "success": 1, "duration": 0.5,
-           "t_capture": 0.01, "t_execute": 0.4}
-    row.update(kw)
-    return row
 
 
 def test_round_trip_and_states_stored_once(tmp_path):
     store = Store(tmp_path)
-    states = [_hm(i) for i in range(5)]
+    states = [random_heightmaps(i) for i in range(5)]
     for i in range(4):
         t = Transition(states[i], Action("grasp" if i % 2 else "push", i, i + 1, i % 16), float(i % 2),
                        states[i + 1], False)
-        store.commit_cycle(_row(i), t)
+        store.commit_cycle(action_row(i), t)
     # A done transition: no next state.
-    store.commit_cycle(_row(4), Transition(states[4], Action("grasp", 3, 4, 5), 1.0, None, True))
+    store.commit_cycle(action_row(4), Transition(states[4], Action("grasp", 3, 4, 5), 1.0, None, True))
     assert store.transition_count() == 5
     assert store.state_count() == 5  # s0..s4, each once, although 9 state references were written
     assert store.next_step() == 5
@@ -67,9 +53,9 @@ def test_round_trip_and_states_stored_once(tmp_path):
 
 def test_action_log_without_transition_and_store_time(tmp_path):
     store = Store(tmp_path)
-    store.commit_cycle(_row(0, outcome="discarded", failure="unstable physics"), None)
+    store.commit_cycle(action_row(0, outcome="discarded", failure="unstable physics"), None)
     store.note_store_time(0, 0.123)
-    store.commit_cycle(_row(1), Transition(_hm(0), Action("grasp", 0, 0, 0), 0.0, _hm(1), False))
+    store.commit_cycle(action_row(1), Transition(random_heightmaps(0), Action("grasp", 0, 0, 0), 0.0, random_heightmaps(1), False))
     log = store.action_log()
     assert [r["outcome"] for r in log] == ["discarded", "executed"]
     assert log[0]["transition_id"] is None and log[1]["transition_id"] == 1
@@ -81,9 +67,9 @@ def test_action_log_without_transition_and_store_time(tmp_path):
 
 def test_refused_action_reuses_its_state(tmp_path):
     store = Store(tmp_path)
-    s = _hm(3)
-    store.commit_cycle(_row(0, outcome="refused"), Transition(s, Action("grasp", 1, 1, 0), 0.0, s, False))
-    store.commit_cycle(_row(1), Transition(s, Action("grasp", 2, 2, 0), 1.0, _hm(4), False))
+    s = random_heightmaps(3)
+    store.commit_cycle(action_row(0, outcome="refused"), Transition(s, Action("grasp", 1, 1, 0), 0.0, s, False))
+    store.commit_cycle(action_row(1), Transition(s, Action("grasp", 2, 2, 0), 1.0, random_heightmaps(4), False))
     assert store.state_count() == 2
     first, second = store.iter_transitions()
     assert first.next_state is first.state and second.state is first.state
@@ -91,9 +77,9 @@ def test_refused_action_reuses_its_state(tmp_path):
 
 def test_duplicate_step_is_rejected_and_rolled_back(tmp_path):
     store = Store(tmp_path)
-    store.commit_cycle(_row(0), Transition(_hm(0), Action("grasp", 0, 0, 0), 1.0, _hm(1), False))
+    store.commit_cycle(action_row(0), Transition(random_heightmaps(0), Action("grasp", 0, 0, 0), 1.0, random_heightmaps(1), False))
     with pytest.raises(StoreError, match="UNIQUE|constraint"):
-        store.commit_cycle(_row(0), Transition(_hm(2), Action("grasp", 0, 0, 0), 1.0, _hm(3), False))
+        store.commit_cycle(action_row(0), Transition(random_heightmaps(2), Action("grasp", 0, 0, 0), 1.0, random_heightmaps(3), False))
     # The whole failed cycle was rolled back: no orphan transition or state.
     assert store.transition_count() == 1 and store.state_count() == 2
 
@@ -111,9 +97,9 @@ def test_schema_version_mismatch_is_a_clear_error(tmp_path):
 def test_retention_keeps_the_newest_transitions_and_the_whole_log(tmp_path, monkeypatch):
     monkeypatch.setattr(Store, "PRUNE_EVERY", 5)
     store = Store(tmp_path, keep_transitions=7)
-    states = [_hm(i) for i in range(31)]
+    states = [random_heightmaps(i) for i in range(31)]
     for i in range(30):
-        store.commit_cycle(_row(i), Transition(states[i], Action("grasp", 0, 0, 0), 1.0, states[i + 1], False))
+        store.commit_cycle(action_row(i), Transition(states[i], Action("grasp", 0, 0, 0), 1.0, states[i + 1], False))
     assert store.transition_count() == 7  # pruned at commit 30 down to the newest 7
     read = list(store.iter_transitions())
     assert [t.step for t in read] == list(range(23, 30))
@@ -122,7 +108,7 @@ def test_retention_keeps_the_newest_transitions_and_the_whole_log(tmp_path, monk
     assert len(store.action_log()) == 30 and store.next_step() == 30
     assert store.query("SELECT COUNT(*) FROM actions WHERE transition_id IS NOT NULL")[0][0] == 7
     # a state still in use as the next start survives the pruning: the chain continues without a copy
-    store.commit_cycle(_row(30), Transition(states[30], Action("grasp", 0, 0, 0), 1.0, _hm(99), False))
+    store.commit_cycle(action_row(30), Transition(states[30], Action("grasp", 0, 0, 0), 1.0, random_heightmaps(99), False))
     assert store.state_count() == 9
     assert store.integrity_check() == "ok"
 
@@ -192,7 +178,7 @@ def test_kill_minus_9_never_corrupts_or_splits_a_cycle(tmp_path):
 def test_read_only_state_dir_is_a_clear_store_error(tmp_path):
     with tmpfs(tmp_path / "ro", size="4m") as mnt:
         store = Store(mnt)
-        store.commit_cycle(_row(0), Transition(_hm(0), Action("grasp", 0, 0, 0), 1.0, _hm(1), False))
+        store.commit_cycle(action_row(0), Transition(random_heightmaps(0), Action("grasp", 0, 0, 0), 1.0, random_heightmaps(1), False))
         store.close()
         subprocess.run(["mount", "-o", "remount,ro", str(mnt)], check=True)
         with pytest.raises(StoreError, match="read-only"):
@@ -209,7 +195,7 @@ def test_full_disk_is_a_clear_store_error(tmp_path):
                 rng = np.random.default_rng(i)
                 big = Heightmaps(rng.integers(0, 255, (96, 96, 3), dtype=np.uint8),
                                  rng.uniform(0, 1, (96, 96)).astype(np.float32))
-                store.commit_cycle(_row(i), Transition(big, Action("grasp", 0, 0, 0), 0.0, big, False))
+                store.commit_cycle(action_row(i), Transition(big, Action("grasp", 0, 0, 0), 0.0, big, False))
         done = store.next_step()
         assert 0 < done < 200
         assert store.integrity_check() == "ok"
@@ -219,7 +205,7 @@ def test_full_disk_is_a_clear_store_error(tmp_path):
 
 def test_a_version_1_store_is_upgraded_in_place_without_losing_anything(tmp_path):
     store = Store(tmp_path)
-    store.commit_cycle(_row(0), Transition(_hm(0), Action("grasp", 0, 0, 0), 1.0, _hm(1), False))
+    store.commit_cycle(action_row(0), Transition(random_heightmaps(0), Action("grasp", 0, 0, 0), 1.0, random_heightmaps(1), False))
     store.close()
     db = sqlite3.connect(tmp_path / "flgd.sqlite")  # make it exactly what version 1 wrote
     db.execute("ALTER TABLE actions DROP COLUMN contact_stop_mm")
@@ -232,8 +218,8 @@ def test_a_version_1_store_is_upgraded_in_place_without_losing_anything(tmp_path
         assert store.query("SELECT value FROM meta WHERE key='schema_version'") == [("3",)]
         assert store.transition_count() == 1 and store.next_step() == 1
         assert store.query("SELECT step, success, contact_stop_mm FROM actions") == [(0, 1, None)]
-        store.commit_cycle(_row(1, contact_stop_mm=7.5),
-                           Transition(_hm(1), Action("grasp", 0, 0, 0), 0.0, _hm(2), False))
+        store.commit_cycle(action_row(1, contact_stop_mm=7.5),
+                           Transition(random_heightmaps(1), Action("grasp", 0, 0, 0), 0.0, random_heightmaps(2), False))
         assert store.query("SELECT contact_stop_mm FROM actions WHERE step=1") == [(7.5,)]
         assert store.integrity_check() == "ok"
     finally:
@@ -246,8 +232,8 @@ def test_stats_count_the_grasps_whose_descent_stopped_at_a_contact(tmp_path):
     store = Store(tmp_path)
     try:
         for step, mm in enumerate([None, 4.0, None, 12.0, 9.0]):
-            store.commit_cycle(_row(step, contact_stop_mm=mm))
-        store.commit_cycle(_row(5, primitive="push", kind="push", success=None, contact_stop_mm=3.0))
+            store.commit_cycle(action_row(step, contact_stop_mm=mm))
+        store.commit_cycle(action_row(5, primitive="push", kind="push", success=None, contact_stop_mm=3.0))
         stats = compute_stats(store)
     finally:
         store.close()
@@ -262,10 +248,10 @@ def test_picks_per_hour_counts_successful_grasps_only_and_status_agrees_with_sta
 
     store = Store(tmp_path)
     try:
-        store.commit_cycle(_row(0, duration=10.0))                                       # a pick
-        store.commit_cycle(_row(1, success=0, reward=0.0, duration=10.0))                # a failed grasp
-        store.commit_cycle(_row(2, primitive="push", kind="push", success=1, duration=10.0))  # a useful push
-        store.commit_cycle(_row(3, outcome="refused", success=None, duration=0.0))
+        store.commit_cycle(action_row(0, duration=10.0))                                       # a pick
+        store.commit_cycle(action_row(1, success=0, reward=0.0, duration=10.0))                # a failed grasp
+        store.commit_cycle(action_row(2, primitive="push", kind="push", success=1, duration=10.0))  # a useful push
+        store.commit_cycle(action_row(3, outcome="refused", success=None, duration=0.0))
         stats, status = compute_stats(store), status_summary(store)
     finally:
         store.close()
@@ -286,7 +272,7 @@ def test_commits_are_fsynced_so_a_power_cut_loses_at_most_the_cycle_in_flight(tm
 
 def test_a_version_2_store_gains_the_gate_column_and_tables_in_place(tmp_path):
     store = Store(tmp_path)
-    store.commit_cycle(_row(0), Transition(_hm(0), Action("grasp", 0, 0, 0), 1.0, _hm(1), False))
+    store.commit_cycle(action_row(0), Transition(random_heightmaps(0), Action("grasp", 0, 0, 0), 1.0, random_heightmaps(1), False))
     store.close()
     db = sqlite3.connect(tmp_path / "flgd.sqlite")  # make it exactly what version 2 wrote
     db.execute("DROP INDEX actions_policy")
@@ -301,7 +287,7 @@ def test_a_version_2_store_gains_the_gate_column_and_tables_in_place(tmp_path):
     try:
         assert store.query("SELECT value FROM meta WHERE key='schema_version'") == [("3",)]
         assert store.query("SELECT step, success, policy FROM actions") == [(0, 1, None)]
-        store.commit_cycle(_row(1, policy=4), None)
+        store.commit_cycle(action_row(1, policy=4), None)
         assert store.query("SELECT policy FROM actions WHERE step=1") == [(4,)]
         assert store.query("SELECT COUNT(*) FROM policies") == [(0,)]
         assert store.integrity_check() == "ok"

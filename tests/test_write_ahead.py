@@ -31,7 +31,7 @@ from flgd.learning.networks import build_network
 from flgd.learning.replay import Transition
 from flgd.store import INTENT_OUTCOME, INTERRUPTED_OUTCOME, Store, StoreError
 
-from tests.test_store import _hm, _row
+from tests.fakes.store_rows import action_row, random_heightmaps
 
 REPO = Path(__file__).resolve().parents[1]
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
@@ -160,7 +160,7 @@ def test_a_disk_that_fills_at_any_phase_leaves_every_executed_motion_in_the_acti
 
 def test_an_intent_never_completed_is_interrupted_and_counted_as_no_outcome(tmp_path):
     store = Store(tmp_path)
-    store.commit_cycle(_row(0, success=1), Transition(_hm(0), Action("grasp", 0, 0, 0), 1.0, _hm(1), False))
+    store.commit_cycle(action_row(0, success=1), Transition(random_heightmaps(0), Action("grasp", 0, 0, 0), 1.0, random_heightmaps(1), False))
     store.record_intent({"step": 1, "time": time.time(), "backend": "test", "primitive": "grasp", "kind": "grasp",
                          "row": 3, "col": 4, "rotation": 5, "rule": "greedy", "policy": 1})
     assert store.action_log()[-1]["outcome"] == INTENT_OUTCOME
@@ -184,11 +184,11 @@ def test_a_completion_after_a_failed_one_marks_the_earlier_intent_interrupted(tm
     store.record_intent({"step": 0, "time": time.time(), "primitive": "push", "kind": "push"})
     disk.full = True
     with pytest.raises(StoreError):
-        store.commit_cycle(_row(0), Transition(_hm(0), Action("push", 0, 0, 0), 0.5, _hm(1), False))
+        store.commit_cycle(action_row(0), Transition(random_heightmaps(0), Action("push", 0, 0, 0), 0.5, random_heightmaps(1), False))
     disk.full = False
     store.forget_last_state()
     store.record_intent({"step": 1, "time": time.time(), "primitive": "grasp", "kind": "grasp"})
-    store.commit_cycle(_row(1), Transition(_hm(2), Action("grasp", 0, 0, 0), 1.0, _hm(3), False))
+    store.commit_cycle(action_row(1), Transition(random_heightmaps(2), Action("grasp", 0, 0, 0), 1.0, random_heightmaps(3), False))
     assert [(r["step"], r["outcome"]) for r in store.action_log()] == [(0, INTERRUPTED_OUTCOME), (1, "executed")]
     assert store.integrity_check() == "ok"
 
