@@ -22,7 +22,7 @@ from flgd.daemon.protocol import ProtocolError, Request
 from flgd.learning.learner import UpdateStats
 from flgd.learning.policy_file import load_policy, save_policy
 
-from tests.fakes.daemon import REPO, DaemonProcess, write_config
+from tests.fakes.daemon import REPO, write_config
 
 SHIPPED = REPO / "policies" / "flg-sim.safetensors"
 

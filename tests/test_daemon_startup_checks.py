@@ -7,7 +7,6 @@ import subprocess
 import sys
 from pathlib import Path
 
-import pytest
 
 from flgd.learning.networks import build_network
 from flgd.learning.policy_file import save_policy

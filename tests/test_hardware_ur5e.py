@@ -360,12 +360,12 @@ def test_an_unusable_force_reading_stops_the_arm_and_latches(ctl, rg2, reply):
 def test_reset_reopens_a_camera_whose_stream_died(ctl, rg2):
     """flgctl reset clears a camera fault: the cell's recovery closes the camera and opens it anew.
 
-    The camera is librealsense's own software_device (tests.test_hardware_d415), driven through the real
+    The camera is librealsense's own software_device (tests.fakes.realsense), driven through the real
     D415Camera; its depth sensor stopping is a stream that died under the camera.
     """
     pytest.importorskip("pyrealsense2", reason="pyrealsense2 cannot load here (libusb-1.0 missing?)")
     from flgd.hardware.d415 import CameraFault, D415Camera
-    from tests.test_hardware_d415 import SERIAL, registered_camera, synthetic_frame, sim_config
+    from tests.fakes.realsense import SERIAL, registered_camera, sim_config, synthetic_frame
 
     frame = synthetic_frame(sim_config(), width=64, height=48)
     dev = registered_camera(frame)

@@ -19,45 +19,20 @@ from flgd.learning.learner import Learner
 from flgd.learning.networks import build_network, q_maps, twin_grasp_maps
 from flgd.learning.replay import PrioritizedReplay, Transition, state_key
 from flgd.perception import Heightmaps
+from tests.fakes.learning import block_scene, learner_config
 
-N = 32
-
-
-@pytest.fixture(autouse=True)
-def one_thread():
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
-
-
-def config(**learning) -> CellConfig:
-    cfg = CellConfig()
-    base = dict(batch_size=2, device="cpu")
-    base.update(learning)
-    return dataclasses.replace(cfg, learning=dataclasses.replace(cfg.learning, **base))
-
-
-def scene(seed: int) -> Heightmaps:
-    rng = np.random.default_rng(seed)
-    h = np.zeros((N, N), np.float32)
-    for _ in range(3):
-        r, c = rng.integers(2, N - 8, 2)
-        h[r:r + 6, c:c + 6] = rng.uniform(0.02, 0.05)
-    color = np.full((N, N, 3), 90, np.uint8)
-    color[h > 0] = rng.integers(0, 255, 3)
-    return Heightmaps(color, h)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def learner(cfg: CellConfig | None = None, replay: PrioritizedReplay | None = None, **kw) -> Learner:
-    cfg = cfg or config()
+    cfg = cfg or learner_config()
     return Learner(cfg, build_network("fast", 16, seed=0), replay or PrioritizedReplay.from_config(cfg.learning), **kw)
 
 
 def test_only_the_executed_pixel_and_the_grasp_twin_receive_gradient():
     lrn = learner()
-    grasp = Transition(scene(1), Action("grasp", 9, 20, 3), 1.0, scene(2), False)
-    push = Transition(scene(3), Action("push", 25, 4, 13), 0.5, None, True)
+    grasp = Transition(block_scene(1), Action("grasp", 9, 20, 3), 1.0, block_scene(2), False)
+    push = Transition(block_scene(3), Action("push", 25, 4, 13), 0.5, None, True)
     terms = lrn.loss_terms([grasp, push], np.array([1.0, 0.5], np.float32))
     assert terms.owners == [0, 0, 1] and terms.rotations == [3, 11, 13]
     terms.maps.retain_grad()
@@ -71,12 +46,12 @@ def test_only_the_executed_pixel_and_the_grasp_twin_receive_gradient():
 
 
 def test_double_dqn_target_uses_online_argmax_under_masks_and_target_value():
-    cfg = config(gamma=0.5)
+    cfg = learner_config(gamma=0.5)
     lrn = learner(cfg)
     lrn.target.load_state_dict(build_network("fast", 16, seed=5).state_dict())  # make them differ
-    s2 = scene(4)
-    t = Transition(scene(3), Action("grasp", 5, 5, 0), 0.25, s2, False)
-    done = Transition(scene(3), Action("grasp", 5, 5, 0), 1.0, s2, True)
+    s2 = block_scene(4)
+    t = Transition(block_scene(3), Action("grasp", 5, 5, 0), 0.25, s2, False)
+    done = Transition(block_scene(3), Action("grasp", 5, 5, 0), 1.0, s2, True)
     agent = Agent(cfg, lrn.online)
     gmask, mmask = agent.masks(s2.height)
     lrn.online.eval()
@@ -94,10 +69,10 @@ def test_double_dqn_target_uses_online_argmax_under_masks_and_target_value():
 
 
 def test_grasp_only_targets_ignore_the_move_channel():
-    cfg = config(gamma=0.5)
+    cfg = learner_config(gamma=0.5)
     cfg = dataclasses.replace(cfg, exploration=dataclasses.replace(cfg.exploration, grasp_only=True))
     lrn = learner(cfg)
-    s2 = scene(4)
+    s2 = block_scene(4)
     with torch.no_grad():
         lrn.online.eval()
         online = q_maps(lrn.online, s2).numpy()
@@ -107,7 +82,7 @@ def test_grasp_only_targets_ignore_the_move_channel():
     masked[:, 1] = -np.inf
     rot, ch, row, col = np.unravel_index(np.argmax(masked), masked.shape)
     assert ch == 0
-    y = lrn.targets([Transition(scene(3), Action("grasp", 5, 5, 0), 0.0, s2, False)])[0]
+    y = lrn.targets([Transition(block_scene(3), Action("grasp", 5, 5, 0), 0.0, s2, False)])[0]
     assert y == pytest.approx(0.5 * target[rot, 0, row, col], abs=1e-5)
 
 
@@ -117,21 +92,21 @@ def _replayed(replay: PrioritizedReplay, transition: Transition) -> Transition:
 
 def test_replayed_transitions_carry_the_content_key_of_their_next_state():
     replay = PrioritizedReplay(8, seed=0)
-    s2 = scene(4)
-    got = _replayed(replay, Transition(scene(3), Action("grasp", 5, 5, 0), 0.0, s2, False))
+    s2 = block_scene(4)
+    got = _replayed(replay, Transition(block_scene(3), Action("grasp", 5, 5, 0), 0.0, s2, False))
     assert got.next_key == state_key(s2)
-    assert got.next_key != state_key(scene(3))
-    assert _replayed(replay, Transition(scene(3), Action("push", 5, 5, 0), 0.0, None, True)).next_key is None
+    assert got.next_key != state_key(block_scene(3))
+    assert _replayed(replay, Transition(block_scene(3), Action("push", 5, 5, 0), 0.0, None, True)).next_key is None
 
 
 def test_cached_next_argmax_from_the_agent_gives_the_exact_target_without_a_forward_pass():
-    cfg = config(gamma=0.5, next_argmax_max_age=10, target_update_every=1000)
+    cfg = learner_config(gamma=0.5, next_argmax_max_age=10, target_update_every=1000)
     replay = PrioritizedReplay(8, seed=0)
     lrn = learner(cfg, replay)
     lrn.target.load_state_dict(build_network("fast", 16, seed=5).state_dict())
-    s2 = scene(4)
-    t = _replayed(replay, Transition(scene(3), Action("grasp", 5, 5, 0), 0.25, s2, False))
-    exact = learner(config(gamma=0.5), PrioritizedReplay(8, seed=0))
+    s2 = block_scene(4)
+    t = _replayed(replay, Transition(block_scene(3), Action("grasp", 5, 5, 0), 0.25, s2, False))
+    exact = learner(learner_config(gamma=0.5), PrioritizedReplay(8, seed=0))
     exact.target.load_state_dict(lrn.target.state_dict())
     expected = exact.targets([t])[0]
 
@@ -145,11 +120,11 @@ def test_cached_next_argmax_from_the_agent_gives_the_exact_target_without_a_forw
 
 
 def test_a_cached_argmax_older_than_the_limit_is_recomputed_with_the_current_network():
-    cfg = config(gamma=0.5, next_argmax_max_age=3, target_update_every=1000)
+    cfg = learner_config(gamma=0.5, next_argmax_max_age=3, target_update_every=1000)
     replay = PrioritizedReplay(8, seed=0)
     lrn = learner(cfg, replay)
-    s2 = scene(4)
-    t = _replayed(replay, Transition(scene(3), Action("grasp", 5, 5, 0), 0.25, s2, False))
+    s2 = block_scene(4)
+    t = _replayed(replay, Transition(block_scene(3), Action("grasp", 5, 5, 0), 0.25, s2, False))
     gmask, _ = Agent(cfg, lrn.online).masks(s2.height)
     rows, cols = np.nonzero(gmask == 0)  # a (deliberately wrong) cached a' off the objects
     stale = (0, 0, int(rows[0]), int(cols[0]))
@@ -158,7 +133,7 @@ def test_a_cached_argmax_older_than_the_limit_is_recomputed_with_the_current_net
         q_stale = q_maps(lrn.target, s2, rotation_indices=[0])[0, 0, stale[2], stale[3]].item()
     assert lrn.targets([t])[0] == pytest.approx(0.25 + 0.5 * q_stale, abs=1e-6)  # fresh enough: used as is
     lrn.updates = 4  # now 4 updates old > 3
-    exact = learner(config(gamma=0.5), PrioritizedReplay(8, seed=0))
+    exact = learner(learner_config(gamma=0.5), PrioritizedReplay(8, seed=0))
     exact.online.load_state_dict(lrn.online.state_dict())
     exact.target.load_state_dict(lrn.target.state_dict())
     assert lrn.targets([t])[0] == pytest.approx(exact.targets([t])[0], abs=1e-6)
@@ -166,9 +141,9 @@ def test_a_cached_argmax_older_than_the_limit_is_recomputed_with_the_current_net
 
 
 def test_decisions_of_old_weights_are_not_cached_and_nothing_is_cached_with_age_zero():
-    s2 = scene(4)
+    s2 = block_scene(4)
     for max_age, version, updates in ((0, 0, 0), (3, 0, 5), (3, -1, 0)):
-        lrn = learner(config(next_argmax_max_age=max_age))
+        lrn = learner(learner_config(next_argmax_max_age=max_age))
         lrn.updates = updates
         lrn.note_decision(s2, Agent(lrn.config, lrn.online).decide(s2, step=10_000), weights_version=version)
         assert lrn._next_argmax == {}
@@ -176,7 +151,7 @@ def test_decisions_of_old_weights_are_not_cached_and_nothing_is_cached_with_age_
 
 def test_importance_weights_scale_the_loss_and_priorities_become_td_plus_epsilon():
     lrn = learner()
-    batch = [Transition(scene(i), Action("shift", 10, 10 + i, i), 0.5, None, True) for i in range(2)]
+    batch = [Transition(block_scene(i), Action("shift", 10, 10 + i, i), 0.5, None, True) for i in range(2)]
     lrn.online.eval()  # same BN statistics for both evaluations
     one = lrn.loss_terms(batch, np.array([1.0, 1.0], np.float32))
     weighted = lrn.loss_terms(batch, np.array([0.2, 0.6], np.float32))
@@ -202,11 +177,11 @@ def test_importance_weights_scale_the_loss_and_priorities_become_td_plus_epsilon
 
 
 def test_target_network_follows_its_schedule_and_checkpoints_are_called():
-    cfg = config(target_update_every=3, checkpoint_every=2, learning_rate=1e-3)
+    cfg = learner_config(target_update_every=3, checkpoint_every=2, learning_rate=1e-3)
     calls = []
     lrn = learner(cfg, checkpoint_callback=lambda net, n: calls.append((n, net.variant)))
     for i in range(3):
-        lrn.replay.add(Transition(scene(i), Action("grasp", 12, 12, i), float(i % 2), None, True))
+        lrn.replay.add(Transition(block_scene(i), Action("grasp", 12, 12, i), float(i % 2), None, True))
 
     def same() -> bool:
         o, t = lrn.online.state_dict(), lrn.target.state_dict()
@@ -225,7 +200,7 @@ def test_target_network_follows_its_schedule_and_checkpoints_are_called():
 
 
 def test_background_learner_publishes_weights_that_the_agent_picks_up():
-    cfg = config(updates_per_action=2, checkpoint_every=1)
+    cfg = learner_config(updates_per_action=2, checkpoint_every=1)
     cfg = dataclasses.replace(cfg, gate=dataclasses.replace(cfg.gate, handover_every=3))
     replay = PrioritizedReplay.from_config(cfg.learning)
     agent = Agent(cfg, build_network("fast", 16, seed=0))
@@ -239,13 +214,13 @@ def test_background_learner_publishes_weights_that_the_agent_picks_up():
     assert lrn.online is not agent.network  # the learner trains its own copy
     lrn.start()
     try:
-        hm = scene(0)
+        hm = block_scene(0)
         for step in range(3):
             d = agent.decide(hm, step)
-            replay.add(Transition(hm, d.action, 0.0, scene(step + 1), False))
+            replay.add(Transition(hm, d.action, 0.0, block_scene(step + 1), False))
             lrn.notify_new_transition()
             assert lrn.wait_idle(timeout=120)
-            hm = scene(step + 1)
+            hm = block_scene(step + 1)
         assert lrn.updates == 6 and lrn.failed_updates == 0
         main_nice = os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
         assert niceness == [min(19, main_nice + 5)] * 6  # training yields the CPU to decisions
@@ -261,10 +236,10 @@ def test_background_learner_publishes_weights_that_the_agent_picks_up():
 
 
 def test_a_failing_update_is_reported_and_the_thread_keeps_running():
-    cfg = config(updates_per_action=1)
+    cfg = learner_config(updates_per_action=1)
     replay = PrioritizedReplay.from_config(cfg.learning)
     # An action built for 8 rotations cannot be trained by a 16-rotation network.
-    replay.add(Transition(scene(0), Action("grasp", 3, 3, 1, rotations=8), 0.0, None, True))
+    replay.add(Transition(block_scene(0), Action("grasp", 3, 3, 1, rotations=8), 0.0, None, True))
     lrn = learner(cfg, replay=replay)
     lrn.start()
     try:
@@ -278,10 +253,10 @@ def test_a_failing_update_is_reported_and_the_thread_keeps_running():
 
 def test_learning_is_deterministic_for_a_fixed_seed():
     def run() -> dict[str, torch.Tensor]:
-        cfg = config(learning_rate=1e-3, seed=3)
+        cfg = learner_config(learning_rate=1e-3, seed=3)
         replay = PrioritizedReplay.from_config(cfg.learning)
         for i in range(4):
-            replay.add(Transition(scene(i), Action("grasp", 8 + i, 12, i), float(i % 2), scene(i + 1), False))
+            replay.add(Transition(block_scene(i), Action("grasp", 8 + i, 12, i), float(i % 2), block_scene(i + 1), False))
         lrn = Learner(cfg, build_network("fast", 16, seed=3), replay)
         for _ in range(3):
             lrn.update()
@@ -293,28 +268,28 @@ def test_learning_is_deterministic_for_a_fixed_seed():
 
 def test_the_backlog_is_capped_and_the_dropped_updates_are_counted():
     """A learner slower than the cell owes at most max_backlog updates (never less than one action's)."""
-    capped = learner(config(updates_per_action=3, max_backlog=7))
+    capped = learner(learner_config(updates_per_action=3, max_backlog=7))
     for _ in range(10):
         capped.notify_new_transition()
     assert capped.pending == 7 and capped.dropped_updates == 23
-    tight = learner(config(updates_per_action=3, max_backlog=2))
+    tight = learner(learner_config(updates_per_action=3, max_backlog=2))
     tight.notify_new_transition()
     tight.notify_new_transition()
     assert tight.pending == 3 and tight.dropped_updates == 3
-    unlimited = learner(config(updates_per_action=3, max_backlog=0))
+    unlimited = learner(learner_config(updates_per_action=3, max_backlog=0))
     for _ in range(10):
         unlimited.notify_new_transition()
     assert unlimited.pending == 30 and unlimited.dropped_updates == 0
     # what is owed is still run: the synchronous mode drains the capped backlog exactly
-    capped.replay.add(Transition(scene(1), Action("grasp", 9, 20, 3), 1.0, None, True))
+    capped.replay.add(Transition(block_scene(1), Action("grasp", 9, 20, 3), 1.0, None, True))
     assert len(capped.update_pending()) == 7 and capped.pending == 0 and capped.updates == 7
 
 
 def test_a_stop_whose_join_timed_out_never_leaves_two_learner_threads():
     """Fault injection: an update that blocks (a slow disk, a stuck device) outlasts ``stop``'s timeout."""
-    cfg = config(updates_per_action=1)
+    cfg = learner_config(updates_per_action=1)
     replay = PrioritizedReplay.from_config(cfg.learning)
-    replay.add(Transition(scene(0), Action("grasp", 8, 12, 0), 1.0, None, True))
+    replay.add(Transition(block_scene(0), Action("grasp", 8, 12, 0), 1.0, None, True))
     lrn = learner(cfg, replay=replay)
     release, entered = threading.Event(), threading.Event()
     real_update = lrn.update
@@ -351,9 +326,9 @@ def _bn_stats(net: torch.nn.Module) -> dict[str, torch.Tensor]:
 
 @pytest.mark.parametrize("mode", ["batch", "frozen"])
 def test_frozen_batchnorm_keeps_the_running_statistics_while_the_weights_learn(mode):
-    lrn = learner(config(batchnorm=mode, learning_rate=1e-3))
+    lrn = learner(learner_config(batchnorm=mode, learning_rate=1e-3))
     for i in range(3):
-        lrn.replay.add(Transition(scene(i), Action("grasp", 12, 12, i), float(i % 2), scene(i + 5), False))
+        lrn.replay.add(Transition(block_scene(i), Action("grasp", 12, 12, i), float(i % 2), block_scene(i + 5), False))
     stats_before = _bn_stats(lrn.online)
     conv_before = lrn.online.enc1[0].weight.detach().clone()
     bn_scale_before = lrn.online.enc1[1].weight.detach().clone()
@@ -366,7 +341,7 @@ def test_frozen_batchnorm_keeps_the_running_statistics_while_the_weights_learn(m
     if mode == "frozen":
         assert moved == []
         # the training forward normalised with the running statistics: it matches the eval-mode output
-        t = Transition(scene(1), Action("grasp", 12, 12, 1), 1.0, None, True)
+        t = Transition(block_scene(1), Action("grasp", 12, 12, 1), 1.0, None, True)
         train_pred = lrn.loss_terms([t], np.ones(1, np.float32)).maps.detach()
         lrn.online.eval()
         with torch.no_grad():
@@ -377,26 +352,26 @@ def test_frozen_batchnorm_keeps_the_running_statistics_while_the_weights_learn(m
 
 
 def test_no_update_is_scheduled_until_the_replay_holds_min_replay_transitions():
-    lrn = learner(config(min_replay=3, updates_per_action=2))
+    lrn = learner(learner_config(min_replay=3, updates_per_action=2))
     for i in range(2):
-        lrn.replay.add(Transition(scene(i), Action("grasp", 12, 12, i), 1.0, None, True))
+        lrn.replay.add(Transition(block_scene(i), Action("grasp", 12, 12, i), 1.0, None, True))
         lrn.notify_new_transition()
         assert lrn.pending == 0
     assert lrn.update_pending() == [] and lrn.updates == 0
-    lrn.replay.add(Transition(scene(2), Action("grasp", 12, 12, 2), 0.0, None, True))
+    lrn.replay.add(Transition(block_scene(2), Action("grasp", 12, 12, 2), 0.0, None, True))
     lrn.notify_new_transition()
     assert lrn.pending == 2
     assert [s.update for s in lrn.update_pending()] == [1, 2]   # the two skipped actions are not made up
 
 
 def test_twin_grasps_targets_take_a_prime_and_its_value_from_twin_means():
-    cfg = config(gamma=0.5)
+    cfg = learner_config(gamma=0.5)
     cfg = dataclasses.replace(cfg, exploration=dataclasses.replace(cfg.exploration, twin_grasps=True,
                                                                    grasp_only=True))
     lrn = learner(cfg)
     lrn.target.load_state_dict(build_network("fast", 16, seed=5).state_dict())
-    s2 = scene(4)
-    t = Transition(scene(3), Action("grasp", 5, 5, 0), 0.25, s2, False)
+    s2 = block_scene(4)
+    t = Transition(block_scene(3), Action("grasp", 5, 5, 0), 0.25, s2, False)
     gmask, mmask = Agent(cfg, lrn.online).masks(s2.height)
     lrn.online.eval()
     with torch.no_grad():
@@ -425,7 +400,7 @@ class _RecordingMailbox(WeightsMailbox):
 
 
 def test_weights_are_handed_over_on_schedule_while_the_learner_has_a_backlog():
-    cfg = config(updates_per_action=3)
+    cfg = learner_config(updates_per_action=3)
     cfg = dataclasses.replace(cfg, gate=dataclasses.replace(cfg.gate, handover_every=2))
     replay = PrioritizedReplay.from_config(cfg.learning)
     ref: list = []
@@ -433,7 +408,7 @@ def test_weights_are_handed_over_on_schedule_while_the_learner_has_a_backlog():
     lrn = Learner(cfg, build_network("fast", 16, seed=0), replay, mailbox=mailbox)
     ref.append(lrn)
     for k in range(4):  # 12 updates owed before the thread runs one: a cell that outruns its learner
-        replay.add(Transition(scene(k), Action("grasp", 5, 5, 0), 1.0, scene(k + 1), False))
+        replay.add(Transition(block_scene(k), Action("grasp", 5, 5, 0), 1.0, block_scene(k + 1), False))
         lrn.notify_new_transition()
     lrn.start()
     try:
@@ -446,9 +421,9 @@ def test_weights_are_handed_over_on_schedule_while_the_learner_has_a_backlog():
 
 
 def test_wait_idle_returns_when_the_thread_has_left_even_with_updates_scheduled_after():
-    cfg = config(updates_per_action=1)
+    cfg = learner_config(updates_per_action=1)
     replay = PrioritizedReplay.from_config(cfg.learning)
-    replay.add(Transition(scene(0), Action("grasp", 5, 5, 0), 1.0, scene(1), False))
+    replay.add(Transition(block_scene(0), Action("grasp", 5, 5, 0), 1.0, block_scene(1), False))
     lrn = Learner(cfg, build_network("fast", 16, seed=0), replay)
     lrn.start()
     lrn.stop(timeout=60, why="test")
@@ -458,9 +433,9 @@ def test_wait_idle_returns_when_the_thread_has_left_even_with_updates_scheduled_
 
 
 def test_paused_holds_the_thread_between_updates_and_it_resumes_after():
-    cfg = config(updates_per_action=1)
+    cfg = learner_config(updates_per_action=1)
     replay = PrioritizedReplay.from_config(cfg.learning)
-    replay.add(Transition(scene(0), Action("grasp", 5, 5, 0), 1.0, scene(1), False))
+    replay.add(Transition(block_scene(0), Action("grasp", 5, 5, 0), 1.0, block_scene(1), False))
     lrn = Learner(cfg, build_network("fast", 16, seed=0), replay)
     lrn.start()
     try:
@@ -483,10 +458,10 @@ def _distance(net: torch.nn.Module, ref: torch.nn.Module) -> float:
 
 
 def _anchored_run(anchor_weight: float) -> tuple[Learner, list]:
-    cfg = config(learning_rate=1e-3, seed=3, anchor_weight=anchor_weight)
+    cfg = learner_config(learning_rate=1e-3, seed=3, anchor_weight=anchor_weight)
     replay = PrioritizedReplay.from_config(cfg.learning)
     for i in range(6):
-        replay.add(Transition(scene(i), Action("grasp", 8 + i, 12, i), float(i % 2), scene(i + 1), False))
+        replay.add(Transition(block_scene(i), Action("grasp", 8 + i, 12, i), float(i % 2), block_scene(i + 1), False))
     lrn = Learner(cfg, build_network("fast", 16, seed=3), replay)
     return lrn, [lrn.update() for _ in range(8)]
 
@@ -527,9 +502,9 @@ def _q_at(lrn: Learner, state: Heightmaps, action: Action) -> float:
 
 
 def test_a_prior_share_trains_on_the_prior_sample_beside_the_replay_and_sets_no_priority_for_it():
-    cfg = config(batch_size=4, gamma=0.0, learning_rate=1e-3, mirror_probability=0.0)
-    own = Transition(scene(1), Action("grasp", 9, 20, 3), 0.0, None, True)
-    old = Transition(scene(2), Action("grasp", 14, 11, 5), 1.0, None, True)
+    cfg = learner_config(batch_size=4, gamma=0.0, learning_rate=1e-3, mirror_probability=0.0)
+    own = Transition(block_scene(1), Action("grasp", 9, 20, 3), 0.0, None, True)
+    old = Transition(block_scene(2), Action("grasp", 14, 11, 5), 1.0, None, True)
 
     def run(prior_share: float) -> tuple[Learner, list]:
         replay = PrioritizedReplay.from_config(cfg.learning)
@@ -550,8 +525,8 @@ def test_a_prior_share_trains_on_the_prior_sample_beside_the_replay_and_sets_no_
 
 
 def test_a_fractional_prior_share_holds_on_average_and_one_replayed_transition_always_stays():
-    cfg = config(batch_size=4)
-    prior = _prior_of([Transition(scene(2), Action("grasp", 14, 11, 5), 1.0, None, True)])
+    cfg = learner_config(batch_size=4)
+    prior = _prior_of([Transition(block_scene(2), Action("grasp", 14, 11, 5), 1.0, None, True)])
     lrn = learner(cfg, prior=prior, prior_share=0.3)
     counts = [lrn._prior_count(4) for _ in range(4000)]
     assert set(counts) == {1, 2}

@@ -3,7 +3,6 @@ is refused naming the file, key and value (and the daemon does not start on it),
 
 from __future__ import annotations
 
-import dataclasses
 import subprocess
 import sys
 from pathlib import Path

@@ -274,8 +274,6 @@ def test_a_cell_that_keeps_failing_stops_the_run(tmp_path):
 
 def test_a_run_can_start_from_a_policy_file_and_refuses_a_bad_one(tmp_path, capsys):
     """--init-policy: the weights come from the file (then train on), the replay starts empty."""
-    import torch
-
     from flgd.learning.networks import build_network
 
     shipped = REPO / "policies" / "flg-sim.safetensors"

@@ -14,9 +14,10 @@ from flgd.config import CellConfig
 from flgd.learning.learner import Learner
 from flgd.learning.networks import build_network
 from flgd.learning.replay import PrioritizedReplay, Transition
-from flgd.training.state import load_trainer_state, restore_learner, save_trainer_state
-from tests.test_learning_learner import config as learner_config
-from tests.test_learning_learner import one_thread, scene  # noqa: F401 (one_thread: autouse fixture)
+from flgd.training.state import TRAINER_STATE, load_trainer_state, remove_temporary, restore_learner, save_trainer_state
+from tests.fakes.learning import block_scene, learner_config
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def config(**learning) -> CellConfig:
@@ -27,7 +28,7 @@ def config(**learning) -> CellConfig:
 def filled_replay(cfg: CellConfig) -> PrioritizedReplay:
     replay = PrioritizedReplay.from_config(cfg.learning)
     for k in range(6):
-        replay.add(Transition(scene(k), Action("grasp", 8 + k, 12, k), float(k % 2), scene(k + 10), k == 5))
+        replay.add(Transition(block_scene(k), Action("grasp", 8 + k, 12, k), float(k % 2), block_scene(k + 10), k == 5))
     return replay
 
 
@@ -71,8 +72,8 @@ def test_round_trip_restores_target_and_moments_and_training_continues_identical
         assert float(sa["step"]) == float(sb["step"]) == 4.0
 
     # the same batch and weights give the same step on both: the restored optimizer is the original
-    batch = [Transition(scene(20), Action("grasp", 10, 10, 2), 1.0, scene(21), False),
-             Transition(scene(22), Action("push", 14, 9, 7), 0.0, None, True)]
+    batch = [Transition(block_scene(20), Action("grasp", 10, 10, 2), 1.0, block_scene(21), False),
+             Transition(block_scene(22), Action("push", 14, 9, 7), 0.0, None, True)]
     w = np.ones(2, np.float32)
     for lrn in (original, resumed):
         lrn.optimizer.zero_grad(set_to_none=True)
@@ -129,3 +130,15 @@ def test_an_unreadable_or_incomplete_file_is_a_value_error_naming_it(tmp_path):
     save_file({"target.x": torch.zeros(2)}, str(partial), metadata={"updates": "4", "adam_groups": "[]"})
     with pytest.raises(ValueError, match="partial.safetensors.*incomplete.*priority.ids"):
         load_trainer_state(partial)
+
+
+def test_only_the_temporaries_of_interrupted_trainer_state_writes_are_removed(tmp_path):
+    stale = [tmp_path / f".{TRAINER_STATE}.{suffix}.tmp" for suffix in ("a1b2c3", "zz9")]
+    keep = [tmp_path / TRAINER_STATE, tmp_path / ".checkpoint-0000000002.safetensors.x.tmp",
+            tmp_path / f".{TRAINER_STATE}.note", tmp_path / "flgd.db"]
+    for p in stale + keep:
+        p.write_bytes(b"x")
+    assert remove_temporary(tmp_path) == 2
+    assert not any(p.exists() for p in stale)
+    assert all(p.exists() for p in keep)
+    assert remove_temporary(tmp_path / "missing") == 0

@@ -1,5 +1,4 @@
-"""What a kill leaves and what does not fit: trainer-state temporaries are removed, never the state itself;
-a checkpoint or policy of other rotations than the config's is not used."""
+"""The starting network (flgd.wiring): a checkpoint or policy of other rotations than the config's is not used."""
 
 from __future__ import annotations
 
@@ -11,20 +10,7 @@ from flgd.config import config_from_dict
 from flgd.learning.networks import build_network
 from flgd.learning.policy_file import PolicyFileError, save_policy
 from flgd.store import CheckpointDir
-from flgd.training.state import TRAINER_STATE, remove_temporary
 from flgd.wiring import starting_network
-
-
-def test_only_the_temporaries_of_interrupted_trainer_state_writes_are_removed(tmp_path):
-    stale = [tmp_path / f".{TRAINER_STATE}.{suffix}.tmp" for suffix in ("a1b2c3", "zz9")]
-    keep = [tmp_path / TRAINER_STATE, tmp_path / ".checkpoint-0000000002.safetensors.x.tmp",
-            tmp_path / f".{TRAINER_STATE}.note", tmp_path / "flgd.db"]
-    for p in stale + keep:
-        p.write_bytes(b"x")
-    assert remove_temporary(tmp_path) == 2
-    assert not any(p.exists() for p in stale)
-    assert all(p.exists() for p in keep)
-    assert remove_temporary(tmp_path / "missing") == 0
 
 
 def _save(path, rotations: int) -> None:
