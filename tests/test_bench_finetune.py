@@ -91,6 +91,7 @@ def test_a_setting_out_of_range_is_one_line_before_anything_runs(tmp_path):
     assert not any(tmp_path.iterdir())
 
 
+@pytest.mark.slow
 def test_tiny_run_writes_a_well_formed_report_and_png(tmp_path):
     out = tmp_path / "report.json"
     rows = ["shifted-frozen", "shifted-gate", "shifted-scratch"]

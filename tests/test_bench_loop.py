@@ -46,6 +46,7 @@ def test_pooled_numbers_leave_aborted_runs_out():
     assert got["completion"] == 0.5
 
 
+@pytest.mark.slow
 def test_a_tiny_run_reports_every_variant_and_a_second_call_reuses_it(tmp_path):
     cmd = [sys.executable, "-m", "flgd.cli", "bench", "loop", "--root", str(tmp_path), "--seeds", "5", "--runs", "1",
            "--count", "2", "--cells", str(REPO / "cell_config" / "sim.yaml"),

@@ -41,6 +41,7 @@ def test_bad_shapes_and_an_empty_mask_are_refused():
         top_shares(np.zeros((1, 4, 4)), np.zeros((4, 4), dtype=bool))
 
 
+@pytest.mark.slow
 def test_the_benchmark_measures_the_shipped_policy_on_sim_clutter_and_names_a_bad_policy_file(tmp_path, capsys):
     from benchmarks import qmap_top
 

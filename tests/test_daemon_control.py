@@ -24,6 +24,8 @@ from flgd.daemon.protocol import MAX_REQUEST_BYTES
 
 from tests.fakes.daemon import REPO, DaemonProcess
 
+pytestmark = pytest.mark.slow  # every test here starts a daemon
+
 
 @pytest.fixture(scope="module")
 def idle_daemon(tmp_path_factory):

@@ -318,6 +318,7 @@ def test_a_fault_while_homing_is_raised_before_anything_is_captured(tmp_path):
         cell.close()
 
 
+@pytest.mark.slow
 def test_learned_priorities_are_written_to_the_store_and_come_back_after_a_restart(tmp_path):
     from flgd.wiring import build_agent_and_learner, rebuild_replay
 
@@ -350,6 +351,7 @@ def test_learned_priorities_are_written_to_the_store_and_come_back_after_a_resta
     store.close()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("wait", [True, False])
 def test_with_wait_for_updates_each_decision_waits_for_the_learners_scheduled_updates(tmp_path, wait):
     from flgd.learning.learner import Learner

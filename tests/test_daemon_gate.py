@@ -24,6 +24,8 @@ from flgd.learning.policy_file import load_policy, save_policy
 
 from tests.fakes.daemon import REPO, write_config
 
+pytestmark = pytest.mark.slow  # every test here starts a daemon
+
 SHIPPED = REPO / "policies" / "flg-sim.safetensors"
 
 

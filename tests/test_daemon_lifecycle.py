@@ -19,6 +19,8 @@ from flgd.store import Store
 
 from tests.fakes.daemon import REPO, DaemonProcess, tmpfs, write_config
 
+pytestmark = pytest.mark.slow  # every test here starts a daemon
+
 
 def _db_counts(state_dir: Path) -> dict:
     """The action log read directly with sqlite3 (not through flgd), as stats must agree with it."""

@@ -8,6 +8,7 @@ import subprocess
 import sys
 import urllib.request
 
+import pytest
 from prometheus_client.parser import text_string_to_metric_families
 
 from flgd.daemon.metrics import PhaseHistograms
@@ -31,6 +32,7 @@ def _value(families: dict, name: str, **labels: str) -> float:
     raise KeyError(f"{name} {labels}")
 
 
+@pytest.mark.slow
 def test_a_scrape_of_a_running_daemon_agrees_with_flgctl(daemon_factory):
     d = daemon_factory(args=["--autostart", "--metrics", "127.0.0.1:0"]).start().wait_ready()
     port = int(re.search(r"metrics: serving http://127\.0\.0\.1:(\d+)/metrics", d.log()).group(1))
@@ -72,6 +74,7 @@ def test_a_scrape_of_a_running_daemon_agrees_with_flgctl(daemon_factory):
     assert d.wait_exit() == 0
 
 
+@pytest.mark.slow
 def test_metrics_are_off_unless_asked_for(daemon_factory):
     d = daemon_factory().start().wait_ready()
     assert "metrics: serving" not in d.log()

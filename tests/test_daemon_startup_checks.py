@@ -7,11 +7,15 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 
 from flgd.learning.networks import build_network
 from flgd.learning.policy_file import save_policy
 from flgd.training.state import TRAINER_STATE
 from tests.fakes.daemon import REPO, DaemonProcess, write_config
+
+pytestmark = pytest.mark.slow  # every test here starts a daemon
 
 SHIPPED = REPO / "policies" / "flg-sim.safetensors"
 

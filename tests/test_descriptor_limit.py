@@ -23,6 +23,8 @@ import pytest
 from flgd.ctl import Client
 from tests.fakes.daemon import REPO
 
+pytestmark = pytest.mark.slow  # every test here starts a daemon
+
 DAEMON_LIMIT = 1024
 SLOW_SCRAPES = 1022
 

@@ -58,6 +58,7 @@ def config():
 
 # ----------------------------------------------------------------------------- the report, end to end
 
+@pytest.mark.slow
 @needs_vpg
 def test_vpg_test_case_end_to_end_gives_a_well_formed_report(policy_file, tmp_path, capsys):
     out = tmp_path / "report.json"
@@ -182,6 +183,7 @@ def test_action_limit_and_clearing_a_scene(config, tmp_path):
 
 # ----------------------------------------------------------------------------- modes
 
+@pytest.mark.slow
 def test_frozen_evaluation_is_greedy_and_grasp_only_never_moves(config, tmp_path):
     frozen = evaluation_config(config, EvalOptions())
     assert frozen.exploration.epsilon_start == frozen.exploration.epsilon_end == 0.0
@@ -316,6 +318,7 @@ def test_the_installed_command_reports_a_corrupt_policy_without_a_traceback(tmp_
     assert "Traceback" not in p.stderr
 
 
+@pytest.mark.slow
 def test_bench_eval_runs_the_novel_clutter_its_own_number_of_times(tmp_path, capsys):
     from benchmarks import eval as bench_eval
 
@@ -331,6 +334,7 @@ def test_bench_eval_runs_the_novel_clutter_its_own_number_of_times(tmp_path, cap
     assert "(2 of the novel clutter)" in capsys.readouterr().out
 
 
+@pytest.mark.slow
 def test_bench_eval_validation_runs_20_blocks_at_each_evaluation_seed_and_pools_them(tmp_path, capsys):
     from benchmarks import eval as bench_eval
 

@@ -111,6 +111,7 @@ def test_sim_packed_scenes_sets_the_share_of_new_scenes_that_are_packed(tmp_path
         load_config(bad)
 
 
+@pytest.mark.slow
 def test_eval_and_bench_eval_run_packed_scenes(tmp_path, capsys):
     from benchmarks import eval as bench_eval
 

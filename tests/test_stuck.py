@@ -141,6 +141,7 @@ def _cycle_while_running(c, most: int = 12) -> None:
         c._one_cycle()
 
 
+@pytest.mark.slow
 def test_the_real_cell_pauses_when_stuck_and_says_why_in_status_events_and_metrics(real_daemon):
     c = real_daemon()
     c.handle(Request("start"))
@@ -166,6 +167,7 @@ def test_the_real_cell_pauses_when_stuck_and_says_why_in_status_events_and_metri
     assert compute_stats(c.store)["stuck_events"] == 2
 
 
+@pytest.mark.slow
 def test_stuck_action_continue_records_it_and_goes_on(real_daemon):
     c = real_daemon(stuck_action="continue")
     c.handle(Request("start"))

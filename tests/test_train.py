@@ -25,6 +25,8 @@ CONFIG = str(REPO / "cell_config" / "sim.yaml")
 U = yaml.safe_load(Path(CONFIG).read_text())["learning"]["updates_per_action"]  # sim.yaml's, run synchronously
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
+pytestmark = pytest.mark.slow  # most tests here start a training run
+
 
 def _train(out: Path, *extra: str) -> int:
     return train_main(["--config", CONFIG, "--out", str(out), "--threads", "1", *extra])

@@ -12,6 +12,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from benchmarks import learning as bench
 from flgd.learning.agent import RULES
@@ -146,6 +147,7 @@ def test_bench_commands_use_one_thread_and_the_run_directory(tmp_path):
     assert cmd[cmd.index("--steps") + 1] == "700" and cmd[cmd.index("--out") + 1] == str(tmp_path / "x")
 
 
+@pytest.mark.slow
 def test_bench_trains_skips_finished_runs_and_continues_longer_ones(tmp_path, capsys):
     common = ["--root", str(tmp_path), "--variants", "flg", "--seeds", "0", "--no-table2", "--jobs", "1"]
     assert bench.main(common + ["--steps", "2"]) == 0
@@ -177,6 +179,7 @@ class _SleepingRun(bench.RunSpec):
                 "try:\n    time.sleep(600)\nexcept KeyboardInterrupt:\n    sys.exit(130)\n"]
 
 
+@pytest.mark.slow
 def test_ctrl_c_stops_the_bench_runs_and_reports_the_interruption(tmp_path):
     specs = [_SleepingRun("a-s0", "flg", 0), _SleepingRun("b-s0", "dpen", 0), _SleepingRun("c-s0", "rho-fcn", 0)]
     interrupted_at = []

@@ -143,6 +143,7 @@ def _train_in(out: Path, steps: int, fail_reset: int | None = None) -> tuple[Tra
         run.close()
 
 
+@pytest.mark.slow
 def test_a_scene_that_ends_with_objects_left_logs_them_and_scene_ids_continue_on_resume(tmp_path):
     out = tmp_path / "run"
     _, cell = _train_in(out, steps=2)
@@ -160,6 +161,7 @@ def test_a_scene_that_ends_with_objects_left_logs_them_and_scene_ids_continue_on
     assert int(rows[2]["objects_left"]) == cell.left_when_judged[0] > 0
 
 
+@pytest.mark.slow
 def test_priorities_stay_with_their_transitions_when_a_cycle_fails_after_committing(tmp_path):
     """The first action's scene reset raises after its transition was stored and added to the replay: the
     trainer state must still pair every replay slot's priority with that slot's transition id."""

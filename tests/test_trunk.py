@@ -212,6 +212,7 @@ def test_a_trunk_that_does_not_fit_is_refused_and_leaves_the_network_alone(tmp_p
         load_trunk(fast, other)
 
 
+@pytest.mark.slow
 def test_config_init_trunk_starts_a_fresh_network_from_it_and_a_bad_one_stops_train_and_run(tmp_path):
     path, source = _trunk_file(tmp_path)
     cfg_path = write_config(tmp_path, tmp_path / "state", learning={"init_trunk": path.name})
@@ -234,6 +235,7 @@ def test_config_init_trunk_starts_a_fresh_network_from_it_and_a_bad_one_stops_tr
     assert not (tmp_path / "s.sock").exists()
 
 
+@pytest.mark.slow
 def test_pretrain_cli_refuses_bad_arguments_and_changed_settings(tmp_path):
     def run(*args):
         return subprocess.run([sys.executable, "-m", "flgd.cli", "pretrain", "--config",
