@@ -20,7 +20,9 @@ from typing import Any, Callable
 from flgd.config import CellConfig, learner_settings
 from flgd.store import CheckpointDir, Store
 
-__all__ = ["LearningStack", "CheckpointMeta", "TrainerStateRestore", "learning_config"]
+__all__ = ["LearningStack", "CheckpointMeta", "TrainerStateRestore", "learning_config", "LEARNER_QUIET_TIMEOUT"]
+
+LEARNER_QUIET_TIMEOUT = 60.0  # seconds a restart of the learner (or a policy load) waits for its update in progress
 
 
 def learning_config(config: CellConfig, fine_tune: bool, *, few_moves: bool = False) -> CellConfig:
@@ -166,6 +168,16 @@ class LearningStack:
         assert self.store is not None, "the gate keeps its records in the store"
         self.gate, self.gate_note = attach_gate(self.config, self.store, self.agent, self.learner, self.state_dir,
                                                 step, fine_tune=self.fine_tune, configured=configured, fresh=fresh)
+        self.gate.reset_learner = self.restart_learner_from  # the daemon wraps it with its lock and an event
+
+    def restart_learner_from(self, network: Any, quiet_timeout: float = LEARNER_QUIET_TIMEOUT) -> int:
+        """The gate, after a rollback or a drop as worse: the learner starts again from ``network`` (its weights,
+        a fresh trainer state, the owed updates dropped; their number returned).  LearnerBusy when the update in
+        progress does not end within ``quiet_timeout`` seconds."""
+        with self.learner.paused(quiet_timeout):
+            self.learner.load_weights(network, publish=False)
+            self.learner.reset_trainer_state()
+            return self.learner.drop_backlog()
 
     # ------------------------------------------------------------------ running
     def after_cycle(self, record: Any, runner: Any) -> None:

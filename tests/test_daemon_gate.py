@@ -110,9 +110,11 @@ def test_a_worse_challenger_is_dropped_and_never_acts_again_and_hand_overs_come_
         drop = next(e for e in d.ctl.gate.history() if e["kind"] == "drop")
         dropped, when = drop["policy"], drop["step"]
         d.wait(lambda: d.ctl.runner.step > when + 15, "15 more cycles")
+        restarts = [e["message"] for e in d.ctl.store.events("learner")]
     finally:
         d.close()
     rows = d.actions()
+    assert any("learner restarted from the champion" in m for m in restarts), restarts  # the line dropped
     assert any(p == dropped for s, p, _, _ in rows if s < when)  # it did act while tested
     assert not [s for s, p, _, _ in rows if s >= when and p == dropped]  # and never after the drop
     assert drop["evidence"]["challenger_tally"]["successes"] == 0

@@ -40,6 +40,25 @@ def test_eval_learn_runs_with_the_daemons_curriculum_rule(tmp_path):
             cfg.finetune.learning_rate
 
 
+def test_eval_learn_restarts_the_learner_from_the_champion_after_a_drop_as_the_daemon_does(tmp_path):
+    """The gate of ``flgd eval --learn`` resets its learner to the champion (the evaluator's copy left it going
+    on from the dropped line): weights, trainer state and owed updates, as in the daemon."""
+    import torch
+
+    from flgd.evaluation.evaluator import EvalOptions, Evaluator
+    from flgd.learning.networks import build_network
+
+    cfg = load_config(SIM)
+    cfg = dataclasses.replace(cfg, state_dir=str(tmp_path / "state"))
+    net = build_network(cfg.learning.network, rotations=cfg.learning.rotations, seed=0)
+    champion = build_network(cfg.learning.network, rotations=cfg.learning.rotations, seed=1)
+    with Evaluator(cfg, net, EvalOptions(runs=1, learn=True)) as ev:
+        assert ev.gate.reset_learner is not None
+        ev.gate.reset_learner(champion)
+        learned = ev.learner.snapshot().state_dict()
+    assert all(torch.equal(learned[k], v) for k, v in champion.state_dict().items())
+
+
 def test_only_flgd_train_keeps_the_few_moves_phase(tmp_path):
     cfg = _with_curriculum(tmp_path)
     assert learning_config(cfg, False).exploration.curriculum_steps == 0

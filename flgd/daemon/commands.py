@@ -23,6 +23,7 @@ from flgd.cell import CellFault, make_cell
 from flgd.daemon.metrics import compute_stats, status_summary
 from flgd.daemon.protocol import ProtocolError, Request
 from flgd.daemon.state import IllegalTransition, State
+from flgd.learning_stack import LEARNER_QUIET_TIMEOUT  # a name here, so that a test can shorten it
 from flgd.store import StoreError
 
 if TYPE_CHECKING:
@@ -31,8 +32,6 @@ if TYPE_CHECKING:
 __all__ = ["Command", "HANDLERS", "status", "status_text", "summary", "policy_load"]
 
 log = logging.getLogger("flgd")
-
-LEARNER_QUIET_TIMEOUT = 60.0  # seconds a policy load waits for the learner's update in progress
 
 
 @dataclasses.dataclass(frozen=True)

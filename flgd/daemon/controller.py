@@ -243,15 +243,13 @@ class Controller:
         log.info("acting policy: %s; gate %s", self.gate_note, "on" if self.gate.enabled else "OFF")
 
     def _reset_learner_to(self, network: Any) -> None:
-        """Run loop (the gate, after a rollback or a drop as worse): the learner starts again from ``network``."""
+        """Run loop (the gate, after a rollback or a drop as worse): the learner starts again from ``network``,
+        under the learning lock, with an event either way."""
         from flgd.learning.learner import LearnerBusy
 
-        lr = self.learner
         try:
-            with self._learning_lock, lr.paused(LEARNER_QUIET_TIMEOUT):
-                lr.load_weights(network, publish=False)
-                lr.reset_trainer_state()
-                owed = lr.drop_backlog()
+            with self._learning_lock:
+                owed = self.learning.restart_learner_from(network, commands.LEARNER_QUIET_TIMEOUT)
         except LearnerBusy as exc:
             self._event("learner", f"not reset to the champion: {exc}")
             raise
