@@ -189,11 +189,15 @@ class LearningStack:
         self.gate.after_cycle(record)
 
     def status(self) -> dict[str, Any]:
-        """What the daemon's status shows of its learning beside ``Learner.status()``."""
+        """What the daemon's status shows of its learning: the learner's own (``Learner.status()``), the replay,
+        the gate, and what the learner resumed from."""
+        from flgd.learning.learner import no_learner_status
+
         return {"replay_size": len(self.replay) if self.replay is not None else 0,
+                **(self.learner.status() if self.learner is not None else no_learner_status()),
+                "gate": None if self.gate is None else self.gate.status(),
                 "resumed_from_updates": self.resumed_from_updates, "trainer_state": self.trainer_state,
-                "last_checkpoint": self.last_checkpoint,
-                "gate": None if self.gate is None else self.gate.status()}
+                "last_checkpoint": self.last_checkpoint}
 
     # ------------------------------------------------------------------ checkpoints
     def checkpointed_updates(self) -> int:

@@ -76,8 +76,6 @@ def status_text(ctl: Controller) -> str:
 
 def status(ctl: Controller) -> dict[str, Any]:
     """``flgctl status``: state, policy, learner, gate, store, last cycle, calibration and failure memory."""
-    from flgd.learning.learner import no_learner_status
-
     rec = ctl.last_record
     last = None
     if rec is not None:
@@ -104,15 +102,10 @@ def status(ctl: Controller) -> dict[str, Any]:
         "learner_from": ctl.policy_source,
         "step": ctl.runner.step if ctl.runner is not None else None,
         "cycle_in_flight": ctl.cycle_in_flight,
-        "replay_size": len(ctl.replay) if ctl.replay is not None else 0,
         "stored_transitions": stored,
-        **(ctl.learner.status() if ctl.learner is not None else no_learner_status()),
+        **ctl.learning.status(),
         "learning": "finetune" if ctl.fine_tune else "learning",
         "learning_why": ctl.learning_why,
-        "gate": None if ctl.gate is None else ctl.gate.status(),
-        "resumed_from_updates": ctl.resumed_from_updates,
-        "trainer_state": ctl.trainer_state,
-        "last_checkpoint": ctl.last_checkpoint,
         "store_problem": ctl.store_problem,
         "storage_budget_problem": ctl.store.budget_problem if ctl.store is not None else "",
         "last_cycle": last,

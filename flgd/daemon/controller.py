@@ -335,9 +335,9 @@ class Controller:
     def _keep_learner_alive(self) -> None:
         """A learner thread that left its loop (it never should) is started again, with an event saying so."""
         lr = self.learner
-        if lr is None or getattr(lr, "running", True) or self.store is None:
+        if lr is None or lr.running or self.store is None:
             return
-        why = getattr(lr, "stopped_why", "") or "unknown"
+        why = lr.stopped_why or "unknown"
         with self._learning_lock:
             if lr.running:
                 return

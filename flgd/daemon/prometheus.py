@@ -110,7 +110,6 @@ def cell_metric_families(controller: Any, state_name: Callable[[], str],
         "backend": str(status.get("backend") or ""), "name": str(controller.config.name or ""),
         "config": str(status.get("config") or "")})
 
-    learner = getattr(controller, "learner", None)
     yield _counter("flgd_learner_updates", "learner updates applied (continues across restarts from the "
                                            "checkpoint)", float(status.get("learner_updates") or 0))
     yield GaugeMetricFamily("flgd_learner_backlog", "scheduled learner updates not run yet",
@@ -119,7 +118,7 @@ def cell_metric_families(controller: Any, state_name: Callable[[], str],
                                                    "(since start)", float(status.get("learner_dropped") or 0))
     yield _counter("flgd_learner_skipped_updates", "updates not applied because the loss or gradients were not "
                                                    "finite (since start)",
-                   float(getattr(learner, "skipped_updates", 0) or 0))
+                   float(status.get("learner_skipped") or 0))
     yield GaugeMetricFamily("flgd_learner_running", "1 while the background learner thread runs",
                             value=1.0 if status.get("learner_running") else 0.0)
     yield GaugeMetricFamily("flgd_replay_transitions", "transitions in the replay memory",
