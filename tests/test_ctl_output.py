@@ -130,3 +130,55 @@ def test_a_reply_that_is_not_utf8_is_exit_1_not_a_traceback(capsys):
     finally:
         daemon.close()
     assert code == ctl.EXIT_FAILED and "unreadable reply" in capsys.readouterr().err
+
+
+# --------------------------------------------------------------------------- flgctl stop says what is known
+
+def test_flgctl_stop_reports_a_request_not_a_finished_flush(tmp_path, capsys):
+    from flgd import ctl
+
+    sock_path = tmp_path / "s.sock"
+    srv = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    srv.bind(str(sock_path))
+    srv.listen(1)
+
+    def serve():
+        conn, _ = srv.accept()
+        with conn:
+            conn.recv(65536)
+            conn.sendall(b'{"ok": true, "state": "STOPPING", "result": {"stopping": true}}\n')
+
+    threading.Thread(target=serve, daemon=True).start()
+    assert ctl.main(["--socket", str(sock_path), "stop"]) == 0
+    out = capsys.readouterr().out
+    srv.close()
+    assert out.startswith("stop requested") and "flushed" not in out and "halted" not in out
+
+
+def test_flgctl_policy_save_permission_error_names_the_group(tmp_path, capsys, monkeypatch):
+    from flgd import ctl
+
+    sock_path = tmp_path / "s.sock"
+    saved = "/var/lib/flgd/policies/p.safetensors"
+    srv = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    srv.bind(str(sock_path))
+    srv.listen(1)
+
+    def serve():
+        conn, _ = srv.accept()
+        with conn:
+            conn.recv(65536)
+            conn.sendall((json.dumps({"ok": True, "state": "IDLE", "result": {"saved": saved,
+                                                                               "learner_updates": 1}})
+                          + "\n").encode())
+
+    threading.Thread(target=serve, daemon=True).start()
+
+    def denied(src, dst):
+        raise PermissionError(13, "Permission denied", src)
+
+    monkeypatch.setattr(ctl.shutil, "copyfile", denied)
+    assert ctl.main(["--socket", str(sock_path), "policy", "save", str(tmp_path / "x.safetensors")]) == 1
+    srv.close()
+    err = capsys.readouterr().err
+    assert saved in err and "Permission denied" in err and "group flgd" in err

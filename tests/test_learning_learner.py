@@ -534,3 +534,88 @@ def test_a_fractional_prior_share_holds_on_average_and_one_replayed_transition_a
     assert learner(cfg, prior=prior, prior_share=0.9)._prior_count(4) == 3
     with pytest.raises(ValueError, match="needs a prior sample"):
         learner(cfg, prior_share=0.25)
+
+
+# --------------------------------------------------------------------------- the learner's NaN guard
+
+N = 32
+
+
+def scene(seed: int) -> Heightmaps:
+    rng = np.random.default_rng(seed)
+    h = np.zeros((N, N), np.float32)
+    r, c = rng.integers(2, N - 8, 2)
+    h[r:r + 6, c:c + 6] = 0.03
+    color = np.full((N, N, 3), 90, np.uint8)
+    return Heightmaps(color, h)
+
+
+def make_learner(calls: list) -> Learner:
+    cfg = CellConfig()
+    cfg = dataclasses.replace(cfg, learning=dataclasses.replace(cfg.learning, batch_size=2, device="cpu",
+                                                                checkpoint_every=1))
+    replay = PrioritizedReplay.from_config(cfg.learning)
+    for i in range(3):
+        replay.add(Transition(scene(i), Action("grasp", 10, 12, i), 1.0, scene(i + 1), False))
+    return Learner(cfg, build_network("fast", 16, seed=0).eval(), replay, checkpoint_callback=lambda net, n: calls.append(n))
+
+
+class _InfGrad(torch.autograd.Function):
+    """Identity forward, infinite gradient backward: a finite loss whose step would still wreck the weights."""
+
+    @staticmethod
+    def forward(ctx, x):
+        return x.clone()
+
+    @staticmethod
+    def backward(ctx, grad):
+        return grad * float("inf")
+
+
+@pytest.mark.parametrize("poison", ["nan_loss", "inf_gradient"])
+def test_a_non_finite_update_is_skipped_counted_and_reported_and_nothing_is_checkpointed(poison):
+    calls: list[int] = []
+    lrn = make_learner(calls)
+    real = lrn.loss_terms
+
+    def diverging(transitions, weights):
+        terms = real(transitions, weights)
+        terms.loss = terms.loss * float("nan") if poison == "nan_loss" else _InfGrad.apply(terms.loss)
+        return terms
+
+    before = {k: v.clone() for k, v in lrn.online.state_dict().items()}
+    priorities = [lrn.replay.priority(i) for i in range(3)]
+    lrn.loss_terms = diverging
+    assert lrn.update() is None
+    after = lrn.online.state_dict()
+    assert all(torch.equal(before[k], after[k]) for k in before), "a non-finite update changed the weights"
+    assert lrn.optimizer.state == {} and lrn.updates == 0 and calls == []
+    assert [lrn.replay.priority(i) for i in range(3)] == priorities
+    assert lrn.skipped_updates == 1 and "update 1 skipped" in lrn.last_error
+    assert ("loss is nan" if poison == "nan_loss" else "gradient of") in lrn.last_error, lrn.last_error
+    # learning goes on once the updates are finite again
+    lrn.loss_terms = real
+    stats = lrn.update()
+    assert stats is not None and lrn.updates == 1 and calls == [1] and lrn.skipped_updates == 1
+    assert all(torch.isfinite(v).all() for v in lrn.online.state_dict().values() if v.is_floating_point())
+
+
+def test_the_background_learner_reports_skipped_updates_through_last_error():
+    calls: list[int] = []
+    lrn = make_learner(calls)
+    real = lrn.loss_terms
+
+    def nan_loss(transitions, weights):
+        terms = real(transitions, weights)
+        terms.loss = terms.loss * float("nan")
+        return terms
+
+    lrn.loss_terms = nan_loss
+    lrn.start()
+    try:
+        lrn.notify_new_transition()
+        assert lrn.wait_idle(120)
+    finally:
+        lrn.stop(30)
+    assert lrn.skipped_updates >= 1 and lrn.failed_updates == 0 and lrn.updates == 0
+    assert lrn.last_error and "skipped" in lrn.last_error
