@@ -18,6 +18,7 @@ import pytest
 
 from flgd import ctl
 from flgd.daemon.server import ControlServer, PeerPolicy
+from tests.fakes.daemon import read_line
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -95,13 +96,8 @@ class _OneReplyDaemon:
     def _serve(self) -> None:
         conn, _ = self.sock.accept()
         with conn:
-            buf = b""
-            while b"\n" not in buf:
-                chunk = conn.recv(65536)
-                if not chunk:
-                    return
-                buf += chunk
-            conn.sendall(self.reply + b"\n")
+            if b"\n" in read_line(conn):
+                conn.sendall(self.reply + b"\n")
 
     def close(self) -> None:
         self.sock.close()
@@ -134,51 +130,28 @@ def test_a_reply_that_is_not_utf8_is_exit_1_not_a_traceback(capsys):
 
 # --------------------------------------------------------------------------- flgctl stop says what is known
 
-def test_flgctl_stop_reports_a_request_not_a_finished_flush(tmp_path, capsys):
-    from flgd import ctl
-
-    sock_path = tmp_path / "s.sock"
-    srv = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-    srv.bind(str(sock_path))
-    srv.listen(1)
-
-    def serve():
-        conn, _ = srv.accept()
-        with conn:
-            conn.recv(65536)
-            conn.sendall(b'{"ok": true, "state": "STOPPING", "result": {"stopping": true}}\n')
-
-    threading.Thread(target=serve, daemon=True).start()
-    assert ctl.main(["--socket", str(sock_path), "stop"]) == 0
+def test_flgctl_stop_reports_a_request_not_a_finished_flush(capsys):
+    daemon = _OneReplyDaemon(b'{"ok": true, "state": "STOPPING", "result": {"stopping": true}}')
+    try:
+        assert ctl.main(["--socket", str(daemon.path), "stop"]) == 0
+    finally:
+        daemon.close()
     out = capsys.readouterr().out
-    srv.close()
     assert out.startswith("stop requested") and "flushed" not in out and "halted" not in out
 
 
 def test_flgctl_policy_save_permission_error_names_the_group(tmp_path, capsys, monkeypatch):
-    from flgd import ctl
-
-    sock_path = tmp_path / "s.sock"
     saved = "/var/lib/flgd/policies/p.safetensors"
-    srv = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-    srv.bind(str(sock_path))
-    srv.listen(1)
-
-    def serve():
-        conn, _ = srv.accept()
-        with conn:
-            conn.recv(65536)
-            conn.sendall((json.dumps({"ok": True, "state": "IDLE", "result": {"saved": saved,
-                                                                               "learner_updates": 1}})
-                          + "\n").encode())
-
-    threading.Thread(target=serve, daemon=True).start()
+    daemon = _OneReplyDaemon(json.dumps({"ok": True, "state": "IDLE",
+                                         "result": {"saved": saved, "learner_updates": 1}}).encode())
 
     def denied(src, dst):
         raise PermissionError(13, "Permission denied", src)
 
     monkeypatch.setattr(ctl.shutil, "copyfile", denied)
-    assert ctl.main(["--socket", str(sock_path), "policy", "save", str(tmp_path / "x.safetensors")]) == 1
-    srv.close()
+    try:
+        assert ctl.main(["--socket", str(daemon.path), "policy", "save", str(tmp_path / "x.safetensors")]) == 1
+    finally:
+        daemon.close()
     err = capsys.readouterr().err
     assert saved in err and "Permission denied" in err and "group flgd" in err

@@ -13,6 +13,7 @@ import pytest
 
 from flgd.daemon.protocol import COMMANDS, MAX_REQUEST_BYTES, ProtocolError, Request, parse_request
 from flgd.daemon.server import ControlServer, PeerPolicy, SocketInUse
+from tests.fakes.daemon import read_line
 
 
 @pytest.mark.parametrize("line, code", [
@@ -164,12 +165,7 @@ def _connect_as(uid: int, path: str) -> dict:
                     s.sendall(b'{"cmd":"status"}\n')
                 except OSError:
                     pass
-                data = b""
-                while b"\n" not in data:
-                    chunk = s.recv(4096)
-                    if not chunk:
-                        break
-                    data += chunk
+                data = read_line(s)
             os.write(w, data or b'{"closed": true}\n')
         except BaseException as exc:  # report anything to the parent
             os.write(w, json.dumps({"child_error": repr(exc)}).encode() + b"\n")

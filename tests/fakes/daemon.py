@@ -153,3 +153,14 @@ class DaemonProcess:
                 self.proc.wait()
         if not self.log_file.closed:
             self.log_file.close()
+
+
+def read_line(sock) -> bytes:
+    """Bytes from ``sock`` up to and including the first newline (all there is if the peer closes first)."""
+    data = b""
+    while b"\n" not in data:
+        chunk = sock.recv(65536)
+        if not chunk:
+            break
+        data += chunk
+    return data
