@@ -1,0 +1,119 @@
+"""The emulator's one physics world: a SimCell, the lock every pybullet call takes, and the clock that steps it.
+
+The emulated devices (arm, gripper, camera) share one pybullet client, and
+pybullet is not thread-safe, so every call into it -- arm motion, finger motion,
+rendering, a scene reset -- happens under ``EmulatorWorld.lock``.  The lock is
+the SimCell's own (``Cell._lock``): the cell's public methods (``capture``,
+``reset_scene`` ...) already take it, so the devices and the cell never step
+the world at the same time and no second lock can be taken in the wrong order.
+
+The world runs on its own clock thread (:meth:`start`): physics steps of
+``config.sim.time_step`` paced to real time divided by ``time_scale`` (2 =
+twice as fast as real time).  Before each step the registered tick callbacks
+run under the lock (the arm's controller, the fingers), so a device never
+steps the world itself.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from typing import Callable
+
+from flgd.config import CellConfig
+from sim_cell.cell import SimCell
+from sim_cell.stability import Unstable
+
+__all__ = ["EmulatorWorld", "TickCallback"]
+
+log = logging.getLogger(__name__)
+
+TickCallback = Callable[[float], None]   # called with the physics time step (s) before each step
+MAX_LAG_STEPS = 24                       # steps the clock catches up at once before it gives up on real time
+
+
+class EmulatorWorld:
+    """One SimCell, its lock and the physics clock that steps it for the emulated devices."""
+
+    def __init__(self, config: CellConfig, *, time_scale: float = 1.0):
+        if time_scale <= 0:
+            raise ValueError(f"time_scale must be > 0, got {time_scale!r}")
+        self.config = config
+        self.cell = SimCell(config)
+        self.lock: threading.RLock = self.cell._lock
+        self.dt = float(config.sim.time_step)
+        self.time_scale = float(time_scale)
+        self._ticks: list[TickCallback] = []
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self.steps = 0
+
+    # ------------------------------------------------------------------ devices
+    def add_tick(self, callback: TickCallback) -> None:
+        """Run ``callback(dt)`` under the lock before every physics step (a device's controller)."""
+        with self.lock:
+            self._ticks.append(callback)
+
+    def remove_tick(self, callback: TickCallback) -> None:
+        with self.lock:
+            if callback in self._ticks:
+                self._ticks.remove(callback)
+
+    @property
+    def sim_time(self) -> float:
+        return self.cell.sim_time
+
+    def step(self, n: int = 1) -> None:
+        """``n`` physics steps now (tick callbacks first); for the clock thread and for tests."""
+        with self.lock:
+            for _ in range(n):
+                for tick in list(self._ticks):
+                    tick(self.dt)
+                try:
+                    self.cell._world.step(1)
+                except Unstable as exc:
+                    log.warning("emulator: unstable physics (%s): the scene is reset", exc)
+                    self.cell._world.stats["unstable_resets"] += 1
+                    self.cell.reset_scene()
+                self.steps += 1
+
+    # ------------------------------------------------------------------ clock
+    def start(self) -> None:
+        """Start the clock thread (idempotent)."""
+        if self._thread is not None:
+            return
+        self._stop.clear()
+        self._thread = threading.Thread(target=self._run, name="emulator-physics", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        period = self.dt / self.time_scale
+        next_at = time.monotonic()
+        while not self._stop.is_set():
+            now = time.monotonic()
+            if now < next_at:
+                self._stop.wait(next_at - now)
+                continue
+            due = min(int((now - next_at) / period) + 1, MAX_LAG_STEPS)
+            try:
+                self.step(due)
+            except Exception:  # a device's bug must not stop the clock of the others
+                log.exception("emulator: a physics tick failed")
+            next_at += due * period
+            if time.monotonic() - next_at > MAX_LAG_STEPS * period:
+                next_at = time.monotonic()   # slower than real time: do not try to catch up for ever
+
+    def close(self) -> None:
+        """Stop the clock and close the cell; safe to call twice."""
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=5.0)
+            self._thread = None
+        self.cell.close()
+
+    def __enter__(self) -> "EmulatorWorld":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
