@@ -9,16 +9,17 @@ import threading
 from pathlib import Path
 
 import numpy as np
-import pyrealsense2 as rs
+import pyrealsense2  # noqa: F401 (import only where librealsense loads, as the docstring says)
 
 from flgd.cell import Frame
 from flgd.config import CellConfig, load_config
 from flgd.geometry import pose_matrix, rpy_to_matrix
+from flgd.hardware import software_d415
 from tests.fakes.scene import Box, render
 
 ROOT = Path(__file__).resolve().parents[2]
 SIM_CONFIG = ROOT / "cell_config" / "sim.yaml"
-SERIAL = "821212345678"
+SERIAL = software_d415.EMULATED_SERIAL
 BOXES = [Box(-0.55, -0.03, 0.05, 0.07, 0.04, 0.3, (200, 40, 40)),
          Box(-0.40, 0.10, 0.03, 0.06, 0.08, -0.6, (40, 200, 40)),
          Box(-0.47, 0.15, 0.04, 0.04, 0.025, 1.1, (40, 40, 200))]
@@ -48,65 +49,8 @@ def synthetic_frame(cfg: CellConfig, camera_pose: np.ndarray | None = None, intr
     return Frame(color=color, depth=depth, depth_scale=cfg.camera.depth_scale, intrinsics=k, camera_pose=pose)
 
 
-def _rs_intrinsics(k: np.ndarray, width: int, height: int):
-    intr = rs.intrinsics()
-    intr.width, intr.height = width, height
-    intr.fx, intr.fy, intr.ppx, intr.ppy = float(k[0, 0]), float(k[1, 1]), float(k[0, 2]), float(k[1, 2])
-    intr.model = rs.distortion.brown_conrady
-    intr.coeffs = [0.0] * 5
-    return intr
-
-
-class SoftwareD415:
-    """A librealsense software_device shaped like a D415: a Z16 depth sensor and an RGB8 colour sensor.
-
-    ``depth_to_color`` is the 4x4 transform taking depth-camera points into the
-    colour camera (identity: the depth is already registered to colour).
-    """
-
-    def __init__(self, depth_k: np.ndarray, color_k: np.ndarray, size=(640, 480), depth_scale: float = 0.001,
-                 depth_to_color: np.ndarray | None = None, serial: str = SERIAL, fps: int = 30):
-        w, h = size
-        self.size, self.depth_scale, self.fps = size, depth_scale, fps
-        self.device = rs.software_device()
-        self.device.register_info(rs.camera_info.name, "Intel RealSense D415 (software)")
-        self.device.register_info(rs.camera_info.serial_number, serial)
-        self.depth_sensor = self.device.add_sensor("Stereo Module")
-        self.color_sensor = self.device.add_sensor("RGB Camera")
-        self.depth_profile = self._stream(self.depth_sensor, rs.stream.depth, rs.format.z16, 2, depth_k, 0)
-        self.color_profile = self._stream(self.color_sensor, rs.stream.color, rs.format.rgb8, 3, color_k, 1)
-        self.depth_sensor.add_read_only_option(rs.option.depth_units, depth_scale)
-        t = np.eye(4) if depth_to_color is None else depth_to_color
-        ext = rs.extrinsics()
-        ext.rotation = [float(v) for v in t[:3, :3].T.ravel()]  # librealsense stores it column-major
-        ext.translation = [float(v) for v in t[:3, 3]]
-        self.depth_profile.register_extrinsics_to(self.color_profile, ext)
-        self.device.create_matcher(rs.matchers.dlr_c)
-        self._n = 0
-
-    def _stream(self, sensor, kind, fmt, bpp, k, uid):
-        vs = rs.video_stream()
-        vs.type, vs.index, vs.uid = kind, 0, uid
-        vs.width, vs.height, vs.fps, vs.bpp, vs.fmt = self.size[0], self.size[1], self.fps, bpp, fmt
-        vs.intrinsics = _rs_intrinsics(k, *self.size)
-        return sensor.add_video_stream(vs).as_video_stream_profile()
-
-    def feed(self, depth: np.ndarray, color: np.ndarray) -> None:
-        """Push one depth + colour pair with a common timestamp, as the camera's firmware would."""
-        w, _ = self.size
-        stamp = self._n * 1000.0 / self.fps
-        for sensor, profile, pixels, bpp in ((self.depth_sensor, self.depth_profile, depth, 2),
-                                             (self.color_sensor, self.color_profile, color, 3)):
-            f = rs.software_video_frame()
-            f.pixels = np.ascontiguousarray(pixels)
-            f.stride, f.bpp = w * bpp, bpp
-            f.timestamp, f.frame_number = stamp, self._n
-            f.domain = rs.timestamp_domain.hardware_clock
-            f.profile = profile
-            if bpp == 2:
-                f.depth_units = self.depth_scale
-            sensor.on_video_frame(f)
-        self._n += 1
+class SoftwareD415(software_d415.SoftwareD415):
+    """flgd's software D415, plus feeding the same pair at the camera's rate from a thread."""
 
     @contextlib.contextmanager
     def streaming(self, depth: np.ndarray, color: np.ndarray):
