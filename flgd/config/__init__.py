@@ -22,7 +22,7 @@ from flgd.config.learner_policy import fine_tunes, learner_settings
 from flgd.config.loader import (MAX_CONFIG_BYTES, MAX_CONFIG_VALUES, config_from_dict, config_to_dict, dump_config,
                                 load_config, load_sim_config)
 from flgd.config.messages import ConfigError
-from flgd.config.rules import parse_metrics_address
+from flgd.config.rules import parse_emulator_address, parse_metrics_address
 from flgd.config.schema import (CalibrationWatchConfig, CameraConfig, CameraPoseErrorConfig, CellConfig,
                                 ExplorationConfig, FinetuneConfig, GateConfig, GripperConfig, IntrinsicsConfig,
                                 LearningConfig, PoseConfig, Range, RewardConfig, RobotConfig, SafetyConfig,
@@ -38,6 +38,7 @@ __all__ = [
     "config_to_dict",
     "dump_config",
     "load_sim_config",
+    "parse_emulator_address",
     "parse_metrics_address",
     "MAX_CONFIG_BYTES",
     "MAX_CONFIG_VALUES",

@@ -14,7 +14,7 @@ from flgd.config.messages import quote
 from flgd.config.schema import CellConfig
 from flgd.disk_budget import MIN_STORE_BYTES
 
-__all__ = ["check_relations", "parse_metrics_address"]
+__all__ = ["check_relations", "parse_emulator_address", "parse_metrics_address"]
 
 
 def check_relations(cfg: CellConfig, problems: list[str]) -> None:
@@ -121,6 +121,11 @@ def check_relations(cfg: CellConfig, problems: list[str]) -> None:
             problems.append(f"sim.{key}: got {[lo, hi]!r}, expected min <= max")
     if not 0 < cfg.camera.depth_range[0] < cfg.camera.depth_range[1]:
         problems.append(f"camera.depth_range: got {list(cfg.camera.depth_range)!r}, expected 0 < min < max")
+    if cfg.camera.emulator:
+        try:
+            parse_emulator_address(cfg.camera.emulator)
+        except ValueError as exc:
+            problems.append(f"camera.emulator: {exc}")
     if not cfg.state_dir:
         problems.append("state_dir: got '', expected a directory path")
     if cfg.metrics:
@@ -142,13 +147,25 @@ def parse_metrics_address(text: str) -> tuple[str, int]:
         if int(text) > 65535:
             raise ValueError(f"got {quote(text)}: port is not a number 0..65535; {expected}")
         return "127.0.0.1", int(text)
+    return _split_host_port(text, 0, expected)
+
+
+def parse_emulator_address(text: str) -> tuple[str, int]:
+    """(host, port) of ``camera.emulator``'s ``HOST:PORT`` (``[::1]:PORT`` for IPv6): where ``flgd emulate``
+    serves the camera's frames; ValueError saying what was expected."""
+    return _split_host_port(text, 1, "expected HOST:PORT of `flgd emulate`'s camera feed such as 127.0.0.1:50415, "
+                                     "or '' for a real camera")
+
+
+def _split_host_port(text: str, lowest_port: int, expected: str) -> tuple[str, int]:
     host, sep, port_text = text.rpartition(":")
     if host.startswith("[") and host.endswith("]"):
         host = host[1:-1]
     if not sep or not host or any(c.isspace() for c in host) or (":" in host and not text.startswith("[")):
         raise ValueError(f"got {quote(text)}, {expected}")
-    if not port_text.isdigit() or not 0 <= int(port_text) <= 65535:
-        raise ValueError(f"got {quote(text)}: port {quote(port_text)} is not a number 0..65535; {expected}")
+    if not port_text.isdigit() or not lowest_port <= int(port_text) <= 65535:
+        raise ValueError(f"got {quote(text)}: port {quote(port_text)} is not a number {lowest_port}..65535; "
+                         f"{expected}")
     return host, int(port_text)
 
 

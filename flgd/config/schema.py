@@ -95,6 +95,8 @@ class CameraConfig:
     temporal_filter: bool = param(False, help="real cell: librealsense temporal filter over a few "
                                               "consecutive frames per capture")
     hole_filling: bool = param(False, help="real cell: librealsense hole filling of missing depth")
+    emulator: str = param("", help="real cell: HOST:PORT of `flgd emulate`'s camera feed, read through a "
+                                   "librealsense software device instead of a camera; empty = the real D415")
     depth_fill: Literal["lowest", "inpaint", "none"] = param(
         "none", help="heightmap cells without a depth reading, every cell: lowest = the lowest height on the hole's "
                      "rim (holes in objects get their height, shadows beside them the table's), inpaint = OpenCV "
