@@ -7,15 +7,17 @@ pose comes from the config (``camera.pose``, written by ``flgd calibrate``).
 Frames come from a *source*: a live device opened by serial number, a
 recording (``.db3``/``.bag``) played through ``rs.pipeline``, or any
 ``rs.device`` whose sensors we start ourselves -- a ``software_device`` fed
-by a test, or an ``rs.recorder`` wrapping one.  The same capture code runs on
-all of them, so the tests exercise the real librealsense processing
-(alignment, filters, recording and playback).
+by a test or by ``flgd emulate``'s camera feed (``camera.emulator``), or an
+``rs.recorder`` wrapping one.  The same capture code runs on all of them, so
+the tests exercise the real librealsense processing (alignment, filters,
+recording and playback).
 """
 
 from __future__ import annotations
 
 import abc
 import threading
+import time
 from typing import Any
 
 import numpy as np
@@ -189,6 +191,72 @@ class _SensorSource(_FrameSource):
                     pass  # not started / already closed
 
 
+class _EmulatorSource(_SensorSource):
+    """``flgd emulate``'s camera feed (``camera.emulator``) pushed into a software D415 by a thread.
+
+    The software device has the feed's intrinsics and depth scale, so everything after it (syncer,
+    filters, alignment, the depth scale read from the device) is the path a camera's frames take.
+    A feed that stops answering leaves the syncer empty: the capture's frame timeout, as for a camera.
+    """
+
+    def __init__(self, address: str, timeout: float, width: int, height: int):
+        from flgd.config import parse_emulator_address
+        from flgd.hardware.frame_feed import FrameFeedClient
+        from flgd.hardware.software_d415 import SoftwareD415
+
+        description = f"emulated RealSense at {address} (camera.emulator)"
+        try:
+            host, port = parse_emulator_address(address)
+            self._client = FrameFeedClient(host, port, timeout)
+        except (OSError, ValueError) as exc:
+            kind = "no answer" if isinstance(exc, TimeoutError) else f"{type(exc).__name__}: {exc}"
+            raise CameraFault(f"{description}: cannot open the feed: {kind}; is `flgd emulate` running?") from exc
+        hello = self._client.hello
+        self._camera = SoftwareD415(hello.intrinsics, hello.intrinsics, (hello.width, hello.height),
+                                    hello.depth_scale, serial=hello.serial, fps=hello.fps)
+        self._lost = threading.Event()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        try:
+            super().__init__(self._camera.device, width, height, hello.fps, description)
+        except CameraFault:
+            self._client.close()
+            raise
+        self._thread = threading.Thread(target=self._pump, name="d415-emulator-feed", daemon=True)
+        self._thread.start()
+
+    def _pump(self) -> None:
+        """Ask for a frame, push it in, keep the feed's rate; a stalled feed is waited on, a broken one ends it."""
+        from flgd.hardware.frame_feed import FeedStalled
+
+        period = 1.0 / self._camera.fps
+        try:
+            while not self._stop.is_set():
+                started = time.monotonic()
+                self._client.request()
+                while True:
+                    try:
+                        frame = self._client.receive()
+                        break
+                    except FeedStalled:
+                        if self._stop.is_set():
+                            return
+                self._camera.feed(frame.depth, frame.color)
+                self._stop.wait(max(0.0, period - (time.monotonic() - started)))
+        except (OSError, RuntimeError):
+            self._lost.set()  # the feed closed or broke its format: a camera unplugged
+
+    def still_connected(self) -> bool:
+        return not self._lost.is_set()
+
+    def close(self) -> None:
+        self._stop.set()
+        self._client.close()
+        if self._thread is not None and self._thread is not threading.current_thread():
+            self._thread.join(timeout=5)
+        super().close()
+
+
 def _find_profile(device: Any, stream: Any, formats: tuple, width: int, height: int, fps: int):
     """(sensor, profile) for ``stream``; the configured size and rate if offered, else the first."""
     fallback = None
@@ -274,9 +342,14 @@ class D415Camera:
     # -- constructors
     @classmethod
     def open(cls, config: CellConfig, warmup_frames: int = LIVE_WARMUP_FRAMES) -> "D415Camera":
-        """The live camera named by ``camera.serial`` (the only one when the serial is empty)."""
+        """The live camera named by ``camera.serial`` (the only one when the serial is empty), or the
+        emulator's feed when ``camera.emulator`` is set."""
         rs = _rs()
         cam = config.camera
+        if cam.emulator:
+            source: _FrameSource = _EmulatorSource(cam.emulator, cam.frame_timeout, cam.intrinsics.width,
+                                                   cam.intrinsics.height)
+            return cls(config, source, discard_queued=True, warmup_frames=warmup_frames)
         try:
             serials = [d.get_info(rs.camera_info.serial_number) for d in rs.context().query_devices()]
         except RuntimeError as exc:
