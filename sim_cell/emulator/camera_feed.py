@@ -23,6 +23,7 @@ import threading
 import time
 from typing import Any
 
+import numpy as np
 import pybullet as p
 
 from flgd.cell import Frame
@@ -34,7 +35,7 @@ __all__ = ["CameraFeed", "DEFAULT_MAX_RENDER_HZ"]
 log = logging.getLogger(__name__)
 
 DEFAULT_MAX_RENDER_HZ = 5.0
-CHANGE_QUANTUM = 5e-4   # m or rad (or quaternion units) of joint or object motion that needs a new render
+CHANGE_TOLERANCE = 1e-3   # m, rad or quaternion units of joint or object motion that needs a new render
 
 
 class CameraFeed:
@@ -55,10 +56,10 @@ class CameraFeed:
         self.serial = cam.serial or EMULATED_SERIAL
         self._delivering = True
         self._closing = False
-        self._state = threading.Condition()
+        self._guard = threading.Condition()
         self._render_lock = threading.Lock()
         self._frame: Frame | None = None
-        self._frame_key: tuple | None = None
+        self._frame_state: tuple[int, tuple[int, ...], np.ndarray] | None = None
         self._version = 0
         self._last_render = float("-inf")
         self._clock_zero = time.monotonic()
@@ -89,9 +90,9 @@ class CameraFeed:
 
     def close(self) -> None:
         """Stop listening, close every connection and join the threads; safe to call twice."""
-        with self._state:
+        with self._guard:
             self._closing = True
-            self._state.notify_all()
+            self._guard.notify_all()
             conns, self._conns = list(self._conns), set()
         for conn in conns + ([self._sock] if self._sock else []):
             try:
@@ -118,48 +119,53 @@ class CameraFeed:
     # -- fault injection
     def stop_frames(self) -> None:
         """Leave frame requests unanswered from now on (a camera that stops delivering)."""
-        with self._state:
+        with self._guard:
             self._delivering = False
 
     def resume_frames(self) -> None:
-        with self._state:
+        with self._guard:
             self._delivering = True
-            self._state.notify_all()
+            self._guard.notify_all()
 
     def invalidate(self) -> None:
         """The world changed without its clock moving (a teleport, a scene edit): render afresh next time."""
-        with self._state:
+        with self._guard:
             self._version += 1
 
     # -- frames
     def _current_frame(self) -> Frame:
         """The last render if the world is unchanged since, else a fresh one (at most ``max_render_hz``)."""
         with self._render_lock:
-            if self._frame is not None and self._key() == self._frame_key:
+            if self._frame is not None and not self._moved_since(self._frame_state):
                 return self._frame
             if self.max_render_hz > 0:
                 wait = self._last_render + 1.0 / self.max_render_hz - time.monotonic()
                 if wait > 0:
                     time.sleep(wait)
             with self.world.lock:
-                self._frame_key = self._key()
+                self._frame_state = self._world_state()
                 self._frame = self.world.cell.capture()
             self._last_render = time.monotonic()
             self.renders += 1
             return self._frame
 
-    def _key(self) -> tuple:
-        """What the picture depends on: the arm's and fingers' joints and every object's pose, quantised so that
-        physics jitter of resting bodies does not count as a change (the world's clock never stops)."""
+    def _world_state(self) -> tuple[int, tuple[int, ...], np.ndarray]:
+        """What the picture depends on: the arm's and fingers' joints and every object's pose."""
         with self.world.lock:
             cell = self.world.cell
             robot, client = cell._robot, cell._client
-            state = [*robot.joints(), robot.width()]
-            for body in sorted(cell._world.objects):
+            bodies = tuple(sorted(cell._world.objects))
+            values = [*robot.joints(), robot.width()]
+            for body in bodies:
                 position, orientation = p.getBasePositionAndOrientation(body, physicsClientId=client)
-                state += [*position, *orientation]
-            quantised = tuple(int(round(v / CHANGE_QUANTUM)) for v in state)
-            return self._version, tuple(sorted(cell._world.objects)), quantised
+                values += [*position, *orientation]
+            return self._version, bodies, np.asarray(values)
+
+    def _moved_since(self, then: tuple[int, tuple[int, ...], np.ndarray] | None) -> bool:
+        """Whether the world differs from ``then`` by more than :data:`CHANGE_TOLERANCE` anywhere (the world's
+        clock never stops, and resting bodies creep by fractions of a millimetre)."""
+        now = self._world_state()
+        return then is None or now[:2] != then[:2] or float(np.max(np.abs(now[2] - then[2]))) > CHANGE_TOLERANCE
 
     def _hello(self) -> bytes:
         frame = self._current_frame()
@@ -173,7 +179,7 @@ class CameraFeed:
                 conn, peer = self._sock.accept()
             except OSError:
                 return  # closed
-            with self._state:
+            with self._guard:
                 if self._closing:
                     conn.close()
                     return
@@ -199,7 +205,7 @@ class CameraFeed:
                 if not self._wait_delivering():
                     return
                 frame = self._current_frame()
-                with self._state:
+                with self._guard:
                     number = self.frames_served
                     self.frames_served += 1
                 stamp_ms = (time.monotonic() - self._clock_zero) * 1000.0
@@ -210,13 +216,13 @@ class CameraFeed:
         except Exception:  # noqa: BLE001 -- a failed render ends this connection, never the emulator
             log.exception("camera feed %s: cannot serve %s", self.address, peer)
         finally:
-            with self._state:
+            with self._guard:
                 self._conns.discard(conn)
             conn.close()
 
     def _wait_delivering(self) -> bool:
         """Block while frames are stopped; False once the feed closes."""
-        with self._state:
+        with self._guard:
             while not self._delivering and not self._closing:
-                self._state.wait()
+                self._guard.wait()
             return not self._closing
