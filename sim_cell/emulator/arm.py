@@ -24,8 +24,8 @@ tick callback, and the readers take the lock for a consistent snapshot.
 
 from __future__ import annotations
 
+import dataclasses
 import math
-import threading
 import time
 from dataclasses import dataclass
 from typing import Sequence
@@ -180,7 +180,7 @@ class EmulatedArm:
         self._last_q = self._target_q.copy()
         self._qd = np.zeros(6)
         self.faults: list[str] = []          # every fault raised, for tests and logs
-        self._tick_lock = threading.Lock()
+        self._latest: ArmSnapshot | None = None   # the state at the last physics tick (state())
         world.add_tick(self._tick)
 
     # ------------------------------------------------------------------ frames
@@ -193,7 +193,17 @@ class EmulatedArm:
         return tcp_pose @ np.linalg.inv(pose_to_matrix(self.tcp))
 
     # ------------------------------------------------------------------ reading
+    def state(self) -> ArmSnapshot:
+        """The latest state without waiting for the world: kinematics of the last physics tick, modes now."""
+        kin = self._latest
+        if kin is None:
+            return self.snapshot()
+        return dataclasses.replace(kin, robot_mode=self.robot_mode, safety_mode=self.safety_mode,
+                                   safety_status_bits=self._safety_bits(), robot_status_bits=self._status_bits(),
+                                   runtime_state=self.runtime_state, tool_digital_outputs=self.tool_digital_outputs)
+
     def snapshot(self) -> ArmSnapshot:
+        """The state now (takes the world's lock)."""
         with self.world.lock:
             q = self._robot.joints()
             actual = self._tcp_matrix(q)
@@ -215,6 +225,11 @@ class EmulatedArm:
         """The actual TCP pose [x, y, z, rx, ry, rz] with the active TCP."""
         with self.world.lock:
             return matrix_to_pose(self._tcp_matrix(self._robot.joints()))
+
+    def flange_pose(self) -> list[float]:
+        """The tool flange's pose (no TCP offset)."""
+        with self.world.lock:
+            return matrix_to_pose(kinematics.forward(self._robot.joints()))
 
     def _tcp_force(self) -> list[float]:
         """Contact force on the gripper (N, base frame), as the controller's TCP force estimate."""
@@ -316,6 +331,10 @@ class EmulatedArm:
         q = self._robot.joints()
         self._qd = (q - self._last_q) / dt
         self._last_q = q
+        self._move(dt, q)
+        self._latest = self.snapshot()
+
+    def _move(self, dt: float, q: np.ndarray) -> None:
         line = self.line
         if line is None:
             return

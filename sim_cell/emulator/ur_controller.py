@@ -1,0 +1,54 @@
+"""The emulated UR5e controller: the arm and its four servers (dashboard, RTDE, script ports) as one unit.
+
+``flgd emulate`` and the tests start one of these on an ``EmulatorWorld``;
+the faults a person or a test raises act on ``arm`` (protective stop,
+emergency stop, stopped program) or on ``rtde`` (dropped connections).
+"""
+
+from __future__ import annotations
+
+from sim_cell.emulator.arm import EmulatedArm
+from sim_cell.emulator.control_script import ControlScript
+from sim_cell.emulator.dashboard_server import DashboardServer
+from sim_cell.emulator.rtde_server import CONTROLLER_FREQUENCY, Registers, RTDEServer
+from sim_cell.emulator.script_server import ScriptServer
+from sim_cell.emulator.world import EmulatorWorld
+
+__all__ = ["EmulatedURController"]
+
+
+class EmulatedURController:
+    """Arm, registers, control script and the servers on ``host`` (the real ports)."""
+
+    def __init__(self, world: EmulatorWorld, host: str = "127.0.0.1", *,
+                 max_frequency: float = CONTROLLER_FREQUENCY):
+        self.world = world
+        self.host = host
+        self.arm = EmulatedArm(world)
+        self.registers = Registers()
+        self.script = ControlScript(self.arm, self.registers)
+        self.dashboard = DashboardServer(self.arm, host)
+        self.rtde = RTDEServer(self.arm, self.registers, host, max_frequency=max_frequency)
+        self.scripts = ScriptServer(self.script, host)
+        self._servers = (self.dashboard, self.rtde, self.scripts)
+
+    def start(self) -> None:
+        """Listen on every port (PortTaken names the one that is busy) and start the world's clock."""
+        started = []
+        try:
+            for server in self._servers:
+                server.start()
+                started.append(server)
+        except Exception:
+            for server in started:
+                server.close()
+            raise
+        self.world.start()
+
+    def close(self) -> None:
+        for server in self._servers:
+            server.close()
+
+    def drop_rtde(self) -> None:
+        """A dropped link: every RTDE connection closes at once."""
+        self.rtde.drop_clients()
