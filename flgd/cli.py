@@ -20,6 +20,7 @@ _COMMANDS: dict[str, tuple[str, str]] = {
     "train": ("flgd.training.run:main", "train a policy headless in sim_cell (resumable run directory)"),
     "pretrain": ("flgd.training.pretrain:main", "pre-train the network's perception trunk on sim ground truth"),
     "prior-sample": ("flgd.learning.prior_sample:main", "write a prior sample (finetune.prior_sample) from a store"),
+    "emulate": ("sim_cell.emulator.main:main", "play the real cell's UR5e, RG2 and D415 on the simulated cell"),
 }
 
 
