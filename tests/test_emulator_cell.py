@@ -1,0 +1,130 @@
+"""The production backend against ``flgd emulate``: the daemon's full cycle through ur_rtde, the RG2's XML-RPC and
+pyrealsense2 on the emulated cell, and the faults raised on demand reaching it as a real cell's would."""
+
+from __future__ import annotations
+
+import socket
+import sqlite3
+import time
+from pathlib import Path
+
+import pytest
+import yaml
+
+from flgd.config import load_config
+from sim_cell.emulator.emulated_cell import EmulatedCell, EmulatorConfigError
+from sim_cell.emulator.faults import FaultError, FaultInjector, FaultSocket, inject
+from tests.fakes.daemon import REPO, DaemonProcess
+
+EMULATED = REPO / "cell_config" / "ur5e-emulated.yaml"
+HOST = "127.0.0.3"  # not 127.0.0.1: a developer's own emulator may be running there
+
+
+def _free_port(host: str) -> int:
+    with socket.socket() as s:
+        s.bind((host, 0))
+        return s.getsockname()[1]
+
+
+def emulated_config(tmp_path: Path, **sim) -> Path:
+    """cell_config/ur5e-emulated.yaml on HOST with free ports, its state in ``tmp_path``, paths made absolute."""
+    data = yaml.safe_load(EMULATED.read_text())
+    shipped = load_config(EMULATED)
+    data["state_dir"] = str(tmp_path / "state")
+    data["policy"] = str(shipped.policy)
+    data["learning"]["init_trunk"] = str(shipped.learning.init_trunk)
+    data["finetune"]["prior_sample"] = str(shipped.finetune.prior_sample)
+    data["robot"]["host"] = HOST
+    data["gripper"]["xmlrpc_port"] = _free_port(HOST)
+    data["camera"]["emulator"] = f"{HOST}:{_free_port(HOST)}"
+    data["sim"].update({"objects": 4, **sim})
+    path = tmp_path / "cell.yaml"
+    path.write_text(yaml.safe_dump(data))
+    return path
+
+
+@pytest.fixture
+def emulator(tmp_path):
+    cell = EmulatedCell(load_config(emulated_config(tmp_path)), time_scale=2.0, fault_socket=tmp_path / "f.sock")
+    cell.start()
+    yield cell
+    cell.close()
+
+
+def _actions(state_dir: Path) -> list[tuple]:
+    with sqlite3.connect(state_dir / "flgd.sqlite") as db:
+        return db.execute("SELECT step, outcome, primitive, success, failure FROM actions ORDER BY step").fetchall()
+
+
+@pytest.mark.slow
+def test_the_daemon_cycles_through_ur_rtde_and_a_protective_stop_mid_move_is_latched_then_recovered(tmp_path,
+                                                                                                     emulator):
+    config = tmp_path / "cell.yaml"
+    d = DaemonProcess(tmp_path, config=config, args=["--autostart"]).start()
+    try:
+        d.wait_ready()
+        d.wait_for(lambda st: st["cycles"] >= 3, "three cycles on the emulated cell")
+        emulator.faults.arm_for_motion("protective-stop")
+        st = d.wait_for(lambda st: st["state"] == "FAULT", "the protective stop latched")
+        assert "protective" in st["cause"].lower(), st["cause"]
+        moves_at_fault = len(emulator.arm.faults)
+        before = st["cycles"]
+        d.ok("reset")  # the arm's recovery: wait out the 5 s, unlock on the dashboard, reupload the script
+        d.ok("start")
+        d.wait_for(lambda st: st["state"] == "RUNNING" and st["cycles"] >= before + 2, "two cycles after recovery")
+        assert moves_at_fault == len(emulator.arm.faults)  # no second stop: the recovery left the arm clean
+    finally:
+        d.ok("stop")
+        d.wait_exit()
+    rows = _actions(tmp_path / "state")
+    assert [r[0] for r in rows] == list(range(len(rows)))  # every cycle recorded, none lost to the fault
+    assert any(r[1] == "executed" and r[3] == 1 for r in rows), rows  # real picks through the real protocols
+    assert emulator.faults.raised[0]["during_motion"] is True
+
+
+def test_a_fault_armed_for_motion_lands_while_the_arm_moves(emulator):
+    arm = emulator.arm
+    arm.start_program()
+    delay = emulator.faults.arm_for_motion("protective-stop")
+    assert 0.0 <= delay <= 0.5
+    pose = arm.tcp_pose()
+    target = list(pose)
+    target[2] -= 0.08
+    arm.move_linear(target, 0.1, 0.5)  # 0.8 s of motion at least: the stop lands inside it
+    deadline = time.monotonic() + 10
+    while not emulator.faults.raised and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert emulator.faults.raised and emulator.faults.raised[0]["during_motion"] is True
+    assert not arm.moving and arm.safety_mode == 3  # PROTECTIVE_STOP: the move ended there
+
+
+def test_the_fault_socket_raises_reports_and_refuses_by_name(emulator, tmp_path):
+    sock = tmp_path / "f.sock"
+    assert inject(sock, "gripper-trip")["ok"] and emulator.gripper.busy is False
+    assert inject(sock, "camera-stop")["ok"]
+    status = inject(sock, "status")
+    assert [r["kind"] for r in status["raised"]] == ["gripper-trip", "camera-stop"]
+    reply = inject(sock, "melt-down")
+    assert reply["ok"] is False and "unknown fault 'melt-down'" in reply["error"]
+    reply = inject(sock, "camera-resume --during-motion")
+    assert reply["ok"] is False and "cannot wait for a motion" in reply["error"]
+
+
+def test_a_second_emulator_on_the_same_fault_socket_is_refused(emulator, tmp_path):
+    with pytest.raises(OSError, match="another flgd emulate"):
+        FaultSocket(FaultInjector(), tmp_path / "f.sock").start()
+
+
+def test_a_fault_for_a_device_the_emulator_lacks_is_an_error():
+    with pytest.raises(FaultError, match="no RG2"):
+        FaultInjector().raise_now("gripper-trip")
+
+
+def test_a_config_the_emulator_cannot_play_names_the_key(tmp_path):
+    cfg = load_config(emulated_config(tmp_path))
+    import dataclasses
+
+    with pytest.raises(EmulatorConfigError, match="camera.emulator is empty"):
+        EmulatedCell(dataclasses.replace(cfg, camera=dataclasses.replace(cfg.camera, emulator="")))
+    with pytest.raises(EmulatorConfigError, match="backend is 'sim'"):
+        EmulatedCell(dataclasses.replace(cfg, backend="sim"))
