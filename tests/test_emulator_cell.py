@@ -128,3 +128,25 @@ def test_a_config_the_emulator_cannot_play_names_the_key(tmp_path):
         EmulatedCell(dataclasses.replace(cfg, camera=dataclasses.replace(cfg.camera, emulator="")))
     with pytest.raises(EmulatorConfigError, match="backend is 'sim'"):
         EmulatedCell(dataclasses.replace(cfg, backend="sim"))
+
+
+@pytest.mark.slow
+def test_a_swap_to_the_sim_backend_and_back_mid_run(tmp_path, emulator):
+    d = DaemonProcess(tmp_path, config=tmp_path / "cell.yaml", args=["--autostart"]).start()
+    try:
+        d.wait_ready()
+        d.wait_for(lambda st: st["cycles"] >= 1, "a cycle on the emulated cell")
+        assert d.ok("backend", name="sim")["previous"] == "ur5e"
+        d.ok("start")
+        on_sim = d.wait_for(lambda st: st["state"] == "RUNNING", "running on sim")["cycles"]
+        d.wait_for(lambda st: st["cycles"] >= on_sim + 2, "two cycles on sim")
+        assert d.ok("backend", name="ur5e")["previous"] == "sim"
+        d.ok("start")
+        back = d.wait_for(lambda st: st["state"] == "RUNNING", "running on the emulated cell")["cycles"]
+        d.wait_for(lambda st: st["cycles"] >= back + 1, "a cycle back on the emulated cell")
+    finally:
+        d.ok("stop")
+        d.wait_exit()
+    with sqlite3.connect(tmp_path / "state" / "flgd.sqlite") as db:
+        backends = [b for (b,) in db.execute("SELECT backend FROM actions ORDER BY step")]
+    assert backends[0] == "ur5e" and "sim" in backends and backends[-1] == "ur5e", backends
