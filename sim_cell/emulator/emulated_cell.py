@@ -70,6 +70,7 @@ class EmulatedCell:
         self.gripper = RG2Service(self.world, host, config.gripper.xmlrpc_port)
         self.camera = CameraFeed(self.world, cam_host, cam_port)
         self.faults = FaultInjector(arm=self.arm, rtde=self.rtde, gripper=self.gripper, camera=self.camera)
+        self.faults.watch(self.world)
         self.fault_socket = FaultSocket(self.faults, fault_socket) if fault_socket else None
         self._started: list[Any] = []
 

@@ -10,7 +10,8 @@ line; ``flgd emulate --inject KIND [--during-motion]`` is its client.  The kinds
 ``stop-script``       the control program stops (someone pressed stop on the pendant)
 ``gripper-trip``      the RG2's safety switch trips (``gripper-reset`` clears it)
 ``camera-stop``       the camera stops delivering frames (``camera-resume`` delivers again)
-``status``            what has been raised so far
+``power-on``          a person at the pendant powers the arm on and releases the brakes (after an e-stop)
+``status``            what has been raised so far, and the arm motions begun since the last fault
 
 ``--during-motion`` arms the fault instead of raising it at once: it is raised at a random instant of the
 arm's next linear motion (after 0 to ``MAX_MOTION_DELAY`` s of motion), so that a fault lands mid-move as
@@ -34,7 +35,7 @@ __all__ = ["FaultInjector", "FaultError", "KINDS", "ARMABLE", "inject", "MAX_MOT
 log = logging.getLogger(__name__)
 
 KINDS = ("protective-stop", "emergency-stop", "release-emergency-stop", "drop-rtde", "stop-script",
-         "gripper-trip", "gripper-reset", "camera-stop", "camera-resume", "status")
+         "gripper-trip", "gripper-reset", "camera-stop", "camera-resume", "power-on", "status")
 ARMABLE = frozenset({"protective-stop", "emergency-stop", "drop-rtde", "stop-script", "gripper-trip",
                      "camera-stop"})
 MAX_MOTION_DELAY = 0.5   # seconds of arm motion before an armed fault is raised, at most
@@ -61,6 +62,19 @@ class FaultInjector:
         self._lock = threading.Lock()
         self._armed: list[threading.Thread] = []
         self._closing = threading.Event()
+        self.motion_starts: list[float] = []   # when the arm began each motion (``watch``)
+        self._was_moving = False
+
+    def watch(self, world: Any) -> None:
+        """Note the start of every arm motion on ``world``'s clock, so ``status`` can say whether the arm moved
+        after the last fault (a daemon that went on commanding it would show here)."""
+        world.add_tick(self._note_motion)
+
+    def _note_motion(self, dt: float) -> None:
+        moving = bool(self.arm is not None and self.arm.moving)
+        if moving and not self._was_moving:
+            self.motion_starts.append(self.clock())
+        self._was_moving = moving
 
     # ------------------------------------------------------------------ raising
     def _actions(self) -> dict[str, Callable[[], None]]:
@@ -74,7 +88,13 @@ class FaultInjector:
             "gripper-reset": lambda: self._need(self.gripper, "RG2").reset_safety(),
             "camera-stop": lambda: self._need(self.camera, "camera").stop_frames(),
             "camera-resume": lambda: self._need(self.camera, "camera").resume_frames(),
+            "power-on": lambda: self._power_on(self._need(self.arm, "arm")),
         }
+
+    @staticmethod
+    def _power_on(arm: Any) -> None:
+        arm.power_on()
+        arm.brake_release()
 
     @staticmethod
     def _need(device: Any, name: str) -> Any:
@@ -137,8 +157,12 @@ class FaultInjector:
             return sum(t.is_alive() for t in self._armed)
 
     def status(self) -> dict[str, Any]:
+        """The faults raised, those armed, and the arm motions begun since the last fault."""
         with self._lock:
-            return {"raised": list(self.raised), "armed": sum(t.is_alive() for t in self._armed)}
+            last = self.raised[-1]["time"] if self.raised else None
+            since = None if last is None else sum(1 for t in list(self.motion_starts) if t > last)
+            return {"raised": list(self.raised), "armed": sum(t.is_alive() for t in self._armed),
+                    "motions_since_last_fault": since}
 
     def command(self, line: str) -> dict[str, Any]:
         """One command line of the control socket: ``KIND [--during-motion]``; the reply object."""

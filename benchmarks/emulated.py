@@ -1,0 +1,247 @@
+"""``flgd bench emulated``: the production backend (ur_rtde, RG2 XML-RPC, pyrealsense2) on ``flgd emulate``,
+beside the sim backend on the same scenes and seed; then every fault kind injected during motion.
+
+    flgd bench emulated --root runs/emulated --cycles 200 --faults 10 [--parts policy faults] [--out FILE]
+
+*policy*: ``flgd run`` with the shipped policy, frozen (``finetune.updates_per_action: 0``), on
+cell_config/ur5e-emulated.yaml (backend ur5e against the emulator) and on the same file with ``backend: sim``,
+until ``--cycles`` actions each; grasp success per grasp, picks per action, the cycle's time split (capture,
+perceive, decide, plan, execute, judge, store) and the controller's own time (all but execute).
+*faults*: the daemon on the emulator; each kind raised ``--faults`` times at a random instant of a motion, then
+what a person does (release the e-stop and power the arm on at the pendant, reset the gripper, plug the camera
+in) and ``flgctl reset`` + ``start``: latched, no motion started after the fault before the reset, recovered,
+and the action log without a gap.  Both parts resume from their state directories.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import os
+import platform
+import signal
+import sqlite3
+import statistics
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+REPO = Path(__file__).resolve().parents[1]
+EMULATED = REPO / "cell_config" / "ur5e-emulated.yaml"
+FAULT_KINDS = ("protective-stop", "emergency-stop", "drop-rtde", "stop-script", "gripper-trip", "camera-stop")
+PERSON = {"emergency-stop": ("release-emergency-stop", "power-on"), "gripper-trip": ("gripper-reset",),
+          "camera-stop": ("camera-resume",)}   # what a person does before the reset
+PHASES = ("t_capture", "t_perceive", "t_decide", "t_plan", "t_execute", "t_judge", "t_store")
+
+
+def _write_config(root: Path, backend: str) -> Path:
+    from flgd.config import load_config
+
+    data = yaml.safe_load(EMULATED.read_text())
+    shipped = load_config(EMULATED)
+    data.update(backend=backend, state_dir=str(root / "state"), policy=str(shipped.policy))
+    data["learning"]["init_trunk"] = str(shipped.learning.init_trunk)
+    data["finetune"].update(prior_sample=str(shipped.finetune.prior_sample), updates_per_action=0)
+    root.mkdir(parents=True, exist_ok=True)
+    path = root / "cell.yaml"
+    path.write_text(yaml.safe_dump(data))
+    return path
+
+
+class _Process:
+    """A ``flgd`` subcommand in the background, its output in ``log``."""
+
+    def __init__(self, argv: list[str], log: Path) -> None:
+        self.log = open(log, "ab")
+        self.proc = subprocess.Popen([sys.executable, "-m", "flgd.cli", *argv], stdout=self.log,
+                                     stderr=subprocess.STDOUT, cwd=REPO, env=dict(os.environ, OMP_NUM_THREADS="1"))
+
+    def stop(self, timeout: float = 120.0) -> None:
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGINT)
+            try:
+                self.proc.wait(timeout)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+        self.log.close()
+
+
+class _Daemon(_Process):
+    def __init__(self, config: Path, root: Path) -> None:
+        self.socket = root / "flgd.sock"
+        super().__init__(["run", "--config", str(config), "--socket", str(self.socket), "--autostart",
+                          "--no-status-line"], root / "daemon.log")
+
+    def call(self, cmd: str, **args: Any) -> dict:
+        from flgd.ctl import Client
+
+        with Client(self.socket, timeout=150.0) as c:
+            return c.call(cmd, **args)
+
+    def wait_for(self, predicate, what: str, timeout: float = 600.0) -> dict:
+        from flgd.ctl import DaemonUnreachable
+
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if self.proc.poll() is not None:
+                raise RuntimeError(f"flgd run exited with {self.proc.returncode} waiting for {what}")
+            try:
+                reply = self.call("status")  # not ok while the daemon is still starting
+                if reply.get("ok") and predicate(reply["result"]):
+                    return reply["result"]
+            except DaemonUnreachable:
+                pass
+            time.sleep(0.3)
+        raise TimeoutError(f"{what}: not within {timeout:.0f} s")
+
+
+def _emulator(config: Path, root: Path, time_scale: float) -> _Process:
+    faults = root / "faults.sock"
+    emu = _Process(["emulate", "--config", str(config), "--faults", str(faults), "--time-scale", str(time_scale)],
+                   root / "emulator.log")
+    deadline = time.monotonic() + 120
+    while not faults.exists():
+        if emu.proc.poll() is not None or time.monotonic() > deadline:
+            raise RuntimeError(f"flgd emulate did not start: see {root / 'emulator.log'}")
+        time.sleep(0.2)
+    emu.faults = faults
+    return emu
+
+
+def _rows(state_dir: Path) -> list[dict]:
+    db = sqlite3.connect(state_dir / "flgd.sqlite")
+    db.row_factory = sqlite3.Row
+    try:
+        return [dict(r) for r in db.execute("SELECT * FROM actions ORDER BY step")]
+    finally:
+        db.close()
+
+
+def _policy_summary(rows: list[dict], cycles: int) -> dict[str, Any]:
+    rows = rows[:cycles]
+    decided = [r for r in rows if r["outcome"] in ("executed", "refused")]
+    grasps = [r for r in decided if r["primitive"] == "grasp"]
+    picks = sum(1 for r in grasps if r["success"] == 1)
+    executed = [r for r in rows if r["outcome"] == "executed" and r["duration"]]
+    phases = {p: statistics.median(r[p] for r in executed if r[p] is not None) for p in PHASES} if executed else {}
+    own = [r["duration"] - (r["t_execute"] or 0.0) for r in executed]
+    return {"cycles": len(rows), "grasps": len(grasps), "picks": picks,
+            "grasp_success": picks / len(grasps) if grasps else None,
+            "picks_per_action": picks / len(decided) if decided else None,
+            "outcomes": {o: sum(1 for r in rows if r["outcome"] == o) for o in {r["outcome"] for r in rows}},
+            "median_cycle_s": statistics.median(r["duration"] for r in executed) if executed else None,
+            "median_controller_s": statistics.median(own) if own else None,
+            "median_phase_s": phases}
+
+
+def run_policy(root: Path, cycles: int, time_scale: float) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for backend in ("sim", "ur5e"):
+        row = root / ("sim" if backend == "sim" else "emulated")
+        config = _write_config(row, backend)
+        done = len(_rows(row / "state")) if (row / "state" / "flgd.sqlite").exists() else 0
+        if done < cycles:
+            emu = _emulator(config, row, time_scale) if backend == "ur5e" else None
+            daemon = _Daemon(config, row)
+            try:
+                daemon.wait_for(lambda st: st["cycles"] >= cycles, f"{cycles} cycles on {backend}",
+                                timeout=cycles * 120.0)
+            finally:
+                daemon.stop()
+                if emu is not None:
+                    emu.stop()
+        out["emulated" if backend == "ur5e" else "sim"] = _policy_summary(_rows(row / "state"), cycles)
+        print(f"{backend}: {json.dumps(out['emulated' if backend == 'ur5e' else 'sim'])}", flush=True)
+    return out
+
+
+def run_faults(root: Path, repeats: int, time_scale: float, resume: dict[str, Any]) -> dict[str, Any]:
+    from sim_cell.emulator.faults import inject
+
+    config = _write_config(root, "ur5e")
+    results: dict[str, list[dict]] = {k: list(resume.get(k, [])) for k in FAULT_KINDS}
+    emu = _emulator(config, root, time_scale)
+    daemon = _Daemon(config, root)
+    try:
+        for kind in FAULT_KINDS:
+            while len(results[kind]) < repeats:
+                st = daemon.wait_for(lambda st: st["state"] == "RUNNING", "running")
+                base = st["cycles"]
+                daemon.wait_for(lambda st: st["cycles"] > base, "a cycle before the fault")
+                inject(emu.faults, f"{kind} --during-motion")
+                record: dict[str, Any] = {"latched": False, "recovered": False}
+                try:
+                    st = daemon.wait_for(lambda st: st["state"] == "FAULT", f"{kind} latched", timeout=90)
+                    record.update(latched=True, cause=st["cause"])
+                except TimeoutError:
+                    record["cause"] = "not latched within 90 s"
+                raised = inject(emu.faults, "status")["raised"][-1]
+                record["during_motion"] = raised["during_motion"]
+                time.sleep(1.0)  # the daemon has latched: any motion it still started would show now
+                record["motions_after_fault"] = inject(emu.faults, "status").get("motions_since_last_fault")
+                for person in PERSON.get(kind, ()):
+                    inject(emu.faults, person)
+                for _ in range(3):  # a reset may race the arm's own 5 s protective-stop rule
+                    if daemon.call("reset")["ok"]:
+                        break
+                    time.sleep(2.0)
+                reply = daemon.call("start")
+                if reply["ok"]:
+                    try:
+                        daemon.wait_for(lambda st: st["state"] == "RUNNING" and st["cycles"] > base + 1,
+                                        "a cycle after the recovery", timeout=120)
+                        record["recovered"] = True
+                    except TimeoutError:
+                        pass
+                results[kind].append(record)
+                print(f"{kind} #{len(results[kind])}: {json.dumps(record)}", flush=True)
+                (root / "faults.json").write_text(json.dumps(results, indent=1))
+    finally:
+        daemon.stop()
+        emu.stop()
+    rows = _rows(root / "state")
+    steps = [r["step"] for r in rows]
+    return {"kinds": {k: {"injected": len(v), "latched": sum(r["latched"] for r in v),
+                          "during_motion": sum(bool(r.get("during_motion")) for r in v),
+                          "moved_after_fault": sum(bool(r.get("motions_after_fault")) for r in v),
+                          "recovered": sum(r["recovered"] for r in v)} for k, v in results.items()},
+            "action_rows": len(rows), "gaps_in_log": sum(1 for a, b in zip(steps, steps[1:]) if b != a + 1),
+            "pending_rows": sum(1 for r in rows if r["outcome"] == "pending"), "records": results}
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="flgd bench emulated", description=__doc__.split("\n\n")[0])
+    p.add_argument("--root", type=Path, default=Path("runs/emulated"))
+    p.add_argument("--cycles", type=int, default=200)
+    p.add_argument("--faults", type=int, default=10, help="injections of each fault kind")
+    p.add_argument("--parts", nargs="+", choices=("policy", "faults"), default=["policy", "faults"])
+    p.add_argument("--time-scale", type=float, default=1.0, help="the emulator's physics against real time")
+    p.add_argument("--out", type=Path, default=None, help="summary JSON (default ROOT/summary.json)")
+    args = p.parse_args(argv)
+    root = args.root.resolve()
+    out = args.out or root / "summary.json"
+    summary: dict[str, Any] = json.loads(out.read_text()) if out.exists() else {}
+    if "policy" in args.parts:
+        summary["policy"] = run_policy(root / "policy", args.cycles, args.time_scale)
+    if "faults" in args.parts:
+        previous = root / "faults" / "faults.json"
+        resume = json.loads(previous.read_text()) if previous.exists() else {}
+        summary["faults"] = run_faults(root / "faults", args.faults, args.time_scale, resume)
+    summary.update(command="flgd bench emulated " + " ".join(argv if argv is not None else sys.argv[1:]),
+                   machine=f"{platform.machine()}, {os.cpu_count()} cores", date=str(datetime.date.today()),
+                   commit=subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+                                         cwd=REPO).stdout.strip())
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(summary, indent=1))
+    print(f"wrote {out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
