@@ -2,7 +2,20 @@
 
 ``flgd emulate`` and the tests start one of these on an ``EmulatorWorld``;
 the faults a person or a test raises act on ``arm`` (protective stop,
-emergency stop, stopped program) or on ``rtde`` (dropped connections).
+emergency stop, stopped program) or on the connections (``drop_rtde``,
+``drop_connections``).
+
+What ur_rtde 1.6.5 does after a dropped link, seen against this emulator:
+``RTDEReceiveInterface`` reports ``isConnected() == False`` and ``reconnect()``
+works; ``RTDEControlInterface`` reconnects by itself from its receive thread
+(dashboard, script upload, recipes) and at times loops on it or crashes the
+client process at exit; ``RTDEIOInterface`` keeps reporting connected and its
+``disconnect()`` raises "read: End of file".  Whether a real controller lets
+these paths go better (it may stop the program on a lost link) is open.
+
+The servers need their own process: ur_rtde's C++ calls keep Python's GIL
+while they wait for the controller, so a client in the emulator's process
+would wait for ever.
 """
 
 from __future__ import annotations
@@ -50,5 +63,12 @@ class EmulatedURController:
             server.close()
 
     def drop_rtde(self) -> None:
-        """A dropped link: every RTDE connection closes at once."""
+        """Every RTDE connection closes at once (the dashboard and script ports stay connected)."""
         self.rtde.drop_clients()
+
+    def drop_connections(self) -> None:
+        """A dropped network link: every connection to the controller closes at once."""
+        self.rtde.drop_clients()
+        self.dashboard.service.drop_clients()
+        for service in self.scripts.services:
+            service.drop_clients()
