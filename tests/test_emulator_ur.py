@@ -258,13 +258,19 @@ def test_an_unreachable_pose_is_refused_before_anything_moves(emulator, clients)
     assert control.isPoseWithinSafetyLimits(receive.getActualTCPPose())
 
 
-def test_stopL_ends_a_move_short_of_its_target(emulator, clients):
-    control, receive = clients
+def start_a_long_move(control, receive) -> tuple[list[float], list[float]]:
+    """A slow 25 cm moveL, 0.3 s under way; (start, target)."""
     start = receive.getActualTCPPose()
     target = list(start)
     target[1] -= 0.25
     assert control.moveL(target, 0.1, 0.5, True)
     time.sleep(0.3)
+    return start, target
+
+
+def test_stopL_ends_a_move_short_of_its_target(emulator, clients):
+    control, receive = clients
+    start, target = start_a_long_move(control, receive)
     control.stopL(2.0)
     wait_for_move(control)
     stopped = receive.getActualTCPPose()
@@ -275,11 +281,7 @@ def test_stopL_ends_a_move_short_of_its_target(emulator, clients):
 
 def test_a_protective_stop_during_a_move_stops_it_and_is_reported(emulator, clients):
     control, receive = clients
-    start = receive.getActualTCPPose()
-    target = list(start)
-    target[1] -= 0.25
-    assert control.moveL(target, 0.1, 0.5, True)
-    time.sleep(0.3)
+    start, target = start_a_long_move(control, receive)
     emulator("ctl.arm.protective_stop", "test")
     assert wait_until(receive.isProtectiveStopped)
     assert wait_until(lambda: not control.isProgramRunning())
@@ -312,6 +314,7 @@ def ur_arm(emulator):
     arm.close()
 
 
+@pytest.mark.slow
 def test_urarm_connects_and_executes_a_checked_plans_moves(emulator, ur_arm):
     cfg = sim_config()
     assert ur_arm.fault is None and ur_arm.fault_reason() is None
@@ -344,6 +347,7 @@ def test_urarm_recovers_from_a_protective_stop_during_a_move_in_the_documented_o
     assert ur_arm.move_linear(here, 0.25, 1.2, "back") is False
 
 
+@pytest.mark.slow
 def test_an_emergency_stop_refuses_recovery_until_released_and_powered(emulator, ur_arm):
     emulator("ctl.arm.emergency_stop")
     assert wait_until(lambda: ur_arm.fault_reason() == "emergency stop engaged")
@@ -360,6 +364,7 @@ def test_an_emergency_stop_refuses_recovery_until_released_and_powered(emulator,
     assert ur_arm.fault is None and emulator("ctl.arm.program_running")
 
 
+@pytest.mark.slow
 def test_a_stopped_program_is_reported_and_the_script_reuploaded(emulator, ur_arm):
     emulator("ctl.arm.stop_program")
     assert wait_until(lambda: ur_arm.fault_reason() is not None)

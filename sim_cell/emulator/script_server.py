@@ -17,7 +17,7 @@ import re
 import socket
 
 from sim_cell.emulator.control_script import ControlScript
-from sim_cell.emulator.tcp_service import TCPService
+from sim_cell.emulator.tcp_service import TCPService, start_all
 
 __all__ = ["ScriptServer", "SCRIPT_PORTS"]
 
@@ -40,15 +40,7 @@ class ScriptServer:
         self.services = [TCPService(f"script port {port}", host, port, self._serve) for port in ports]
 
     def start(self) -> None:
-        started = []
-        try:
-            for service in self.services:
-                service.start()
-                started.append(service)
-        except Exception:
-            for service in started:
-                service.close()
-            raise
+        start_all(self.services)
 
     def close(self) -> None:
         for service in self.services:

@@ -13,7 +13,7 @@ import socket
 import threading
 from typing import Callable
 
-__all__ = ["TCPService", "PortTaken"]
+__all__ = ["TCPService", "PortTaken", "start_all"]
 
 log = logging.getLogger(__name__)
 
@@ -115,6 +115,19 @@ class TCPService:
             threads = list(self._clients.values())
         for t in threads:
             t.join(timeout=2.0)
+
+
+def start_all(parts) -> None:
+    """``start()`` each of ``parts`` in order; on a failure close those already started and raise."""
+    started = []
+    try:
+        for part in parts:
+            part.start()
+            started.append(part)
+    except Exception:
+        for part in reversed(started):
+            part.close()
+        raise
 
 
 def read_exact(conn: socket.socket, n: int) -> bytes:

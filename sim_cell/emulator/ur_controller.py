@@ -25,6 +25,7 @@ from sim_cell.emulator.control_script import ControlScript
 from sim_cell.emulator.dashboard_server import DashboardServer
 from sim_cell.emulator.rtde_server import CONTROLLER_FREQUENCY, Registers, RTDEServer
 from sim_cell.emulator.script_server import ScriptServer
+from sim_cell.emulator.tcp_service import start_all
 from sim_cell.emulator.world import EmulatorWorld
 
 __all__ = ["EmulatedURController"]
@@ -47,15 +48,7 @@ class EmulatedURController:
 
     def start(self) -> None:
         """Listen on every port (PortTaken names the one that is busy) and start the world's clock."""
-        started = []
-        try:
-            for server in self._servers:
-                server.start()
-                started.append(server)
-        except Exception:
-            for server in started:
-                server.close()
-            raise
+        start_all(self._servers)
         self.world.start()
 
     def close(self) -> None:
