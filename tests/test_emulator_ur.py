@@ -178,7 +178,7 @@ def test_receive_reports_the_simulated_tcp_pose_and_the_modes(emulator):
     try:
         assert receive.isConnected()
         pose = receive.getActualTCPPose()
-        np.testing.assert_allclose(pose, emulator("ctl.arm.tcp_pose"), atol=1e-4)
+        assert max(pose_error(pose, emulator("ctl.arm.tcp_pose"))) < 1e-3   # a rotation vector near pi may flip
         np.testing.assert_allclose(pose[:3], sim_config().robot.home.position, atol=1e-3)
         assert receive.getRobotMode() == RobotMode.RUNNING
         assert receive.getSafetyMode() == SafetyMode.NORMAL
@@ -336,7 +336,8 @@ def test_urarm_recovers_from_a_protective_stop_during_a_move_in_the_documented_o
     target = list(here)
     target[1] -= 0.25
     emulator("stop_during_move", 0.3)
-    with pytest.raises(CellFault, match="protective stop"):
+    # the stop and the program's end reach the receive and the control connection in either order
+    with pytest.raises(CellFault, match="protective stop|control script is not running"):
         ur_arm.move_linear(target, 0.1, 0.5, "probe")
     assert ur_arm.fault and not emulator("ctl.arm.program_running")
     t0 = time.monotonic()
@@ -383,7 +384,7 @@ def test_a_dropped_link_is_reported_and_the_receive_interface_reconnects(emulato
         emulator("ctl.drop_connections")
         assert wait_until(lambda: not receive.isConnected())
         assert receive.reconnect()
-        np.testing.assert_allclose(receive.getActualTCPPose(), emulator("ctl.arm.tcp_pose"), atol=1e-4)
+        assert max(pose_error(receive.getActualTCPPose(), emulator("ctl.arm.tcp_pose"))) < 1e-3
     finally:
         receive.disconnect()
 

@@ -2,7 +2,7 @@
 
 Packets: a big-endian header (uint16 size including the header, uint8 type),
 then the payload.  What a client does and what the emulator answers:
-  * ``V`` protocol version request (uint16) -> uint8 1 (accepted; versions 1 and 2);
+  * ``V`` protocol version request (uint16) -> uint8 1 (accepted; versions 1 and 2; ur_rtde asks for 2);
   * ``v`` controller version -> four uint32: major, minor, bugfix, build (``CONTROLLER_VERSION``);
   * ``O`` output recipe (v2: double frequency, then comma-separated names) ->
     uint8 recipe id, comma-separated types (``NOT_FOUND`` for a name the
@@ -173,6 +173,7 @@ class RTDEServer:
         inputs: dict[int, _Recipe] = {}
         period = 1.0 / CONTROLLER_FREQUENCY
         started = False
+        version = 1
         next_send = time.monotonic()
         while not self.service.closing:
             wait = max(next_send - time.monotonic(), 0.0) if started else 0.5
@@ -185,13 +186,16 @@ class RTDEServer:
                 if kind == ord("U"):
                     self._apply_inputs(payload, inputs)
                 elif kind == ord("V"):
-                    version = struct.unpack(">H", payload[:2])[0]
-                    self._send(conn, "V", struct.pack(">B", 1 if version in (1, 2) else 0))
+                    asked = struct.unpack(">H", payload[:2])[0]
+                    if asked in (1, 2):
+                        version = asked
+                    self._send(conn, "V", struct.pack(">B", 1 if asked in (1, 2) else 0))
                 elif kind == ord("v"):
                     self._send(conn, "v", struct.pack(">IIII", *CONTROLLER_VERSION))
                 elif kind == ord("O"):
-                    frequency = struct.unpack(">d", payload[:8])[0]
-                    outputs, reply = self._output_recipe(payload[8:].decode("ascii"))
+                    frequency, names = ((struct.unpack(">d", payload[:8])[0], payload[8:]) if version >= 2
+                                        else (CONTROLLER_FREQUENCY, payload))   # v1: no frequency field
+                    outputs, reply = self._output_recipe(names.decode("ascii"))
                     period = 1.0 / min(max(frequency, 1.0), self.max_frequency, CONTROLLER_FREQUENCY)
                     self._send(conn, "O", reply)
                 elif kind == ord("I"):
