@@ -79,4 +79,5 @@ class ScriptServer:
             return
         offset = _OFFSET.search(program)
         arm.stop_program()   # a new program replaces the running one
-        self.script.start(int(offset.group(1)) if offset else 0)
+        if self.script.start(int(offset.group(1)) if offset else 0):
+            log.info("script port: ur_rtde's control script runs (register offset %d)", self.script.offset)
