@@ -48,56 +48,46 @@ class EmulatedCell:
 
     def __init__(self, config: CellConfig, *, time_scale: float = 1.0,
                  fault_socket: str | os.PathLike | None = None) -> None:
-        from sim_cell.emulator.arm import EmulatedArm
         from sim_cell.emulator.camera_feed import CameraFeed
-        from sim_cell.emulator.control_script import ControlScript
-        from sim_cell.emulator.dashboard_server import DashboardServer
         from sim_cell.emulator.faults import FaultInjector, FaultSocket
         from sim_cell.emulator.rg2_service import RG2Service
-        from sim_cell.emulator.rtde_server import Registers, RTDEServer
-        from sim_cell.emulator.script_server import ScriptServer
+        from sim_cell.emulator.ur_controller import EmulatedURController
         from sim_cell.emulator.world import EmulatorWorld
 
         host, cam_host, cam_port = _check(config)
         self.config = config
         self.world = EmulatorWorld(config, time_scale=time_scale)
-        self.arm = EmulatedArm(self.world)
-        self.registers = Registers()
-        self.script = ControlScript(self.arm, self.registers)
-        self.rtde = RTDEServer(self.arm, self.registers, host)
-        self.dashboard = DashboardServer(self.arm, host)
-        self.scripts = ScriptServer(self.script, host)
+        self.controller = EmulatedURController(self.world, host)
+        self.arm = self.controller.arm
         self.gripper = RG2Service(self.world, host, config.gripper.xmlrpc_port)
         self.camera = CameraFeed(self.world, cam_host, cam_port)
-        self.faults = FaultInjector(arm=self.arm, rtde=self.rtde, gripper=self.gripper, camera=self.camera)
+        self.faults = FaultInjector(arm=self.arm, rtde=self.controller.rtde, gripper=self.gripper,
+                                    camera=self.camera)
         self.faults.watch(self.world)
         self.fault_socket = FaultSocket(self.faults, fault_socket) if fault_socket else None
-        self._started: list[Any] = []
+        self._parts: list[Any] = [self.controller, self.gripper, self.camera]
+        if self.fault_socket is not None:
+            self._parts.append(self.fault_socket)
 
     def start(self) -> None:
-        """Start the clock and every server; on a failure (a port taken) stop what started and raise."""
+        """The controller's servers and the world's clock, the RG2, the camera, the fault socket; on a failure
+        (a port taken: PortTaken names it) what started is stopped and the error raised."""
+        from sim_cell.emulator.tcp_service import start_all
+
         try:
-            for part in (self.world, self.dashboard, self.rtde, self.scripts, self.gripper, self.camera,
-                         self.fault_socket):
-                if part is None:
-                    continue
-                part.start()
-                self._started.append(part)
+            start_all(self._parts)
         except Exception:
-            self.close()
+            self.world.close()
             raise
 
     def close(self) -> None:
-        """Stop the fault socket, the servers and the clock (reverse order), then the simulator."""
+        """Stop the armed faults, the servers (reverse order), then the clock and the simulator."""
         self.faults.close()
-        for part in reversed(self._started):
-            if part is self.world:
-                continue  # closed last, with its simulator
+        for part in reversed(self._parts):
             try:
                 part.close()
             except Exception as exc:  # closing the rest matters more
                 log.warning("closing %s: %s", type(part).__name__, exc)
-        self._started.clear()
         self.world.close()
 
     def describe(self) -> str:
