@@ -39,12 +39,14 @@ PERSON = {"emergency-stop": ("release-emergency-stop", "power-on"), "gripper-tri
 PHASES = ("t_capture", "t_perceive", "t_decide", "t_plan", "t_execute", "t_judge", "t_store")
 
 
-def _write_config(root: Path, backend: str) -> Path:
+def _write_config(root: Path, backend: str, host: str) -> Path:
     from flgd.config import load_config
 
     data = yaml.safe_load(EMULATED.read_text())
     shipped = load_config(EMULATED)
     data.update(backend=backend, state_dir=str(root / "state"), policy=str(shipped.policy))
+    data["robot"]["host"] = host
+    data["camera"]["emulator"] = f"{host}:{data['camera']['emulator'].rsplit(':', 1)[1]}"
     data["learning"]["init_trunk"] = str(shipped.learning.init_trunk)
     data["finetune"].update(prior_sample=str(shipped.finetune.prior_sample), updates_per_action=0)
     root.mkdir(parents=True, exist_ok=True)
@@ -140,11 +142,11 @@ def _policy_summary(rows: list[dict], cycles: int) -> dict[str, Any]:
             "median_phase_s": phases}
 
 
-def run_policy(root: Path, cycles: int, time_scale: float) -> dict[str, Any]:
+def run_policy(root: Path, cycles: int, time_scale: float, host: str) -> dict[str, Any]:
     out: dict[str, Any] = {}
     for backend in ("sim", "ur5e"):
         row = root / ("sim" if backend == "sim" else "emulated")
-        config = _write_config(row, backend)
+        config = _write_config(row, backend, host)
         done = len(_rows(row / "state")) if (row / "state" / "flgd.sqlite").exists() else 0
         if done < cycles:
             emu = _emulator(config, row, time_scale) if backend == "ur5e" else None
@@ -161,10 +163,11 @@ def run_policy(root: Path, cycles: int, time_scale: float) -> dict[str, Any]:
     return out
 
 
-def run_faults(root: Path, repeats: int, time_scale: float, resume: dict[str, Any]) -> dict[str, Any]:
+def run_faults(root: Path, repeats: int, time_scale: float, resume: dict[str, Any], host: str) -> dict[str, Any]:
+    from flgd.ctl import DaemonUnreachable
     from sim_cell.emulator.faults import inject
 
-    config = _write_config(root, "ur5e")
+    config = _write_config(root, "ur5e", host)
     results: dict[str, list[dict]] = {k: list(resume.get(k, [])) for k in FAULT_KINDS}
     emu = _emulator(config, root, time_scale)
     daemon = _Daemon(config, root)
@@ -175,23 +178,36 @@ def run_faults(root: Path, repeats: int, time_scale: float, resume: dict[str, An
                 base = st["cycles"]
                 daemon.wait_for(lambda st: st["cycles"] > base, "a cycle before the fault")
                 inject(emu.faults, f"{kind} --during-motion")
-                record: dict[str, Any] = {"latched": False, "recovered": False}
+                record: dict[str, Any] = {"latched": False, "recovered": False, "daemon_exited": None}
                 try:
                     st = daemon.wait_for(lambda st: st["state"] == "FAULT", f"{kind} latched", timeout=90)
                     record.update(latched=True, cause=st["cause"])
                 except TimeoutError:
                     record["cause"] = "not latched within 90 s"
+                except RuntimeError:  # the daemon died: recorded, and started again as systemd would
+                    record["daemon_exited"] = daemon.proc.returncode
+                    daemon.stop()
+                    daemon = _Daemon(config, root)
+                    daemon.wait_for(lambda st: True, "the daemon started again", timeout=120)
                 raised = inject(emu.faults, "status")["raised"][-1]
                 record["during_motion"] = raised["during_motion"]
                 time.sleep(1.0)  # the daemon has latched: any motion it still started would show now
                 record["motions_after_fault"] = inject(emu.faults, "status").get("motions_since_last_fault")
                 for person in PERSON.get(kind, ()):
                     inject(emu.faults, person)
-                for _ in range(3):  # a reset may race the arm's own 5 s protective-stop rule
-                    if daemon.call("reset")["ok"]:
-                        break
-                    time.sleep(2.0)
-                reply = daemon.call("start")
+                try:
+                    for _ in range(3):  # a reset may race the arm's own 5 s protective-stop rule
+                        if daemon.call("reset")["ok"]:
+                            break
+                        time.sleep(2.0)
+                    reply = daemon.call("start")
+                except DaemonUnreachable:  # it died in the recovery: recorded, started again
+                    daemon.proc.wait(30)
+                    record["daemon_exited"] = daemon.proc.returncode
+                    daemon.stop()
+                    daemon = _Daemon(config, root)
+                    daemon.wait_for(lambda st: True, "the daemon started again", timeout=120)
+                    reply = daemon.call("start")
                 if reply["ok"]:
                     try:
                         daemon.wait_for(lambda st: st["state"] == "RUNNING" and st["cycles"] > base + 1,
@@ -210,7 +226,9 @@ def run_faults(root: Path, repeats: int, time_scale: float, resume: dict[str, An
     return {"kinds": {k: {"injected": len(v), "latched": sum(r["latched"] for r in v),
                           "during_motion": sum(bool(r.get("during_motion")) for r in v),
                           "moved_after_fault": sum(bool(r.get("motions_after_fault")) for r in v),
-                          "recovered": sum(r["recovered"] for r in v)} for k, v in results.items()},
+                          "recovered": sum(r["recovered"] for r in v),
+                          "daemon_exited": sum(r.get("daemon_exited") is not None for r in v)}
+                      for k, v in results.items()},
             "action_rows": len(rows), "gaps_in_log": sum(1 for a, b in zip(steps, steps[1:]) if b != a + 1),
             "pending_rows": sum(1 for r in rows if r["outcome"] == "pending"), "records": results}
 
@@ -223,16 +241,17 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--parts", nargs="+", choices=("policy", "faults"), default=["policy", "faults"])
     p.add_argument("--time-scale", type=float, default=1.0, help="the emulator's physics against real time")
     p.add_argument("--out", type=Path, default=None, help="summary JSON (default ROOT/summary.json)")
+    p.add_argument("--host", default="127.0.0.1", help="the loopback address the emulator serves on")
     args = p.parse_args(argv)
     root = args.root.resolve()
     out = args.out or root / "summary.json"
     summary: dict[str, Any] = json.loads(out.read_text()) if out.exists() else {}
     if "policy" in args.parts:
-        summary["policy"] = run_policy(root / "policy", args.cycles, args.time_scale)
+        summary["policy"] = run_policy(root / "policy", args.cycles, args.time_scale, args.host)
     if "faults" in args.parts:
         previous = root / "faults" / "faults.json"
         resume = json.loads(previous.read_text()) if previous.exists() else {}
-        summary["faults"] = run_faults(root / "faults", args.faults, args.time_scale, resume)
+        summary["faults"] = run_faults(root / "faults", args.faults, args.time_scale, resume, args.host)
     summary.update(command="flgd bench emulated " + " ".join(argv if argv is not None else sys.argv[1:]),
                    machine=f"{platform.machine()}, {os.cpu_count()} cores", date=str(datetime.date.today()),
                    commit=subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
