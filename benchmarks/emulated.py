@@ -152,8 +152,15 @@ def run_policy(root: Path, cycles: int, time_scale: float, host: str) -> dict[st
             emu = _emulator(config, row, time_scale) if backend == "ur5e" else None
             daemon = _Daemon(config, row)
             try:
-                daemon.wait_for(lambda st: st["cycles"] >= cycles, f"{cycles} cycles on {backend}",
-                                timeout=cycles * 120.0)
+                while True:  # an emptied real table pauses the daemon: a person refills it (the emulator's refill)
+                    st = daemon.wait_for(lambda st: st["cycles"] >= cycles or st["state"] == "PAUSED",
+                                         f"{cycles} cycles on {backend}", timeout=cycles * 120.0)
+                    if st["cycles"] >= cycles:
+                        break
+                    from sim_cell.emulator.faults import inject
+
+                    inject(emu.faults, "refill")
+                    daemon.call("start")
             finally:
                 daemon.stop()
                 if emu is not None:

@@ -11,6 +11,7 @@ line; ``flgd emulate --inject KIND [--during-motion]`` is its client.  The kinds
 ``gripper-trip``      the RG2's safety switch trips (``gripper-reset`` clears it)
 ``camera-stop``       the camera stops delivering frames (``camera-resume`` delivers again)
 ``power-on``          a person at the pendant powers the arm on and releases the brakes (after an e-stop)
+``refill``            a person lays a new scene on the table (the daemon pauses on an empty one)
 ``status``            what has been raised so far, and the arm motions begun since the last fault
 
 ``--during-motion`` arms the fault instead of raising it at once: it is raised at a random instant of the
@@ -35,7 +36,7 @@ __all__ = ["FaultInjector", "FaultError", "KINDS", "ARMABLE", "inject", "MAX_MOT
 log = logging.getLogger(__name__)
 
 KINDS = ("protective-stop", "emergency-stop", "release-emergency-stop", "drop-rtde", "stop-script",
-         "gripper-trip", "gripper-reset", "camera-stop", "camera-resume", "power-on", "status")
+         "gripper-trip", "gripper-reset", "camera-stop", "camera-resume", "power-on", "refill", "status")
 ARMABLE = frozenset({"protective-stop", "emergency-stop", "drop-rtde", "stop-script", "gripper-trip",
                      "camera-stop"})
 MAX_MOTION_DELAY = 0.5   # seconds of arm motion before an armed fault is raised, at most
@@ -64,10 +65,12 @@ class FaultInjector:
         self._closing = threading.Event()
         self.motion_starts: list[float] = []   # when the arm began each motion (``watch``)
         self._was_moving = False
+        self.world: Any = None
 
     def watch(self, world: Any) -> None:
         """Note the start of every arm motion on ``world``'s clock, so ``status`` can say whether the arm moved
         after the last fault (a daemon that went on commanding it would show here)."""
+        self.world = world
         world.add_tick(self._note_motion)
 
     def _note_motion(self, dt: float) -> None:
@@ -89,7 +92,13 @@ class FaultInjector:
             "camera-stop": lambda: self._need(self.camera, "camera").stop_frames(),
             "camera-resume": lambda: self._need(self.camera, "camera").resume_frames(),
             "power-on": lambda: self._power_on(self._need(self.arm, "arm")),
+            "refill": self._refill,
         }
+
+    def _refill(self) -> None:
+        self._need(self.world, "world").cell.reset_scene()
+        if self.camera is not None:
+            self.camera.invalidate()
 
     @staticmethod
     def _power_on(arm: Any) -> None:
