@@ -181,9 +181,16 @@ def run_faults(root: Path, repeats: int, time_scale: float, resume: dict[str, An
     try:
         for kind in FAULT_KINDS:
             while len(results[kind]) < repeats:
-                st = daemon.wait_for(lambda st: st["state"] == "RUNNING", "running")
+                st = daemon.wait_for(lambda st: st["state"] in ("RUNNING", "PAUSED"), "running")
+                if st["state"] == "PAUSED":  # the table emptied: a person refills it
+                    inject(emu.faults, "refill")
+                    daemon.call("start")
+                    continue
                 base = st["cycles"]
-                daemon.wait_for(lambda st: st["cycles"] > base, "a cycle before the fault")
+                st = daemon.wait_for(lambda st: st["cycles"] > base or st["state"] == "PAUSED", "a cycle before "
+                                     "the fault")
+                if st["state"] == "PAUSED":
+                    continue
                 inject(emu.faults, f"{kind} --during-motion")
                 record: dict[str, Any] = {"latched": False, "recovered": False, "daemon_exited": None}
                 try:
@@ -217,9 +224,9 @@ def run_faults(root: Path, repeats: int, time_scale: float, resume: dict[str, An
                     reply = daemon.call("start")
                 if reply["ok"]:
                     try:
-                        daemon.wait_for(lambda st: st["state"] == "RUNNING" and st["cycles"] > base + 1,
+                        daemon.wait_for(lambda st: st["cycles"] > base + 1 or st["state"] == "PAUSED",
                                         "a cycle after the recovery", timeout=120)
-                        record["recovered"] = True
+                        record["recovered"] = True  # a cycle ran after it (or the table emptied on it)
                     except TimeoutError:
                         pass
                 results[kind].append(record)
