@@ -54,6 +54,7 @@ class ControlScript:
         self.regs = registers
         self.offset = 0
         self._waiting_for_motion = False   # a synchronous move/stop: DONE when the arm is still
+        self._stale_stop = False           # the register still holds the stop that ended the previous program
         self._async_running = False
         self._op_id = 0
         self._writes = 0
@@ -71,6 +72,10 @@ class ControlScript:
         self.offset = int(register_offset)
         self._waiting_for_motion = False
         self._async_running = False
+        # ur_rtde's stopScript leaves STOP_SCRIPT in the command register and its clear reaches RTDE on another
+        # connection than the new program's upload: the new program must not take that stale stop for its own
+        with self.regs.lock:
+            self._stale_stop = self.regs.input_int[self.offset] == Command.STOP_SCRIPT
         self.regs.reset_outputs()
         self._write_progress(running=False)
         self._set_status(READY)
@@ -125,9 +130,11 @@ class ControlScript:
                 self._waiting_for_motion = False
                 self._set_status(DONE)
             return
+        if cmd != Command.STOP_SCRIPT:
+            self._stale_stop = False
         if status == DONE and cmd == Command.NO_CMD:
             self._set_status(READY)
-        elif status == READY and cmd != Command.NO_CMD:
+        elif status == READY and cmd != Command.NO_CMD and not (cmd == Command.STOP_SCRIPT and self._stale_stop):
             self._set_status(0)
             self.commands.append(cmd)
             if self._execute(cmd) and arm.program_running and not self._waiting_for_motion:
