@@ -142,6 +142,16 @@ def _policy_summary(rows: list[dict], cycles: int) -> dict[str, Any]:
             "median_phase_s": phases}
 
 
+def _operator_reset(daemon: _Daemon) -> bool:
+    """What the plant's operator does on a FAULT: flgctl reset (again if the arm's 5 s unlock rule refuses it),
+    then start; True when the daemon accepted both."""
+    for _ in range(3):
+        if daemon.call("reset")["ok"]:
+            return bool(daemon.call("start")["ok"])
+        time.sleep(2.0)
+    return False
+
+
 def run_policy(root: Path, cycles: int, time_scale: float, host: str) -> dict[str, Any]:
     out: dict[str, Any] = {}
     for backend in ("sim", "ur5e"):
@@ -152,11 +162,17 @@ def run_policy(root: Path, cycles: int, time_scale: float, host: str) -> dict[st
             emu = _emulator(config, row, time_scale) if backend == "ur5e" else None
             daemon = _Daemon(config, row)
             try:
-                while True:  # an emptied real table pauses the daemon: a person refills it (the emulator's refill)
-                    st = daemon.wait_for(lambda st: st["cycles"] >= cycles or st["state"] == "PAUSED",
+                faults = json.loads((row / "faults.json").read_text()) if (row / "faults.json").exists() else []
+                while True:  # an emptied real table pauses the daemon (a person refills it); a fault is reset
+                    st = daemon.wait_for(lambda st: st["cycles"] >= cycles or st["state"] in ("PAUSED", "FAULT"),
                                          f"{cycles} cycles on {backend}", timeout=cycles * 120.0)
                     if st["cycles"] >= cycles:
                         break
+                    if st["state"] == "FAULT":
+                        faults.append({"cycle": st["cycles"], "cause": st["cause"],
+                                       "reset": _operator_reset(daemon)})
+                        (row / "faults.json").write_text(json.dumps(faults, indent=1))
+                        continue
                     from sim_cell.emulator.faults import inject
 
                     inject(emu.faults, "refill")
@@ -166,6 +182,8 @@ def run_policy(root: Path, cycles: int, time_scale: float, host: str) -> dict[st
                 if emu is not None:
                     emu.stop()
         out["emulated" if backend == "ur5e" else "sim"] = _policy_summary(_rows(row / "state"), cycles)
+        if (row / "faults.json").exists():  # faults the cell raised on its own (not injected)
+            out["emulated" if backend == "ur5e" else "sim"]["faults"] = json.loads((row / "faults.json").read_text())
         print(f"{backend}: {json.dumps(out['emulated' if backend == 'ur5e' else 'sim'])}", flush=True)
     return out
 
@@ -176,20 +194,26 @@ def run_faults(root: Path, repeats: int, time_scale: float, resume: dict[str, An
 
     config = _write_config(root, "ur5e", host)
     results: dict[str, list[dict]] = {k: list(resume.get(k, [])) for k in FAULT_KINDS}
+    unplanned: list[dict] = (json.loads((root / "unplanned.json").read_text())
+                             if (root / "unplanned.json").exists() else [])
     emu = _emulator(config, root, time_scale)
     daemon = _Daemon(config, root)
     try:
         for kind in FAULT_KINDS:
             while len(results[kind]) < repeats:
-                st = daemon.wait_for(lambda st: st["state"] in ("RUNNING", "PAUSED"), "running")
+                st = daemon.wait_for(lambda st: st["state"] in ("RUNNING", "PAUSED", "FAULT"), "running")
                 if st["state"] == "PAUSED":  # the table emptied: a person refills it
                     inject(emu.faults, "refill")
                     daemon.call("start")
                     continue
+                if st["state"] == "FAULT":  # a fault the cell raised on its own: recorded apart, reset
+                    unplanned.append({"cycle": st["cycles"], "cause": st["cause"], "reset": _operator_reset(daemon)})
+                    (root / "unplanned.json").write_text(json.dumps(unplanned, indent=1))
+                    continue
                 base = st["cycles"]
-                st = daemon.wait_for(lambda st: st["cycles"] > base or st["state"] == "PAUSED", "a cycle before "
-                                     "the fault")
-                if st["state"] == "PAUSED":
+                st = daemon.wait_for(lambda st: st["cycles"] > base or st["state"] in ("PAUSED", "FAULT"),
+                                     "a cycle before the fault")
+                if st["state"] != "RUNNING":
                     continue
                 inject(emu.faults, f"{kind} --during-motion")
                 record: dict[str, Any] = {"latched": False, "recovered": False, "daemon_exited": None}
@@ -244,7 +268,8 @@ def run_faults(root: Path, repeats: int, time_scale: float, resume: dict[str, An
                           "daemon_exited": sum(r.get("daemon_exited") is not None for r in v)}
                       for k, v in results.items()},
             "action_rows": len(rows), "gaps_in_log": sum(1 for a, b in zip(steps, steps[1:]) if b != a + 1),
-            "pending_rows": sum(1 for r in rows if r["outcome"] == "pending"), "records": results}
+            "pending_rows": sum(1 for r in rows if r["outcome"] == "pending"), "unplanned_faults": unplanned,
+            "records": results}
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -70,7 +70,8 @@ PROTECTIVE_STOP_UNLOCK_DELAY = 5.0   # s; the controller refuses an unlock soone
 PROTECTIVE_STOP_FORCE = 150.0        # N of push on the gripper that stops the arm (UR's default force limit)
 PRESS_DEPTH = 0.006                  # m an object may be squeezed into what it rests on (sim_cell.cell)
 SETTLE_TOLERANCE = 2e-4              # rad of servo tracking error at which a finished line counts as arrived
-SETTLE_TIME = 0.3                    # s a finished line waits at most for the servos
+SETTLE_TIME = 1.0                    # s a finished line waits at most for the servos (a UR reports a move done
+                                     # once its servos have arrived; 0.3 s left a carried load 2 mm short)
 MAX_SPEED = 3.0                      # m/s, the controller's limit for a tool speed
 MAX_ACCELERATION = 150.0             # m/s^2
 REACH_CHECK_TICK = 0.02              # s between the line samples checked for reach before a move
