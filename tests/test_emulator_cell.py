@@ -37,7 +37,7 @@ def emulated_config(tmp_path: Path, **sim) -> Path:
     data["robot"]["host"] = HOST
     data["gripper"]["xmlrpc_port"] = _free_port(HOST)
     data["camera"]["emulator"] = f"{HOST}:{_free_port(HOST)}"
-    data["sim"].update({"objects": 4, **sim})
+    data["sim"].update({"objects": 10, **sim})  # enough that the table never empties during a test
     path = tmp_path / "cell.yaml"
     path.write_text(yaml.safe_dump(data))
     return path
