@@ -120,6 +120,9 @@ class _Line:
         self.stop_acc: float | None = None   # set by stopL: decelerate at this rate to rest
         self.arrived = self.length <= 1e-9
         self.settle = 0.0
+        # only a line that goes down can press the gripper into what lies below it; a lift or a carry that
+        # drags a held block along a neighbour is friction, not a collision (pybullet's soft contacts sink)
+        self.descending = bool(goal[2, 3] < start[2, 3] - 1e-4)
 
     def advance(self, dt: float) -> None:
         if self.arrived:
@@ -349,7 +352,8 @@ class EmulatedArm:
             qd = (q_next - self._target_q) / dt
             self._target_q = q_next
             self._robot.command_arm(q_next, qd)
-            self._check_press()
+            if line.descending:
+                self._check_press()
             return
         self._robot.command_arm(self._target_q)
         line.settle += dt
