@@ -90,7 +90,7 @@ def test_a_fault_armed_for_motion_lands_while_the_arm_moves(emulator):
     pose = arm.tcp_pose()
     target = list(pose)
     target[2] -= 0.08
-    arm.move_linear(target, 0.1, 0.5)  # 0.8 s of motion at least: the stop lands inside it
+    arm.move_linear(target, 0.04, 0.5)  # 2 s of motion, 1 s of wall time at time_scale 2: the stop lands in it
     deadline = time.monotonic() + 10
     while not emulator.faults.raised and time.monotonic() < deadline:
         time.sleep(0.01)

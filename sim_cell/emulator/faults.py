@@ -31,6 +31,8 @@ import time
 from pathlib import Path
 from typing import Any, Callable
 
+from sim_cell.emulator.tcp_service import read_line
+
 __all__ = ["FaultInjector", "FaultError", "KINDS", "ARMABLE", "inject", "MAX_MOTION_DELAY"]
 
 log = logging.getLogger(__name__)
@@ -233,12 +235,7 @@ class FaultSocket:
             with conn:
                 conn.settimeout(5.0)
                 try:
-                    data = b""
-                    while b"\n" not in data and len(data) < MAX_LINE:
-                        chunk = conn.recv(MAX_LINE)
-                        if not chunk:
-                            break
-                        data += chunk
+                    data = read_line(conn, MAX_LINE)
                     try:
                         reply = self.injector.command(data.split(b"\n", 1)[0].decode("utf-8", "replace"))
                     except FaultError as exc:
@@ -268,10 +265,5 @@ def inject(path: str | os.PathLike, command: str, timeout: float = 10.0) -> dict
         s.settimeout(timeout)
         s.connect(str(path))
         s.sendall(command.encode() + b"\n")
-        data = b""
-        while b"\n" not in data:
-            chunk = s.recv(4096)
-            if not chunk:
-                break
-            data += chunk
+        data = read_line(s)
     return json.loads(data.decode() or "{}")

@@ -139,3 +139,15 @@ def read_exact(conn: socket.socket, n: int) -> bytes:
             raise ConnectionError("peer closed the connection")
         chunks += data
     return bytes(chunks)
+
+
+def read_line(conn: socket.socket, limit: int = 65536) -> bytes:
+    """Bytes from ``conn`` up to and including the first newline, or all there is when the peer closes first or
+    ``limit`` bytes came without one."""
+    data = b""
+    while b"\n" not in data and len(data) < limit:
+        chunk = conn.recv(limit)
+        if not chunk:
+            break
+        data += chunk
+    return data

@@ -23,6 +23,7 @@ import yaml
 
 from flgd.config import load_config
 from flgd.ctl import Client, DaemonUnreachable
+from sim_cell.emulator.tcp_service import read_line  # noqa: F401 (the tests' one line reader)
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -153,14 +154,3 @@ class DaemonProcess:
                 self.proc.wait()
         if not self.log_file.closed:
             self.log_file.close()
-
-
-def read_line(sock) -> bytes:
-    """Bytes from ``sock`` up to and including the first newline (all there is if the peer closes first)."""
-    data = b""
-    while b"\n" not in data:
-        chunk = sock.recv(65536)
-        if not chunk:
-            break
-        data += chunk
-    return data
