@@ -33,7 +33,7 @@ import yaml
 
 REPO = Path(__file__).resolve().parents[1]
 EMULATED = REPO / "cell_config" / "ur5e-emulated.yaml"
-FAULT_KINDS = ("protective-stop", "emergency-stop", "drop-rtde", "stop-script", "gripper-trip", "camera-stop")
+FAULT_KINDS = ("protective-stop", "emergency-stop", "stop-script", "gripper-trip", "camera-stop", "drop-rtde")
 PERSON = {"emergency-stop": ("release-emergency-stop", "power-on"), "gripper-trip": ("gripper-reset",),
           "camera-stop": ("camera-resume",)}   # what a person does before the reset
 PHASES = ("t_capture", "t_perceive", "t_decide", "t_plan", "t_execute", "t_judge", "t_store")
@@ -152,6 +152,14 @@ def _operator_reset(daemon: _Daemon) -> bool:
     return False
 
 
+def _restarted(daemon: _Daemon, config: Path, root: Path) -> _Daemon:
+    """What the operator does when resets keep failing: restart the service (systemctl restart flgd)."""
+    daemon.stop()
+    fresh = _Daemon(config, root)
+    fresh.wait_for(lambda st: True, "the daemon started again", timeout=120)
+    return fresh
+
+
 def run_policy(root: Path, cycles: int, time_scale: float, host: str) -> dict[str, Any]:
     out: dict[str, Any] = {}
     for backend in ("sim", "ur5e"):
@@ -168,9 +176,12 @@ def run_policy(root: Path, cycles: int, time_scale: float, host: str) -> dict[st
                                          f"{cycles} cycles on {backend}", timeout=cycles * 120.0)
                     if st["cycles"] >= cycles:
                         break
-                    if st["state"] == "FAULT":
+                    if st["state"] == "FAULT":  # what an operator does: reset, or restart the service
                         faults.append({"cycle": st["cycles"], "cause": st["cause"],
                                        "reset": _operator_reset(daemon)})
+                        if not faults[-1]["reset"]:
+                            daemon = _restarted(daemon, config, row)
+                            faults[-1]["restarted"] = True
                         (row / "faults.json").write_text(json.dumps(faults, indent=1))
                         continue
                     from sim_cell.emulator.faults import inject
@@ -208,6 +219,9 @@ def run_faults(root: Path, repeats: int, time_scale: float, resume: dict[str, An
                     continue
                 if st["state"] == "FAULT":  # a fault the cell raised on its own: recorded apart, reset
                     unplanned.append({"cycle": st["cycles"], "cause": st["cause"], "reset": _operator_reset(daemon)})
+                    if not unplanned[-1]["reset"]:
+                        daemon = _restarted(daemon, config, root)
+                        unplanned[-1]["restarted"] = True
                     (root / "unplanned.json").write_text(json.dumps(unplanned, indent=1))
                     continue
                 base = st["cycles"]
