@@ -206,6 +206,21 @@ def test_the_arm_outside_the_envelope_is_not_moved_from_where_it_stands(ctl, rg2
     np.testing.assert_allclose(ctl.tcp[:3], cell.config.robot.home.position, atol=1e-9)
 
 
+def test_an_arm_stopped_on_the_table_floor_is_recovered_not_left_for_a_jog(ctl, rg2, cell):
+    """A grasp descends to the clearance floor itself; a fault there (a gripper trip in the close) leaves the arm
+    reading a hair below it, which is not outside the envelope: the reset homes it (2 mm below is refused)."""
+    floor = cell.config.workspace.table_z + cell.config.safety.min_table_clearance
+    ctl.tcp[:] = (0.50, 0.0, floor - 0.0002, math.pi, 0.0, 0.0)
+    n = len(ctl.log)
+    cell.recover()
+    cell.execute(home_plan(cell.config))
+    assert ctl.calls("moveL", n) and cell.fault is None
+    np.testing.assert_allclose(ctl.tcp[:3], cell.config.robot.home.position, atol=1e-9)
+    ctl.tcp[:] = (0.50, 0.0, floor - 0.002, math.pi, 0.0, 0.0)
+    with pytest.raises(CellFault, match="below the table clearance floor"):
+        cell.execute(home_plan(cell.config))
+
+
 # --------------------------------------------------------------------------- the daemon: reset and stop
 
 @pytest.mark.parametrize("stop_at", ["unlock wait", "closeSafetyPopup", "setTcp", "isPoseWithinSafetyLimits"])

@@ -33,6 +33,7 @@ __all__ = ["UR5eCell"]
 WIDTH_SETTLE_INTERVAL = 0.1  # s between width readings at a MeasureWidth step
 WIDTH_STEADY = 0.0005        # m: two readings this close mean the fingers have stopped
 WIDTH_SETTLE_TIMEOUT = 1.0   # s: after this the last reading counts
+FLOOR_MEASUREMENT_TOLERANCE = 0.0005  # m below the table clearance floor an arm stopped on it may read
 
 
 def _open_d415(config: CellConfig) -> Any:
@@ -138,13 +139,16 @@ class UR5eCell(Cell):
         """
         actual = self.arm.tcp_pose()
         sf = self.config.safety
+        floor = self.config.workspace.table_z + sf.min_table_clearance
+        # a grasp descends to the floor itself: the arm stopped there (a fault in the close) reads a hair below
+        # it, and must still be allowed back up (the rest of the box is checked as it stands)
+        z = floor if floor - FLOOR_MEASUREMENT_TOLERANCE <= actual[2] < floor else actual[2]
         rotation = rotvec_to_matrix(actual[3:6])
-        here = ToolPose((actual[0], actual[1], actual[2]), tuple(tuple(float(v) for v in row) for row in rotation))
+        here = ToolPose((actual[0], actual[1], z), tuple(tuple(float(v) for v in row) for row in rotation))
         probe = MoveL(here, sf.max_speed, sf.max_acceleration, "actual TCP pose")
         try:
             check_plan(Plan("start pose", (probe,)), self.config)
         except PlanRefused as exc:
-            floor = self.config.workspace.table_z + sf.min_table_clearance
             where = ", ".join(f"{v:.4f}" for v in actual[:3])
             reason = (f"the arm stands at [{where}] m, outside the safety envelope ({exc.reason}; envelope "
                       f"x {list(sf.envelope_x)}, y {list(sf.envelope_y)}, z {list(sf.envelope_z)} m, table floor "
