@@ -69,6 +69,7 @@ _STATUS_POWER_ON, _STATUS_PROGRAM_RUNNING = 0, 1
 PROTECTIVE_STOP_UNLOCK_DELAY = 5.0   # s; the controller refuses an unlock sooner
 PROTECTIVE_STOP_FORCE = 150.0        # N of push on the gripper that stops the arm (UR's default force limit)
 PRESS_DEPTH = 0.006                  # m an object may be squeezed into what it rests on (sim_cell.cell)
+SQUEEZE_STIFFNESS = PROTECTIVE_STOP_FORCE / PRESS_DEPTH   # N/m a squeezed block pushes back with
 SETTLE_TOLERANCE = 2e-4              # rad of servo tracking error at which a finished line counts as arrived
 SETTLE_TIME = 1.0                    # s a finished line waits at most for the servos (a UR reports a move done
                                      # once its servos have arrived; 0.3 s left a carried load 2 mm short)
@@ -242,6 +243,10 @@ class EmulatedArm:
         for cp in p.getContactPoints(bodyA=robot.body, physicsClientId=robot.client):
             if cp[3] in robot.gripper_links:
                 force += np.asarray(cp[7]) * cp[9]
+        # pybullet's soft contacts let a squeezed block sink with little force, where a rigid one pushes back at
+        # once: the push grows with the squeeze as it would (150 N at PRESS_DEPTH), so a guarded descent feels
+        # its contact long before the protective stop
+        force[2] += SQUEEZE_STIFFNESS * self.world.cell._contacts.pressing()[1]
         return [float(v) for v in force] + [0.0, 0.0, 0.0]
 
     def _safety_bits(self) -> int:
