@@ -238,13 +238,13 @@ def main(argv: list[str]) -> int:
         server.start()  # answers "busy: starting" until the setup is done
         notifier.status("starting: loading policy and connecting the cell")
         controller.setup()
-        ready.set()
         warn_if_policy_unused(policy, controller.status()["policy"], controller.policy_source, str(config.state_dir))
         if live:
             threading.Thread(target=_status_loop, args=(controller, handler, status_stop), daemon=True,
                              name="flgd-status").start()
         log.info("ready: %s, %s, state dir %s, socket %s", controller.backend, controller.policy_source,
                  config.state_dir, sock_path)
+        ready.set()  # after the start-up lines: a client that got an answer finds them in the log
         controller.run_loop(stop_requested=stop.poll)
     except (StartupError, ConfigError, SocketInUse, OSError) as exc:
         handler.finish()

@@ -313,6 +313,13 @@ class ControlServer:
                     continue
                 self._accept_failed(exc)
                 continue
+            if self._reserve_fd is None:
+                self._open_reserve()
+            if self._reserve_fd is None:
+                # took the descriptor a lent connection just gave back: still exhausted, and this connection
+                # is the lent one now (the reserve is reopened when it closes); the episode goes on
+                self._admit_safely(conn, on_close=self._open_reserve)
+                continue
             self._accept_recovered()
             self._admit_safely(conn)
 
@@ -367,7 +374,6 @@ class ControlServer:
                         time.monotonic() - self._exhausted_since, self._exhausted_failures)
             self._exhausted_since = 0.0
             self._exhausted_failures = 0
-            self._open_reserve()
 
     def _admit(self, conn: socket.socket, on_close: Callable[[], None] | None = None) -> None:
         """Check the caller, then give the connection a slot, an urgent-lane slot, or a ``busy`` reply.
