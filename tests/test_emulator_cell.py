@@ -3,11 +3,15 @@ pyrealsense2 on the emulated cell, and the faults raised on demand reaching it a
 
 from __future__ import annotations
 
+import math
 import socket
 import sqlite3
+import subprocess
+import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 import yaml
 
@@ -71,8 +75,10 @@ def test_the_daemon_cycles_through_ur_rtde_and_a_protective_stop_mid_move_is_lat
         before = st["cycles"]
         d.ok("reset")  # the arm's recovery: wait out the 5 s, unlock on the dashboard, reupload the script
         d.ok("start")
-        d.wait_for(lambda st: st["state"] == "RUNNING" and st["cycles"] >= before + 2, "two cycles after recovery")
-        assert moves_at_fault == len(emulator.arm.faults)  # no second stop: the recovery left the arm clean
+        d.wait_for(lambda st: (st["state"] == "RUNNING" and st["cycles"] >= before + 2)
+                   or len(emulator.arm.faults) > moves_at_fault, "two cycles after recovery")
+        # no second stop: the recovery left the arm clean
+        assert emulator.arm.faults[moves_at_fault:] == [], (emulator.arm.faults, d.log()[-3000:])
     finally:
         d.ok("stop")
         d.wait_exit()
@@ -150,3 +156,36 @@ def test_a_swap_to_the_sim_backend_and_back_mid_run(tmp_path, emulator):
     with sqlite3.connect(tmp_path / "state" / "flgd.sqlite") as db:
         backends = [b for (b,) in db.execute("SELECT backend FROM actions ORDER BY step")]
     assert backends[0] == "ur5e" and "sim" in backends and backends[-1] == "ur5e", backends
+
+
+@pytest.mark.slow
+def test_flgd_calibrate_on_the_emulated_cell_finds_the_camera_where_it_truly_is(tmp_path):
+    """A camera 1.2 cm and 1° away from its configured pose; ``flgd calibrate`` through ur_rtde and pyrealsense2
+    sees the marker on the emulated gripper and writes the true pose into the config."""
+    from flgd.geometry import rpy_to_matrix
+    from sim_cell.camera import CameraModel
+
+    error = {"position": [0.009, -0.006, 0.005], "rpy": [0.012, -0.01, 0.008]}
+    path = emulated_config(tmp_path, objects=0, camera_pose_error=error)  # calibration wants an empty table
+    before = load_config(path)
+    truth = CameraModel.from_config(before.camera, before.sim.camera_pose_error).pose
+    offset = (-0.08, 0.0, -0.02)
+    cell = EmulatedCell(before, time_scale=3.0, marker="aruco", marker_offset=offset)
+    cell.start()
+    try:
+        # its own process, as on a cell: ur_rtde's calls hold this interpreter's lock while they wait for replies
+        run = subprocess.run([sys.executable, "-m", "flgd.cli", "calibrate", "--config", str(path), "--marker",
+                              "aruco", "--marker-offset", *map(str, offset), "--margin", "0.1", "--settle", "0.3"],
+                             capture_output=True, text=True, timeout=300, cwd=REPO)
+    finally:
+        cell.close()
+    assert run.returncode == 0, run.stdout[-2000:] + run.stderr[-2000:]
+    assert "wrote camera.pose" in run.stdout
+    after = load_config(path)
+    position = np.asarray(after.camera.pose.position)
+    turn = rpy_to_matrix(*after.camera.pose.rpy).T @ truth[:3, :3]
+    angle = math.degrees(math.acos(min(1.0, (np.trace(turn) - 1.0) / 2.0)))
+    assert np.linalg.norm(position - truth[:3, 3]) < 0.003, (position, truth[:3, 3])
+    assert angle < 0.3
+    assert np.linalg.norm(np.asarray(before.camera.pose.position) - truth[:3, 3]) > 0.01  # it had something to find
+    assert after.sim.camera_pose_error == before.sim.camera_pose_error  # only the camera's pose lines changed

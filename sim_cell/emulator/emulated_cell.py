@@ -47,7 +47,10 @@ class EmulatedCell:
     """Everything ``flgd emulate`` runs; ``start`` then ``close`` (which stops all of it)."""
 
     def __init__(self, config: CellConfig, *, time_scale: float = 1.0,
-                 fault_socket: str | os.PathLike | None = None) -> None:
+                 fault_socket: str | os.PathLike | None = None, marker: str | None = None,
+                 marker_offset: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> None:
+        """``marker`` ("aruco" or "checkerboard") mounts a calibration marker on the gripper at ``marker_offset``
+        (tool frame, m) for ``flgd calibrate`` (sim_cell/emulator/marker.py)."""
         from sim_cell.emulator.camera_feed import CameraFeed
         from sim_cell.emulator.faults import FaultInjector, FaultSocket
         from sim_cell.emulator.rg2_service import RG2Service
@@ -64,6 +67,11 @@ class EmulatedCell:
         self.faults = FaultInjector(arm=self.arm, rtde=self.controller.rtde, gripper=self.gripper,
                                     camera=self.camera)
         self.faults.watch(self.world)
+        self.marker = None
+        if marker is not None:
+            from sim_cell.emulator.marker import CalibrationMarker
+
+            self.marker = CalibrationMarker(self.world, marker, marker_offset)
         self.fault_socket = FaultSocket(self.faults, fault_socket) if fault_socket else None
         self._parts: list[Any] = [self.controller, self.gripper, self.camera]
         if self.fault_socket is not None:
@@ -83,6 +91,8 @@ class EmulatedCell:
     def close(self) -> None:
         """Stop the armed faults, the servers (reverse order), then the clock and the simulator."""
         self.faults.close()
+        if self.marker is not None:
+            self.marker.close()
         for part in reversed(self._parts):
             try:
                 part.close()
@@ -96,6 +106,9 @@ class EmulatedCell:
         lines = [f"UR5e controller on {host}: dashboard 29999, scripts 30001-30003, RTDE 30004",
                  f"RG2 (URCap XML-RPC) on {host}:{self.config.gripper.xmlrpc_port}",
                  f"D415 frames on {self.config.camera.emulator} (the daemon's camera.emulator)"]
+        if self.marker is not None:
+            lines.append(f"calibration marker: {self.marker.kind} at {tuple(self.marker.offset.tolist())} m in the "
+                         f"tool frame (flgd calibrate --marker {self.marker.kind} --marker-offset X Y Z)")
         if self.fault_socket is not None:
             lines.append(f"faults: flgd emulate --inject KIND --faults {Path(self.fault_socket.path)}")
         return "\n".join(lines)

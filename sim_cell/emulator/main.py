@@ -1,6 +1,7 @@
 """``flgd emulate``: the real cell's devices, emulated on the simulated cell, in the foreground (Ctrl-C stops it).
 
     flgd emulate --config cell_config/ur5e-emulated.yaml [--time-scale 1] [--faults PATH]
+                 [--marker aruco|checkerboard --marker-offset X Y Z]
     flgd emulate --inject KIND [--during-motion] [--faults PATH]
 
 The first runs the emulator (the devices and addresses: sim_cell/emulator/emulated_cell.py); the second sends a
@@ -34,6 +35,10 @@ def _parser() -> argparse.ArgumentParser:
                    help="physics speed against real time (2 = twice as fast); default 1")
     p.add_argument("--faults", default=str(DEFAULT_FAULT_SOCKET),
                    help=f"the fault socket (default {DEFAULT_FAULT_SOCKET})")
+    p.add_argument("--marker", choices=("aruco", "checkerboard"),
+                   help="mount a calibration marker on the gripper, for flgd calibrate (its default tag or board)")
+    p.add_argument("--marker-offset", type=float, nargs=3, default=(0.0, 0.0, 0.0), metavar=("X", "Y", "Z"),
+                   help="the marker's centre in the tool frame, m (as flgd calibrate --marker-offset takes it)")
     p.add_argument("--inject", choices=KINDS, metavar="KIND",
                    help="send a fault to a running emulator: " + ", ".join(KINDS))
     p.add_argument("--during-motion", action="store_true",
@@ -76,8 +81,9 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s flgd-emulate %(levelname)s %(message)s")
     try:
         config = load_config(args.config)
-        cell = EmulatedCell(config, time_scale=args.time_scale, fault_socket=args.faults)
-    except (ConfigError, EmulatorConfigError) as exc:
+        cell = EmulatedCell(config, time_scale=args.time_scale, fault_socket=args.faults, marker=args.marker,
+                            marker_offset=tuple(args.marker_offset))
+    except (ConfigError, EmulatorConfigError, ValueError) as exc:
         print(f"flgd emulate: {exc}", file=sys.stderr)
         return 2
     try:
