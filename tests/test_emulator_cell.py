@@ -189,3 +189,28 @@ def test_flgd_calibrate_on_the_emulated_cell_finds_the_camera_where_it_truly_is(
     assert angle < 0.3
     assert np.linalg.norm(np.asarray(before.camera.pose.position) - truth[:3, 3]) > 0.01  # it had something to find
     assert after.sim.camera_pose_error == before.sim.camera_pose_error  # only the camera's pose lines changed
+
+
+@pytest.mark.slow
+def test_a_dropped_rtde_link_mid_move_is_latched_and_a_reset_reconnects_without_a_restart(tmp_path, emulator):
+    config = tmp_path / "cell.yaml"
+    d = DaemonProcess(tmp_path, config=config, args=["--autostart"]).start()
+    try:
+        d.wait_ready()
+        d.wait_for(lambda st: st["cycles"] >= 2, "two cycles on the emulated cell")
+        emulator.faults.arm_for_motion("drop-rtde")
+        st = d.wait_for(lambda st: st["state"] == "FAULT", "the dropped link latched")
+        before = st["cycles"]
+        for _ in range(10):  # an operator's reset: fresh connections to the controller, in this same daemon
+            if d.call("reset")["ok"]:
+                break
+            time.sleep(1.0)
+        d.ok("start")
+        d.wait_for(lambda st: st["state"] == "RUNNING" and st["cycles"] >= before + 2, "two cycles after the reset")
+        assert d.proc.poll() is None
+    finally:
+        d.ok("stop")
+        d.wait_exit()
+    assert "opening fresh connections" in d.log()
+    rows = _actions(tmp_path / "state")
+    assert [r[0] for r in rows] == list(range(len(rows)))

@@ -375,9 +375,8 @@ def test_a_stopped_program_is_reported_and_the_script_reuploaded(emulator, ur_ar
 
 
 def test_a_dropped_link_is_reported_and_the_receive_interface_reconnects(emulator):
-    """Only the receive interface: after a dropped link ur_rtde 1.6.5's control interface reconnects from its
-    own receive thread and its IO interface cannot be disconnected cleanly (module docstring of
-    sim_cell/emulator/ur_controller.py), so URArm's full recovery after a drop is not exercised here."""
+    """The receive interface on its own; URArm's recovery after a drop (fresh interfaces in a fresh ur_rtde
+    process) is exercised through the daemon in tests/test_emulator_cell.py."""
     receive = rtde_receive.RTDEReceiveInterface(HOST)
     try:
         assert receive.isConnected()

@@ -19,7 +19,11 @@ nor a recovery may clear it: a stop that arrives a moment before either would
 otherwise be forgotten and the arm would move after it.
 
 Recovery sequence (:meth:`URArm.recover`), in this order:
-  1. reconnect the RTDE receive interface if it dropped;
+  1. after a lost link (an interface disconnected, or ur_rtde's process ended:
+     flgd/hardware/rtde_process.py) drop every interface and open fresh ones,
+     as a restarted service would; ur_rtde's own ``reconnect`` is not used:
+     against a dropped link its control interface kept failing ("write:
+     Broken pipe") until the process was restarted;
   2. refuse while an emergency stop is engaged (or a safeguard stop, a safety
      violation/fault, recovery mode, or the arm is not powered on): those need
      a person at the cell;
@@ -28,7 +32,7 @@ Recovery sequence (:meth:`URArm.recover`), in this order:
      ``unlockProtectiveStop`` on the dashboard server;
   4. ``closeSafetyPopup``;
   5. confirm the safety mode is NORMAL;
-  6. reconnect the RTDE control (and IO) interfaces if needed;
+  6. open the RTDE control (and IO) interfaces if they are not open;
   7. re-upload the control script if it is not running, and confirm it runs;
   8. set the TCP again (a new script starts with the installation's TCP).
 Moving home is the cell's job (a checked ``plan_home``).  A pending stop
@@ -37,6 +41,8 @@ before the fault is cleared) with :class:`flgd.cell.StopPending`.
 """
 
 from __future__ import annotations
+
+import logging
 
 import math
 import threading
@@ -58,6 +64,8 @@ __all__ = [
     "SAFETY_MODES",
     "PROTECTIVE_STOP_UNLOCK_DELAY",
 ]
+
+log = logging.getLogger(__name__)
 
 # RTDE safety_mode values (UR RTDE guide; same numbers as the primary interface).
 SAFETY_MODES = {
@@ -114,7 +122,8 @@ class RTDEFactory(Protocol):
 
 
 class URRTDEFactory:
-    """The real ur_rtde classes, imported on first use."""
+    """The real ur_rtde classes in this process, imported on first use (the daemon uses
+    ``rtde_process.IsolatedRTDEFactory``: the same classes in a child process)."""
 
     def control(self, host: str) -> Any:
         return hardware_library("rtde_control").RTDEControlInterface(host)
@@ -157,7 +166,11 @@ class URArm:
             raise CellFault("robot.host is empty: set the UR controller's address in the cell config")
         self.host = host
         self.tcp = [float(v) for v in tcp_offset] + [0.0, 0.0, 0.0]
-        self._factory = factory or URRTDEFactory()
+        if factory is None:
+            from flgd.hardware.rtde_process import IsolatedRTDEFactory
+
+            factory = IsolatedRTDEFactory()
+        self._factory = factory
         self._use_io = use_io
         self._clock = clock
         self._sleep = sleep
@@ -248,6 +261,9 @@ class URArm:
                     except CellFault:
                         pass  # closing: the connection may already be gone
         self.control = self.io = self.receive = self.dashboard = None
+        close_factory = getattr(self._factory, "close", None)
+        if close_factory is not None:
+            close_factory()  # ur_rtde's process ends with the arm
 
     # ------------------------------------------------------------------ state
     def _state_problem(self) -> str | None:
@@ -454,7 +470,8 @@ class URArm:
         """
         with self._lock:
             self._refuse_if_stopped("before it started")
-            self._reconnect("receive", self.receive)
+            if self._link_lost():
+                self._reopen()
             if self._call(self.receive, "isEmergencyStopped"):
                 raise CellFault(f"UR {self.host}: emergency stop engaged: release it at the cell and "
                                 f"reset again (recovery refused)")
@@ -486,10 +503,6 @@ class URArm:
                                 f"and release the brakes on the pendant, then reset again")
             if self.control is None:
                 self._open_control()
-            else:
-                self._reconnect("control", self.control)
-                if self._use_io:
-                    self._reconnect("io", self.io)
             if not self._call(self.control, "isProgramRunning"):
                 self._require(self._call(self.control, "reuploadScript"), "reuploadScript")
             self._confirm(lambda: bool(self._call(self.control, "isProgramRunning")),
@@ -509,13 +522,36 @@ class URArm:
                 return
             self._sleep(min(left, UNLOCK_WAIT_STEP))
 
-    def _reconnect(self, name: str, iface: Any) -> None:
-        if iface is None:
-            raise CellFault(f"UR {self.host}: the RTDE {name} interface was never opened")
-        if not self._call(iface, "isConnected"):
-            if self._call(iface, "reconnect") is not True:
-                raise CellFault(f"UR {self.host}: cannot reconnect the RTDE {name} interface "
-                                f"(controller unreachable?)")
+    def _link_lost(self) -> bool:
+        """Whether an interface is gone: never opened, its process ended, or its connection dropped."""
+        for iface in (self.receive, self.dashboard, self.control, self.io):
+            if iface is not None and getattr(iface, "process_alive", True) is False:
+                return True
+        if self.receive is None or self.dashboard is None:
+            return True
+        try:
+            return not (self._call(self.receive, "isConnected")
+                        and (self.control is None or self._call(self.control, "isConnected"))
+                        and (self.io is None or self._call(self.io, "isConnected")))
+        except CellFault:
+            return True
+
+    def _reopen(self) -> None:
+        """Drop every interface (and ur_rtde's process) and open fresh ones; CellFault if the controller cannot
+        be reached.  A robot that is not ready leaves the control interface closed, for the steps that follow."""
+        log.warning("UR %s: the link to the controller was lost; opening fresh connections", self.host)
+        restart = getattr(self._factory, "restart", None)
+        if restart is not None:
+            restart()  # ends ur_rtde's process: its interfaces go with it, whatever state their threads are in
+        else:
+            for iface in (self.control, self.io, self.receive, self.dashboard):
+                if iface is not None:
+                    try:
+                        self._call(iface, "disconnect")
+                    except CellFault:
+                        pass  # the link is gone already
+        self.control = self.io = self.receive = self.dashboard = None
+        self.connect()
 
     def _confirm(self, condition: Callable[[], bool], message: Callable[[], str]) -> None:
         deadline = self._clock() + CONFIRM_TIMEOUT

@@ -25,6 +25,7 @@ tick callback, and the readers take the lock for a consistent snapshot.
 from __future__ import annotations
 
 import dataclasses
+import logging
 import math
 import time
 from dataclasses import dataclass
@@ -39,6 +40,8 @@ from sim_cell.emulator.world import EmulatorWorld
 
 __all__ = ["EmulatedArm", "ArmSnapshot", "RobotMode", "SafetyMode", "RuntimeState", "Refused",
            "PROTECTIVE_STOP_UNLOCK_DELAY"]
+
+log = logging.getLogger(__name__)
 
 
 class RobotMode:
@@ -378,6 +381,7 @@ class EmulatedArm:
             if self.estop_engaged:
                 return
             self.faults.append(f"protective stop: {reason}")
+            log.warning("emulated UR5e: protective stop: %s", reason)
             self.safety_mode = SafetyMode.PROTECTIVE_STOP
             self.protective_stop_at = self._clock()
             self.fault_reason = reason
@@ -387,6 +391,7 @@ class EmulatedArm:
         """An emergency stop: motion ends, the program stops, the arm is powered off until released."""
         with self.world.lock:
             self.faults.append("emergency stop")
+            log.warning("emulated UR5e: emergency stop")
             self.estop_engaged = True
             self.safety_mode = SafetyMode.ROBOT_EMERGENCY_STOP
             self.robot_mode = RobotMode.POWER_OFF

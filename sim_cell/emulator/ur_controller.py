@@ -11,7 +11,10 @@ works; ``RTDEControlInterface`` reconnects by itself from its receive thread
 (dashboard, script upload, recipes) and at times loops on it or crashes the
 client process at exit; ``RTDEIOInterface`` keeps reporting connected and its
 ``disconnect()`` raises "read: End of file".  Whether a real controller lets
-these paths go better (it may stop the program on a lost link) is open.
+these paths go better (it may stop the program on a lost link) is open; the
+daemon does not depend on it: ur_rtde runs in a child process and a recovery
+after a lost link opens fresh interfaces in a fresh one
+(flgd/hardware/rtde_process.py).
 
 The servers need their own process: ur_rtde's C++ calls keep Python's GIL
 while they wait for the controller, so a client in the emulator's process
