@@ -392,3 +392,46 @@ def test_the_emulator_refuses_connections_once_closed(emulator):
     emulator("close")
     with pytest.raises(OSError):
         socket.create_connection((HOST, 29999), timeout=1.0)
+
+
+def test_ur_rtde_dying_in_its_process_is_a_named_fault_and_the_next_interfaces_start_a_new_one(emulator):
+    """What a segmentation fault inside ur_rtde does to the daemon: nothing but a fault naming the signal."""
+    import signal
+
+    from flgd.hardware.rtde_process import IsolatedRTDEFactory, RTDEProcessLost
+
+    factory = IsolatedRTDEFactory()
+    try:
+        receive = factory.receive(HOST)
+        assert receive.isConnected() and receive.process_alive
+        first = factory._child.process
+        os.kill(first.pid, signal.SIGSEGV)
+        with pytest.raises(RTDEProcessLost, match="SIGSEGV"):
+            receive.getActualTCPPose()
+        assert not receive.process_alive
+        again = factory.receive(HOST)  # what URArm's recovery does: fresh interfaces, in a fresh process
+        assert factory._child.process.pid != first.pid
+        assert max(pose_error(again.getActualTCPPose(), emulator("ctl.arm.tcp_pose"))) < 1e-3
+    finally:
+        factory.close()
+
+
+def test_ur_rtde_hanging_in_its_process_is_stopped_at_the_call_deadline(emulator, monkeypatch):
+    """ur_rtde looping in its own thread (seen after a dropped link) holds its process, never the daemon."""
+    import signal
+
+    from flgd.hardware import rtde_process
+
+    monkeypatch.setattr(rtde_process, "CALL_TIMEOUT", 1.0)
+    factory = rtde_process.IsolatedRTDEFactory()
+    try:
+        receive = factory.receive(HOST)
+        child = factory._child.process
+        os.kill(child.pid, signal.SIGSTOP)  # it answers nothing from now on
+        started = time.monotonic()
+        with pytest.raises(rtde_process.RTDEProcessLost, match="receive.isConnected did not return within 1 s"):
+            receive.isConnected()
+        assert time.monotonic() - started < 10.0
+        assert not child.is_alive()  # killed, not left behind
+    finally:
+        factory.close()
