@@ -92,6 +92,7 @@ _ROBOT_RUNNING = 7
 PROTECTIVE_STOP_UNLOCK_DELAY = 5.0  # s; the controller refuses "unlock protective stop" sooner
 _UNLOCK_MARGIN = 0.2                # s on top of it, for clock differences with the controller
 STOP_DECELERATION = 10.0            # m/s^2 for stopL (ur_rtde's default)
+CAUSE_SETTLE_TIME = 0.1             # s to let the receive stream show why the control script stopped
 POSITION_TOLERANCE = 0.002          # m between a finished move and its target
 ORIENTATION_TOLERANCE = 0.02        # rad
 START_GRACE = 0.5                   # s for an accepted move to show up as running
@@ -300,6 +301,14 @@ class URArm:
             if self.control is None or not self._call(self.control, "isConnected"):
                 return "lost the RTDE control connection"
             if not self._call(self.control, "isProgramRunning"):
+                # a protective or emergency stop ends the script too, and the control interface's stream may
+                # show that a few packages before the receive interface's shows the stop: name the cause
+                deadline = self._clock() + CAUSE_SETTLE_TIME
+                while self._clock() < deadline:
+                    self._sleep(self._poll)
+                    problem = self._state_problem()
+                    if problem:
+                        return problem
                 return "the ur_rtde control script is not running on the controller"
         except CellFault as exc:
             return str(exc)

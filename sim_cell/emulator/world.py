@@ -9,7 +9,8 @@ the world at the same time and no second lock can be taken in the wrong order.
 
 The world runs on its own clock thread (:meth:`start`): physics steps of
 ``config.sim.time_step`` paced to real time divided by ``time_scale`` (2 =
-twice as fast as real time).  Before each step the registered tick callbacks
+twice as fast as real time); on a machine too busy to keep up, simulated time
+slows down instead of jumping ahead.  Before each step the registered tick callbacks
 run under the lock (the arm's controller, the fingers), so a device never
 steps the world itself.
 """
@@ -30,7 +31,8 @@ __all__ = ["EmulatorWorld", "TickCallback"]
 log = logging.getLogger(__name__)
 
 TickCallback = Callable[[float], None]   # called with the physics time step (s) before each step
-MAX_LAG_STEPS = 24                       # steps the clock catches up at once before it gives up on real time
+MAX_BURST_STEPS = 2                      # steps taken at once when behind: the RTDE stream gets its turn between
+MAX_LAG_STEPS = 24                       # steps behind real time before the clock gives up catching up
 
 
 class EmulatorWorld:
@@ -95,7 +97,9 @@ class EmulatorWorld:
             if now < next_at:
                 self._stop.wait(next_at - now)
                 continue
-            due = min(int((now - next_at) / period) + 1, MAX_LAG_STEPS)
+            # a machine too busy to keep up slows the simulated time down rather than jumping it forward: a real
+            # controller publishes every 2 ms, so the arm never moves far between two states a client can see
+            due = min(int((now - next_at) / period) + 1, MAX_BURST_STEPS)
             try:
                 self.step(due)
             except Exception:  # a device's bug must not stop the clock of the others
@@ -103,6 +107,7 @@ class EmulatorWorld:
             next_at += due * period
             if time.monotonic() - next_at > MAX_LAG_STEPS * period:
                 next_at = time.monotonic()   # slower than real time: do not try to catch up for ever
+            time.sleep(0)   # let the servers' threads run between bursts
 
     def close(self) -> None:
         """Stop the clock and close the cell; safe to call twice."""
