@@ -435,3 +435,34 @@ def test_ur_rtde_hanging_in_its_process_is_stopped_at_the_call_deadline(emulator
         assert not child.is_alive()  # killed, not left behind
     finally:
         factory.close()
+
+
+def test_a_signal_handlers_call_during_a_call_on_the_same_thread_is_refused_not_deadlocked(emulator, monkeypatch):
+    """SIGTERM during a move runs URArm.stop_motion on the thread that waits for ur_rtde's reply; its stopL must
+    not wait for the pipe that thread holds (the move's loop sees the stop request and halts on its own)."""
+    import signal
+
+    from flgd.hardware import rtde_process
+
+    monkeypatch.setattr(rtde_process, "CALL_TIMEOUT", 2.0)
+    factory = rtde_process.IsolatedRTDEFactory()
+    seen: list[BaseException] = []
+
+    def handler(signum, frame):
+        try:
+            receive.getActualTCPPose()
+        except BaseException as exc:  # noqa: BLE001 - recorded for the assertion
+            seen.append(exc)
+
+    previous = signal.signal(signal.SIGALRM, handler)
+    try:
+        receive = factory.receive(HOST)
+        os.kill(factory._child.process.pid, signal.SIGSTOP)  # the next call waits its full deadline
+        signal.setitimer(signal.ITIMER_REAL, 0.3)
+        with pytest.raises(rtde_process.RTDEProcessLost):
+            receive.isConnected()
+        assert len(seen) == 1 and isinstance(seen[0], rtde_process.RTDECallInProgress), seen
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        signal.signal(signal.SIGALRM, previous)
+        factory.close()

@@ -20,10 +20,17 @@ import threading
 from multiprocessing.connection import Connection
 from typing import Any
 
-__all__ = ["IsolatedRTDEFactory", "RemoteInterface", "RTDEProcessLost", "Snapshot", "CALL_TIMEOUT", "OPEN_TIMEOUT"]
+__all__ = ["IsolatedRTDEFactory", "RemoteInterface", "RTDEProcessLost", "RTDECallInProgress", "Snapshot", "CALL_TIMEOUT", "OPEN_TIMEOUT"]
 
 CALL_TIMEOUT = 20.0   # s a call may take (the dashboard's own timeout is 2 s; asynchronous moves return at once)
-OPEN_TIMEOUT = 60.0   # s to open an interface (the control interface uploads its script and waits for it)
+OPEN_TIMEOUT = 30.0   # s to open an interface (the control interface uploads its script and waits for it); well
+                      # under the service's WatchdogSec, so a hung open is a latched fault, not a killed daemon
+_PR_SET_PDEATHSIG = 1
+
+
+class RTDECallInProgress(RuntimeError):
+    """A call from the thread that is already waiting on the pipe (a signal handler's stopL during a move): not
+    sent; the interrupted call returns first and its caller sees the stop request."""
 _CLASSES = {"control": ("rtde_control", "RTDEControlInterface"), "receive": ("rtde_receive", "RTDEReceiveInterface"),
             "io": ("rtde_io", "RTDEIOInterface"), "dashboard": ("dashboard_client", "DashboardClient")}
 
@@ -35,6 +42,7 @@ class RTDEProcessLost(RuntimeError):
 def _serve(conn: Connection) -> None:
     """The child: open interfaces and run their methods, one request at a time, until told to exit."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)   # Ctrl-C is the daemon's to handle; it closes us in order
+    _die_with_parent()
     from flgd.hardware import hardware_library
 
     interfaces: dict[int, Any] = {}
@@ -64,6 +72,18 @@ def _serve(conn: Connection) -> None:
             conn.send(reply)
         except (BrokenPipeError, OSError):
             return
+
+
+def _die_with_parent() -> None:
+    """Linux: be killed when the daemon dies, even while ur_rtde holds this process in a loop (it would never
+    read the pipe's end-of-file) and might go on talking to the controller for a daemon started after it."""
+    try:
+        import ctypes
+
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(_PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
+    except (OSError, AttributeError):
+        pass  # not Linux: the pipe's end-of-file still ends an idle child
 
 
 class Snapshot:
@@ -108,21 +128,33 @@ class _Child:
         self.process.start()
         child_end.close()
         self._lock = threading.Lock()
+        self._owner: int | None = None   # the thread waiting on the pipe now
         self.lost: str | None = None
         self._next_handle = 0
 
     def request(self, message: tuple, timeout: float, what: str) -> Any:
+        if self._owner == threading.get_ident():
+            raise RTDECallInProgress(f"{what}: not sent, this thread is waiting for another call's reply")
         with self._lock:
-            if self.lost is not None:
-                raise RTDEProcessLost(self.lost)
+            self._owner = threading.get_ident()
             try:
-                self._conn.send(message)
-                if not self._conn.poll(timeout):
-                    self._lose(f"{what} did not return within {timeout:.0f} s")
-                reply = self._conn.recv()
-            except (EOFError, OSError):
-                self.process.join(1.0)
-                self._lose(f"{what}: the process ended")
+                if self.lost is not None:
+                    raise RTDEProcessLost(self.lost)
+                try:
+                    self._conn.send(message)
+                    if not self._conn.poll(timeout):
+                        self._lose(f"{what} did not return within {timeout:.0f} s")
+                    reply = self._conn.recv()
+                except (EOFError, OSError):
+                    self.process.join(1.0)
+                    self._lose(f"{what}: the process ended")
+                except RTDEProcessLost:
+                    raise
+                except BaseException:  # e.g. KeyboardInterrupt between send and reply: the pipe is out of step
+                    self._abandon(f"{what} was interrupted")
+                    raise
+            finally:
+                self._owner = None
         if reply[0] == "ok":
             return reply[1]
         raise _remote_error(reply[1], reply[2])
@@ -130,6 +162,13 @@ class _Child:
     def new_handle(self) -> int:
         self._next_handle += 1
         return self._next_handle
+
+    def _abandon(self, why: str) -> None:
+        """Kill the child and mark it lost without raising (the caller re-raises what interrupted it)."""
+        try:
+            self._lose(why)
+        except RTDEProcessLost:
+            pass
 
     def _lose(self, why: str) -> None:
         code = self.process.exitcode
@@ -192,7 +231,7 @@ class RemoteInterface:
 class IsolatedRTDEFactory:
     """``RTDEFactory`` for URArm: the four interfaces in one child process, a new child once the last one is lost.
 
-    ``URArm.close`` disconnects the interfaces; :meth:`close` ends the child (the cell calls it on close).
+    ``URArm.close`` disconnects the interfaces, then calls :meth:`close`, which ends the child.
     """
 
     def __init__(self) -> None:

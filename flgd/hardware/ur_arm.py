@@ -350,6 +350,8 @@ class URArm:
         looking at the flag, so a move is either refused or sent before the stopL.
         """
         self._stop_requested.set()
+        if self._fault is not None:
+            return  # nothing moves while a fault is latched (a recovery may hold the lock for a while): flag only
         self._halt()
 
     def clear_stop(self) -> None:
