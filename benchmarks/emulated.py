@@ -1,7 +1,7 @@
 """``flgd bench emulated``: the production backend (ur_rtde, RG2 XML-RPC, pyrealsense2) on ``flgd emulate``,
 beside the sim backend on the same scenes and seed; then every fault kind injected during motion.
 
-    flgd bench emulated --root runs/emulated --cycles 200 --faults 10 [--parts policy faults] [--out FILE]
+    flgd bench emulated --root runs/emulated --cycles 200 --faults 10 [--parts policy faults calibrate] [--out FILE]
 
 *policy*: ``flgd run`` with the shipped policy, frozen (``finetune.updates_per_action: 0``), on
 cell_config/ur5e-emulated.yaml (backend ur5e against the emulator) and on the same file with ``backend: sim``,
@@ -11,6 +11,8 @@ perceive, decide, plan, execute, judge, store) and the controller's own time (al
 what a person does (release the e-stop and power the arm on at the pendant, reset the gripper, plug the camera
 in) and ``flgctl reset`` + ``start``: latched, no motion started after the fault before the reset, recovered,
 and the action log without a gap.  Both parts resume from their state directories.
+*calibrate*: the emulated camera put ``CAMERA_ERROR`` away from ``camera.pose``, a marker on the gripper, an empty
+table, and ``flgd calibrate`` through ur_rtde and pyrealsense2: the written pose against the truth.
 """
 
 from __future__ import annotations
@@ -36,6 +38,8 @@ EMULATED = REPO / "cell_config" / "ur5e-emulated.yaml"
 FAULT_KINDS = ("protective-stop", "emergency-stop", "stop-script", "gripper-trip", "camera-stop", "drop-rtde")
 PERSON = {"emergency-stop": ("release-emergency-stop", "power-on"), "gripper-trip": ("gripper-reset",),
           "camera-stop": ("camera-resume",)}   # what a person does before the reset
+CAMERA_ERROR = {"position": [0.012, -0.008, 0.006], "rpy": [0.01, -0.008, 0.015]}  # m; rad, the camera's axes
+MARKER_OFFSET = ("-0.08", "0", "-0.02")   # m in the tool frame: beside the wrist, seen from above
 PHASES = ("t_capture", "t_perceive", "t_decide", "t_plan", "t_execute", "t_judge", "t_store")
 
 
@@ -286,12 +290,60 @@ def run_faults(root: Path, repeats: int, time_scale: float, resume: dict[str, An
             "records": results}
 
 
+def run_calibrate(root: Path, time_scale: float, host: str) -> dict[str, Any]:
+    import math
+
+    import numpy as np
+
+    from flgd.config import load_config
+    from flgd.geometry import rpy_to_matrix
+    from sim_cell.camera import CameraModel
+
+    config = _write_config(root, "ur5e", host)
+    data = yaml.safe_load(config.read_text())
+    data["sim"].update(objects=0, camera_pose_error=CAMERA_ERROR)
+    config.write_text(yaml.safe_dump(data))
+    before = load_config(config)
+    truth = CameraModel.from_config(before.camera, before.sim.camera_pose_error).pose
+    faults = root / "faults.sock"
+    emu = _Process(["emulate", "--config", str(config), "--faults", str(faults), "--time-scale", str(time_scale),
+                    "--marker", "aruco", "--marker-offset", *MARKER_OFFSET], root / "emulator.log")
+    try:
+        deadline = time.monotonic() + 120
+        while not faults.exists():
+            if emu.proc.poll() is not None or time.monotonic() > deadline:
+                raise RuntimeError(f"flgd emulate did not start: see {root / 'emulator.log'}")
+            time.sleep(0.2)
+        started = time.monotonic()
+        run = subprocess.run([sys.executable, "-m", "flgd.cli", "calibrate", "--config", str(config), "--marker",
+                              "aruco", "--marker-offset", *MARKER_OFFSET, "--margin", "0.1"],
+                             capture_output=True, text=True, cwd=REPO)
+        seconds = time.monotonic() - started
+    finally:
+        emu.stop()
+    (root / "calibrate.log").write_text(run.stdout + run.stderr)
+    out: dict[str, Any] = {"exit_code": run.returncode, "seconds": round(seconds, 1), "camera_error": CAMERA_ERROR,
+                           "marker_offset": [float(v) for v in MARKER_OFFSET],
+                           "detections": sum("marker at pixel" in line for line in run.stdout.splitlines())}
+    if run.returncode == 0:
+        after = load_config(config)
+        turn = rpy_to_matrix(*after.camera.pose.rpy).T @ truth[:3, :3]
+        out.update(position_error_mm=round(1000 * float(np.linalg.norm(np.asarray(after.camera.pose.position)
+                                                                         - truth[:3, 3])), 3),
+                   rotation_error_deg=round(math.degrees(math.acos(min(1.0, (np.trace(turn) - 1) / 2))), 4),
+                   configured_error_mm=round(1000 * float(np.linalg.norm(np.asarray(before.camera.pose.position)
+                                                                          - truth[:3, 3])), 1))
+    print(f"calibrate: {json.dumps(out)}", flush=True)
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="flgd bench emulated", description=__doc__.split("\n\n")[0])
     p.add_argument("--root", type=Path, default=Path("runs/emulated"))
     p.add_argument("--cycles", type=int, default=200)
     p.add_argument("--faults", type=int, default=10, help="injections of each fault kind")
-    p.add_argument("--parts", nargs="+", choices=("policy", "faults"), default=["policy", "faults"])
+    p.add_argument("--parts", nargs="+", choices=("policy", "faults", "calibrate"),
+                   default=["policy", "faults", "calibrate"])
     p.add_argument("--time-scale", type=float, default=1.0, help="the emulator's physics against real time")
     p.add_argument("--out", type=Path, default=None, help="summary JSON (default ROOT/summary.json)")
     p.add_argument("--host", default="127.0.0.1", help="the loopback address the emulator serves on")
@@ -305,6 +357,8 @@ def main(argv: list[str] | None = None) -> int:
         previous = root / "faults" / "faults.json"
         resume = json.loads(previous.read_text()) if previous.exists() else {}
         summary["faults"] = run_faults(root / "faults", args.faults, args.time_scale, resume, args.host)
+    if "calibrate" in args.parts:
+        summary["calibrate"] = run_calibrate(root / "calibrate", args.time_scale, args.host)
     summary.update(command="flgd bench emulated " + " ".join(argv if argv is not None else sys.argv[1:]),
                    machine=f"{platform.machine()}, {os.cpu_count()} cores", date=str(datetime.date.today()),
                    commit=subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,

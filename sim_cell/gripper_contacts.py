@@ -51,6 +51,21 @@ class GripperContacts:
                 return True
         return False
 
+    def pressing_by_object(self) -> tuple[float, dict[int, float]]:
+        """(vertical force on the gripper N, {object the gripper touches: its deepest penetration m})."""
+        total = 0.0
+        touched: set[int] = set()
+        for cp in p.getContactPoints(bodyA=self._robot.body, physicsClientId=self._client):
+            if cp[3] in self._robot.gripper_links:
+                total += abs(cp[7][2]) * cp[9]
+                if cp[2] in self._objects:
+                    touched.add(cp[2])
+        depths = {}
+        for body in touched:
+            depths[body] = max([-cp[8] for cp in p.getContactPoints(bodyA=body, physicsClientId=self._client)
+                                if cp[2] != self._robot.body] or [0.0])
+        return total, depths
+
     def pressing(self) -> tuple[float, float]:
         """(vertical force on the gripper N, deepest object penetration m while the gripper
         touches an object).  Rigid blocks squeezed between gripper and table would stop a

@@ -61,8 +61,8 @@ def _actions(state_dir: Path) -> list[tuple]:
 
 
 @pytest.mark.slow
-def test_the_daemon_cycles_through_ur_rtde_and_a_protective_stop_mid_move_is_latched_then_recovered(tmp_path,
-                                                                                                     emulator):
+def test_the_daemon_cycles_through_ur_rtde_and_a_protective_stop_or_a_dropped_link_mid_move_is_latched_then_recovered(
+        tmp_path, emulator):
     config = tmp_path / "cell.yaml"
     d = DaemonProcess(tmp_path, config=config, args=["--autostart"]).start()
     try:
@@ -79,13 +79,23 @@ def test_the_daemon_cycles_through_ur_rtde_and_a_protective_stop_mid_move_is_lat
                    or len(emulator.arm.faults) > moves_at_fault, "two cycles after recovery")
         # no second stop: the recovery left the arm clean
         assert emulator.arm.faults[moves_at_fault:] == [], (emulator.arm.faults, d.log()[-3000:])
+
+        # a dropped RTDE link (ur_rtde loops or crashes on it: flgd/hardware/rtde_process.py): latched in a live
+        # daemon, and a reset opens fresh connections without a restart of the service
+        emulator.faults.arm_for_motion("drop-rtde")
+        st = d.wait_for(lambda st: st["state"] == "FAULT", "the dropped link latched")
+        before = st["cycles"]
+        d.ok("reset")
+        d.ok("start")
+        d.wait_for(lambda st: st["state"] == "RUNNING" and st["cycles"] >= before + 2, "two cycles after the reset")
+        assert "opening fresh connections" in d.log()
     finally:
         d.ok("stop")
         d.wait_exit()
     rows = _actions(tmp_path / "state")
     assert [r[0] for r in rows] == list(range(len(rows)))  # every cycle recorded, none lost to the fault
     assert any(r[1] == "executed" and r[3] == 1 for r in rows), rows  # real picks through the real protocols
-    assert emulator.faults.raised[0]["during_motion"] is True
+    assert [f["during_motion"] for f in emulator.faults.raised] == [True, True]
 
 
 def test_a_fault_armed_for_motion_lands_while_the_arm_moves(emulator):
@@ -190,27 +200,3 @@ def test_flgd_calibrate_on_the_emulated_cell_finds_the_camera_where_it_truly_is(
     assert np.linalg.norm(np.asarray(before.camera.pose.position) - truth[:3, 3]) > 0.01  # it had something to find
     assert after.sim.camera_pose_error == before.sim.camera_pose_error  # only the camera's pose lines changed
 
-
-@pytest.mark.slow
-def test_a_dropped_rtde_link_mid_move_is_latched_and_a_reset_reconnects_without_a_restart(tmp_path, emulator):
-    config = tmp_path / "cell.yaml"
-    d = DaemonProcess(tmp_path, config=config, args=["--autostart"]).start()
-    try:
-        d.wait_ready()
-        d.wait_for(lambda st: st["cycles"] >= 2, "two cycles on the emulated cell")
-        emulator.faults.arm_for_motion("drop-rtde")
-        st = d.wait_for(lambda st: st["state"] == "FAULT", "the dropped link latched")
-        before = st["cycles"]
-        for _ in range(10):  # an operator's reset: fresh connections to the controller, in this same daemon
-            if d.call("reset")["ok"]:
-                break
-            time.sleep(1.0)
-        d.ok("start")
-        d.wait_for(lambda st: st["state"] == "RUNNING" and st["cycles"] >= before + 2, "two cycles after the reset")
-        assert d.proc.poll() is None
-    finally:
-        d.ok("stop")
-        d.wait_exit()
-    assert "opening fresh connections" in d.log()
-    rows = _actions(tmp_path / "state")
-    assert [r[0] for r in rows] == list(range(len(rows)))

@@ -181,6 +181,9 @@ class EmulatedArm:
         self.runtime_state = RuntimeState.STOPPED
         self.fault_reason: str | None = None
         self.protective_stop_at: float | None = None
+        self._touch_depth: dict[int, float] = {}  # object -> its penetration when the gripper began touching it
+        self._press_force = 0.0                     # N, vertical, on the gripper (last tick)
+        self._squeeze = 0.0                         # m pressed into what it rests on since the touch (last tick)
         self.estop_engaged = False
         self.tool_digital_outputs = 0
         self.line: _Line | None = None
@@ -249,7 +252,7 @@ class EmulatedArm:
         # pybullet's soft contacts let a squeezed block sink with little force, where a rigid one pushes back at
         # once: the push grows with the squeeze as it would (150 N at PRESS_DEPTH), so a guarded descent feels
         # its contact long before the protective stop
-        force[2] += SQUEEZE_STIFFNESS * self.world.cell._contacts.pressing()[1]
+        force[2] += SQUEEZE_STIFFNESS * self._squeeze
         return [float(v) for v in force] + [0.0, 0.0, 0.0]
 
     def _safety_bits(self) -> int:
@@ -340,6 +343,7 @@ class EmulatedArm:
 
     # ------------------------------------------------------------------ motion (physics tick, lock held)
     def _tick(self, dt: float) -> None:
+        self._measure_squeeze()
         q = self._robot.joints()
         self._qd = (q - self._last_q) / dt
         self._last_q = q
@@ -368,8 +372,18 @@ class EmulatedArm:
         if np.max(np.abs(q - self._target_q)) < SETTLE_TOLERANCE or line.settle > SETTLE_TIME:
             self.line = None
 
+    def _measure_squeeze(self) -> None:
+        """How far the gripper has pressed what it touches into what that rests on, since it touched it.
+
+        Objects in a pile can rest a few mm into each other in pybullet; counting that as the gripper's press
+        would stop the arm the instant it touches such an object, before any force builds up."""
+        force, depths = self.world.cell._contacts.pressing_by_object()
+        self._touch_depth = {body: self._touch_depth.get(body, depth) for body, depth in depths.items()}
+        self._press_force = force
+        self._squeeze = max([depth - self._touch_depth[body] for body, depth in depths.items()] or [0.0])
+
     def _check_press(self) -> None:
-        force, depth = self.world.cell._contacts.pressing()
+        force, depth = self._press_force, self._squeeze
         if force > PROTECTIVE_STOP_FORCE or depth > PRESS_DEPTH:
             self.protective_stop(f"collision: the gripper pressed with {force:.0f} N "
                                  f"({depth * 1000:.0f} mm into an object)")
