@@ -53,12 +53,10 @@ import numpy as np
 
 from flgd.cell import CellFault, StopPending
 from flgd.geometry import rotvec_to_matrix
-from flgd.hardware import hardware_library
 
 __all__ = [
     "URArm",
     "RTDEFactory",
-    "URRTDEFactory",
     "PoseUnreachable",
     "MotionStopped",
     "SAFETY_MODES",
@@ -111,7 +109,8 @@ class MotionStopped(Exception):
 
 
 class RTDEFactory(Protocol):
-    """Builds the four ur_rtde interfaces; tests pass a fake with the same methods."""
+    """Builds the four ur_rtde interfaces (``rtde_process.IsolatedRTDEFactory``: in a child process); tests pass a
+    fake with the same methods."""
 
     def control(self, host: str) -> Any: ...
 
@@ -120,23 +119,6 @@ class RTDEFactory(Protocol):
     def io(self, host: str) -> Any: ...
 
     def dashboard(self, host: str) -> Any: ...
-
-
-class URRTDEFactory:
-    """The real ur_rtde classes in this process, imported on first use (the daemon uses
-    ``rtde_process.IsolatedRTDEFactory``: the same classes in a child process)."""
-
-    def control(self, host: str) -> Any:
-        return hardware_library("rtde_control").RTDEControlInterface(host)
-
-    def receive(self, host: str) -> Any:
-        return hardware_library("rtde_receive").RTDEReceiveInterface(host)
-
-    def io(self, host: str) -> Any:
-        return hardware_library("rtde_io").RTDEIOInterface(host)
-
-    def dashboard(self, host: str) -> Any:
-        return hardware_library("dashboard_client").DashboardClient(host)
 
 
 def pose_error(actual: Sequence[float], target: Sequence[float]) -> tuple[float, float]:
