@@ -69,20 +69,10 @@ class GripperContacts:
     def pressing(self) -> tuple[float, float]:
         """(vertical force on the gripper N, deepest object penetration m while the gripper
         touches an object).  Rigid blocks squeezed between gripper and table would stop a
-        real arm at once; pybullet's soft contacts let them sink instead, so depth counts too."""
-        total = 0.0
-        touched: set[int] = set()
-        for cp in p.getContactPoints(bodyA=self._robot.body, physicsClientId=self._client):
-            if cp[3] in self._robot.gripper_links:
-                total += abs(cp[7][2]) * cp[9]
-                if cp[2] in self._objects:
-                    touched.add(cp[2])
-        depth = 0.0
-        for body in touched:  # only what the gripper presses on: a deep contact elsewhere is not its doing
-            for cp in p.getContactPoints(bodyA=body, physicsClientId=self._client):
-                if cp[2] != self._robot.body:
-                    depth = max(depth, -cp[8])
-        return total, depth
+        real arm at once; pybullet's soft contacts let them sink instead, so depth counts too.
+        Only what the gripper presses on counts: a deep contact elsewhere is not its doing."""
+        force, depths = self.pressing_by_object()
+        return force, max([0.0, *depths.values()])
 
     def held(self) -> set[int]:
         """What a width measurement finds in the gripper: objects touching both pads, and also objects

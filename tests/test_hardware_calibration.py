@@ -21,6 +21,7 @@ from flgd.hardware.calibration import (CALIBRATION_YAWS, OFFSET_TOLERANCE_MM, Ca
                                        find_marker, grid_poses, main, write_calibration)
 from flgd.hardware.calibration_math import (CalibrationError, CalibrationFit, fit_camera_pose,
                                             fit_camera_pose_and_offset)
+from sim_cell.emulator.marker import marker_image
 
 ROOT = Path(__file__).resolve().parents[1]
 REAL_CONFIG = ROOT / "cell_config" / "ur5e-d415.yaml"
@@ -109,20 +110,8 @@ MARKER_SIDE = 0.05  # m including its white quiet zone
 
 
 def _marker_texture(options: CalibrationOptions) -> np.ndarray:
-    if options.marker == "aruco":
-        dictionary = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, options.aruco_dict))
-        tag = cv2.aruco.generateImageMarker(dictionary, options.aruco_id, 240)
-        return cv2.copyMakeBorder(tag, 60, 60, 60, 60, cv2.BORDER_CONSTANT, value=255)
-    cols, rows = options.checkerboard
-    sq = 40
-    board = np.zeros(((rows + 1) * sq, (cols + 1) * sq), np.uint8)
-    for r in range(rows + 1):
-        for c in range(cols + 1):
-            if (r + c) % 2 == 0:
-                board[r * sq:(r + 1) * sq, c * sq:(c + 1) * sq] = 255
-    pad = (board.shape[1] - board.shape[0]) // 2
-    board = cv2.copyMakeBorder(board, 40 + pad, 40 + pad, 40, 40, cv2.BORDER_CONSTANT, value=255)
-    return board
+    return marker_image(options.marker, aruco_dict=options.aruco_dict, aruco_id=options.aruco_id,
+                        checkerboard=options.checkerboard)  # what the emulator prints on its gripper, too
 
 
 def render_marker_frame(camera_pose: np.ndarray, k: np.ndarray, centre: np.ndarray, options: CalibrationOptions,
