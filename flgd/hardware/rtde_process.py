@@ -20,23 +20,24 @@ import threading
 from multiprocessing.connection import Connection
 from typing import Any
 
-__all__ = ["IsolatedRTDEFactory", "RemoteInterface", "RTDEProcessLost", "RTDECallInProgress", "Snapshot", "CALL_TIMEOUT", "OPEN_TIMEOUT"]
+__all__ = ["IsolatedRTDEFactory", "RemoteInterface", "RTDEProcessLost", "RTDECallInProgress", "Snapshot",
+           "CALL_TIMEOUT", "OPEN_TIMEOUT"]
 
 CALL_TIMEOUT = 20.0   # s a call may take (the dashboard's own timeout is 2 s; asynchronous moves return at once)
 OPEN_TIMEOUT = 30.0   # s to open an interface (the control interface uploads its script and waits for it); well
                       # under the service's WatchdogSec, so a hung open is a latched fault, not a killed daemon
 _PR_SET_PDEATHSIG = 1
-
-
-class RTDECallInProgress(RuntimeError):
-    """A call from the thread that is already waiting on the pipe (a signal handler's stopL during a move): not
-    sent; the interrupted call returns first and its caller sees the stop request."""
 _CLASSES = {"control": ("rtde_control", "RTDEControlInterface"), "receive": ("rtde_receive", "RTDEReceiveInterface"),
             "io": ("rtde_io", "RTDEIOInterface"), "dashboard": ("dashboard_client", "DashboardClient")}
 
 
 class RTDEProcessLost(RuntimeError):
     """The process that holds the ur_rtde interfaces ended or stopped answering."""
+
+
+class RTDECallInProgress(RuntimeError):
+    """A call from the thread that is already waiting on the pipe (a signal handler's stopL during a move): not
+    sent; the interrupted call returns first and its caller sees the stop request."""
 
 
 def _serve(conn: Connection) -> None:
@@ -102,7 +103,8 @@ class Snapshot:
 
 
 def _portable(value: Any) -> Any:
-    """``value`` if it pickles, else a Snapshot of its argument-free getters."""
+    """``value`` if it is plain data (what ur_rtde returns but for status objects), else a Snapshot of its
+    argument-free getters."""
     if value is None or isinstance(value, (bool, int, float, str, list, tuple, dict)):
         return value
     values = {}
