@@ -267,11 +267,11 @@ def test_simulator_errors_and_faults_are_survived_and_logged(tmp_path):
 
 
 def test_a_cell_that_keeps_failing_stops_the_run(tmp_path):
-    from flgd.training import run as run_module
+    from flgd.training import cell_loop
 
     with pytest.raises(RuntimeError, match="cell faults in a row"):
         _run_with_flaky_cell(tmp_path, errors=list(range(1, 50)), faults=[], steps=20)
-    assert run_module.MAX_CONSECUTIVE_FAULTS == 5
+    assert cell_loop.MAX_CONSECUTIVE_FAULTS == 5
 
 
 def test_a_run_can_start_from_a_policy_file_and_refuses_a_bad_one(tmp_path, capsys):

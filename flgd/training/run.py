@@ -45,7 +45,6 @@ import os
 import signal
 import sys
 import time
-import traceback
 from collections import deque
 from pathlib import Path
 from typing import Any
@@ -70,7 +69,6 @@ EXIT_OK, EXIT_ERROR, EXIT_USAGE, EXIT_INTERRUPTED = 0, 1, 2, 130
 CONFIG_FILE = "config.yaml"
 LOG_FILE = "actions.csv"
 CURVE_FILE = "curve.png"
-MAX_CONSECUTIVE_FAULTS = 5
 
 
 def rolling(outcomes: deque, window: int) -> float | None:
@@ -130,11 +128,6 @@ class TrainingRun:
                 self.config.learning, threads=threads))
         self.stop_signals: list[int] = []
         self.grasps: deque = deque(maxlen=200)
-        self.scene_count = 0
-        # (objects, scene kind) of the scene the current cycle acts on, noted before the runner resets it
-        self._cycle_scene: tuple[int | None, str] = (None, "")
-        self.consecutive_faults = 0
-        self.actions_without_grasp = 0  # in the current scene (give_up_after)
         self._lock_fd: int | None = None
         # the daemon's learning stack; the priorities live in the trainer state (written with each checkpoint)
         self.learning = LearningStack(self.config, fine_tune=False, state_dir=out, few_moves=True,
@@ -146,6 +139,7 @@ class TrainingRun:
         self.agent: Any = None
         self.learner: Any = None
         self.actions: Any = None  # the ActionLog (actions.csv)
+        self.cell_loop: Any = None  # the TrainingCell (its cell and cycle runner below)
         self.cell: Any = None
         self.runner: Any = None
 
@@ -178,8 +172,6 @@ class TrainingRun:
     def setup(self) -> None:
         import torch
 
-        from flgd.cell import make_cell
-        from flgd.cycle import CycleRunner
         from flgd.store import Store
         from flgd.training.actionlog import ActionLog
         from flgd.training.state import remove_temporary as remove_trainer_state_temporaries
@@ -210,22 +202,33 @@ class TrainingRun:
                 self.grasps.append(int(float(r["success"])))
 
         step = self.store.next_step()
-        cell = make_cell(self.config)
-        self.scene_count = _next_scene_id(self.actions.rows)
-        if self.settings.curriculum:
-            from flgd.curriculum import Curriculum, CurriculumCell
-            from sim_cell.cell import preset_scenes
+        self._setup_cell(step)
+        self._begin_segment(step)
 
-            curriculum = Curriculum()
-            cell.set_object_count(curriculum.object_count(step))
-            cell.reset_scene()
-            rng = np.random.default_rng(resume_seed(self.settings.seed, self.segment, 5))
-            cell = CurriculumCell(cell, curriculum, lambda: self.runner.step, preset_scenes(), rng)
-            cell.scene_kind = f"random {curriculum.object_count(step)}"
-        self.cell = cell
-        self.runner = CycleRunner(self.config, cell, self.agent, store=self.store, replay=self.replay,
-                                  learner=self.learner, step=step, backend=self.config.backend,
-                                  on_phase=self._on_phase)
+    def _setup_cell(self, step: int) -> None:
+        """The run's own simulated cell and cycle runner (``TrainingCell``), storing into the run's store."""
+        from flgd.training.cell_loop import TrainingCell
+
+        self.cell_loop = TrainingCell(self.config, self.settings, self.agent, step=step,
+                                      scene=_next_scene_id(self.actions.rows),
+                                      curriculum_seed=resume_seed(self.settings.seed, self.segment, 5),
+                                      note=self._note, store=self.store, replay=self.replay, learner=self.learner)
+        self.cell, self.runner = self.cell_loop.cell, self.cell_loop.runner
+
+    def _note(self, kind: str, event: str, message: str) -> None:
+        """A fault or a give-up: said to the operator and kept in the store's events."""
+        self.progress.message(f"flgd train: {message}")
+        if event:
+            self.store.record_event(kind, event)
+
+    @property
+    def step(self) -> int:
+        """Actions taken so far (the next action's step)."""
+        return self.runner.step if self.runner is not None else int(self.run_info.get("step", 0))
+
+    def _begin_segment(self, step: int) -> None:
+        """A segment in run.json (one per start or resume) and the run's first lines."""
+        learning = self.learning
         segments = list(self.run_info.get("segments", []))
         # the learning, exploration and object settings in force, so that a run whose config.yaml was
         # edited between segments (more updates per action, another object set) says so
@@ -296,85 +299,21 @@ class TrainingRun:
             log.warning("learning curve not written: %s", exc)
 
     # ------------------------------------------------------------------ the loop
-    def _on_phase(self, name: str) -> None:
-        """Note the scene an action acts on while it is still there: a cycle that ends its scene resets it
-        before returning, so reading the cell afterwards would describe the next scene."""
-        if name in ("plan", "judge"):
-            cell = self.cell
-            kind = getattr(cell, "scene_kind", f"random {self.settings.objects}") if name == "plan" \
-                else self._cycle_scene[1]
-            self._cycle_scene = (cell.object_count, kind)
-
-    def _handle_fault(self, exc: Exception) -> None:
-        """A cell fault or a simulator error inside a cycle: recover, new scene; give up after several in a row."""
-        from flgd.cell import CellFault
-
-        self.consecutive_faults += 1
-        what = str(exc) if isinstance(exc, CellFault) else f"{type(exc).__name__}: {exc}"
-        self.progress.message(f"flgd train: cell fault at step {self.runner.step}: {what}; recovering")
-        self.store.record_event("fault", what)
-        while True:
-            if self.consecutive_faults >= MAX_CONSECUTIVE_FAULTS:
-                raise RuntimeError(f"{self.consecutive_faults} cell faults in a row; last: {what}")
-            try:
-                self.cell.recover()
-                self.cell.reset_scene()
-                break
-            except Exception as again:  # recovering failed too: count it and try again
-                self.consecutive_faults += 1
-                what = f"recovery: {type(again).__name__}: {again}"
-                self.progress.message(f"flgd train: {what}")
-        self.runner.forget_state()
-        self.agent.reset_episode()
-        self.actions_without_grasp = 0
-
     def train(self) -> int:
         """Train until ``settings.steps`` or a stop signal; returns the exit code."""
-        from flgd.cell import CellFault
-        from flgd.store import StoreError
-
         start_step, t0 = self.runner.step, time.monotonic()
         target = self.settings.steps
         if start_step >= target:
             self.progress.message(f"flgd train: already at step {start_step} >= --steps {target}; nothing to do")
         while self.runner.step < target and not self.stop_signals:
-            try:
-                record = self.runner.run_once()
-            except CellFault as exc:
-                self._handle_fault(exc)
-                self.scene_count += 1
+            cycle = self.cell_loop.cycle()
+            if cycle is None:
                 continue
-            except StoreError:
-                raise  # disk full, read-only ...: stop with a checkpoint rather than lose steps
-            except Exception as exc:  # the simulator failing inside a cycle: log it, new scene, go on
-                traceback.print_exc(file=sys.stderr)
-                self._handle_fault(exc)
-                self.scene_count += 1
-                continue
-            self.consecutive_faults = 0
-            if record.outcome == "empty" or record.step is None:
-                self.scene_count += 1
-                continue
+            record = cycle.record
             t_update = time.perf_counter()
             updates = self.learner.update_pending()
             t_update = time.perf_counter() - t_update
-            if record.outcome == "executed" and record.primitive == "grasp" and record.success is not None:
-                self.grasps.append(int(record.success))
-            objects, kind = self._cycle_scene
-            row = {k: v for k, v in record.row().items() if k in _LOG_KEYS}
-            # a discarded action's scene blew up and was replaced: its object count means nothing
-            row.update({"objects_left": None if record.outcome == "discarded" else objects,
-                        "scene": self.scene_count,
-                        "scene_kind": kind,
-                        "updates": self.learner.updates,
-                        "loss": updates[-1].loss if updates else None, "t_update": t_update,
-                        "t_store": record.timings.get("store")})
-            self.actions.append(row)
-            if record.done or record.outcome == "discarded":  # the runner has started a new scene
-                self.scene_count += 1
-                self.actions_without_grasp = 0
-            elif record.outcome == "executed":
-                self._maybe_give_up(record)
+            self._log_step(record, cycle, updates, t_update, record.timings.get("store"))
             done = self.runner.step - start_step
             rate = done / max(1e-9, time.monotonic() - t0)
             eta = (target - self.runner.step) / rate if rate > 0 else math.inf
@@ -389,34 +328,15 @@ class TrainingRun:
                               f"curve {self.out / CURVE_FILE}")
         return EXIT_INTERRUPTED if interrupted else EXIT_OK
 
-    def _maybe_give_up(self, record) -> None:
-        """A new scene after ``give_up_after`` actions in a row without a successful grasp.
-
-        Why: a scene the policy cannot clear is otherwise kept for ever, and
-        the move reward pays for shuffling its last objects about (each shift
-        changes the heightmap by more than tau1): a fine-tune collapsed that
-        way on a single block (BENCHMARKS.md, "Fine-tuning the shipped policy").
-        """
-        if record.primitive == "grasp" and record.success:
-            self.actions_without_grasp = 0
-            return
-        self.actions_without_grasp += 1
-        limit = self.settings.give_up_after
-        if limit <= 0 or self.actions_without_grasp < limit:
-            return
-        what = (f"{self.actions_without_grasp} actions without a successful grasp at step {self.runner.step}, "
-                f"{self.cell.object_count} objects left: new scene")
-        self.progress.message(f"flgd train: {what}")
-        self.store.record_event("give-up", what)
-        self.scene_count += 1
-        self.actions_without_grasp = 0
-        try:
-            self.cell.reset_scene()
-        except Exception as exc:  # the simulator failing to lay out the new scene: recover as from a fault
-            self._handle_fault(exc)
-            return
-        self.runner.forget_state()
-        self.agent.reset_episode()
+    def _log_step(self, record: Any, cycle: Any, updates: list, t_update: float, t_store: float | None) -> None:
+        """One step's row in actions.csv and its grasp in the rolling success."""
+        if record.outcome == "executed" and record.primitive == "grasp" and record.success is not None:
+            self.grasps.append(int(record.success))
+        row = {k: v for k, v in record.row().items() if k in _LOG_KEYS}
+        row.update({"objects_left": cycle.objects_left, "scene": cycle.scene, "scene_kind": cycle.scene_kind,
+                    "updates": self.learner.updates, "loss": updates[-1].loss if updates else None,
+                    "t_update": t_update, "t_store": t_store})
+        self.actions.append(row)
 
     def _status(self, rate: float | None, eta: float | None) -> str:
         r50, r200 = rolling(self.grasps, 50), rolling(self.grasps, 200)
@@ -430,7 +350,7 @@ class TrainingRun:
         return text
 
     def close(self) -> None:
-        for closer in (self.cell, self.store):
+        for closer in (self.cell_loop, self.store):
             if closer is not None:
                 try:
                     closer.close()
