@@ -2,7 +2,8 @@
 # Installs flgd and everything it needs on a bare machine (Python 3.11, root or sudo):
 # apt's libusb-1.0-0 (pyrealsense2) and python3-venv if missing, a venv in .venv,
 # torch 2.13.0 from the pip index (public PyPI: the CUDA-bundling wheel; CPU-only:
-# FLGD_TORCH_INDEX_URL=https://download.pytorch.org/whl/cpu), and flgd with its test extras.
+# FLGD_TORCH_INDEX_URL=https://download.pytorch.org/whl/cpu), and flgd with its test extras and Ray (the
+# engine of `flgd train --workers`; a cell PC that only runs the daemon may skip it: FLGD_NO_RAY=1).
 # GPU cell: FLGD_TORCH_INDEX_URL=<PyTorch CUDA wheel index> bash .ci/install.sh
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -30,11 +31,11 @@ if [ -n "${FLGD_TORCH_INDEX_URL:-}" ]; then
 else
   "${PIP[@]}" "torch==2.13.0"
 fi
-"${PIP[@]}" -e ".[test]"
+if [ -n "${FLGD_NO_RAY:-}" ]; then "${PIP[@]}" -e ".[test]"; else "${PIP[@]}" -e ".[test,train]"; fi
 .venv/bin/python - <<'PYCHECK'
 import importlib
 for name in ("torch", "numpy", "cv2", "yaml", "pybullet", "pyrealsense2", "rtde_control", "rtde_receive",
-             "safetensors", "prometheus_client", "flgd", "sim_cell"):
+             "safetensors", "prometheus_client", "tqdm", "flgd", "sim_cell"):
     importlib.import_module(name)
 import torch
 print(f"install: ok (torch {torch.__version__}, cuda available: {torch.cuda.is_available()})")

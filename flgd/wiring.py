@@ -19,7 +19,7 @@ from flgd.config import CellConfig
 from flgd.store import CheckpointDir, Store, StoreError
 
 __all__ = ["StartingNetwork", "starting_network", "fresh_network", "rebuild_replay", "configured_prior",
-           "build_agent_and_learner",
+           "build_agent_and_learner", "make_agent",
            "attach_gate", "resume_seed", "continuing_config"]
 
 log = logging.getLogger("flgd")
@@ -153,20 +153,29 @@ def build_agent_and_learner(config: CellConfig, network: Any, replay: Any, *,
     ``finetune.max_epsilon``, and with no updates per action it does not explore at all.  ``prior``
     (``configured_prior``) is mixed into the learner's batches at ``finetune.prior_share``.
     """
-    from flgd.learning.agent import Agent
     from flgd.learning.learner import Learner
 
-    agent = Agent(config, network, seed=config.learning.seed if agent_seed is None else agent_seed)
+    agent = make_agent(config, network, config.learning.seed if agent_seed is None else agent_seed, fine_tune)
     learner = Learner(config, network, replay, mailbox=agent.mailbox, checkpoint_callback=checkpoint_callback,
                       priority_sink=None if store is None else store.save_priorities, prior=prior,
                       prior_share=config.finetune.prior_share if prior is not None else 0.0)
     learner.updates = int(updates)
     replay.resume_annealing(int(updates))  # one batch per update: beta goes on where the run left it
+    return agent, learner
+
+
+def make_agent(config: CellConfig, network: Any, seed: int, fine_tune: bool = False) -> Any:
+    """The acting agent with the daemon's exploration rules: a fine-tune explores at most
+    ``finetune.max_epsilon``, a cell that does not learn not at all.  ``flgd train --workers`` builds its
+    workers' agents here too."""
+    from flgd.learning.agent import Agent
+
+    agent = Agent(config, network, seed=seed)
     if fine_tune:
         agent.max_epsilon = config.finetune.max_epsilon
     if config.learning.updates_per_action == 0:
         agent.max_epsilon = 0.0  # learning is off: exploring would only cost picks
-    return agent, learner
+    return agent
 
 
 def attach_gate(config: CellConfig, store: Store, agent: Any, learner: Any, state_dir: str | Path, step: int, *,

@@ -246,6 +246,10 @@ class LearningConfig:
                       "(training from scratch); 'frozen': updates use and keep the network's running statistics "
                       "(fine-tuning a trained policy, whose statistics a batch of 4 transitions would drift)")
     checkpoint_every: int = param(100, ge=1, unit="updates")
+    sync_every: int = param(0, ge=0, unit="updates",
+                            help="`flgd train --workers`: a worker gets the learner's weights with its next cycle "
+                                 "once they are this many updates newer than its own (0 = after every action's "
+                                 "updates, as in one process)")
     wait_for_updates: bool = param(False, help="each cycle waits until the learner has run the updates scheduled "
                                                "before it (gives a fast simulated cell the learner time a real cell's "
                                                "~9 s cycle gives; off on a real cell)")

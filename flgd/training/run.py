@@ -55,6 +55,7 @@ from flgd.atomic_file import write_atomically
 from flgd.config import CellConfig, ConfigError, dump_config, load_sim_config
 from flgd.learning_stack import CheckpointMeta, LearningStack
 from flgd.store import CheckpointDir
+from flgd.training.progress import BarProgress, LineProgress, make_progress
 from flgd.training.settings import (RUN_FILE, TRAIN_VARIANTS, TRUNK_NETWORKS, RunFileError, RunSettings,
                                     command_line, effective_config, read_run_info, settings_from_command_line,
                                     variant_network)
@@ -79,43 +80,14 @@ def rolling(outcomes: deque, window: int) -> float | None:
     return sum(recent) / window
 
 
-class _Progress:
-    """A one-line live display on a terminal, periodic plain lines otherwise."""
-
-    def __init__(self, stream, live: bool, every_steps: int = 25, every_seconds: float = 60.0):
-        self.stream, self.live = stream, live
-        self.every_steps, self.every_seconds = every_steps, every_seconds
-        self.last_print = 0.0
-        self.last_step = -1
-
-    def show(self, step: int, text: str, force: bool = False) -> None:
-        now = time.monotonic()
-        if self.live:
-            try:
-                width = os.get_terminal_size(self.stream.fileno()).columns - 1
-            except OSError:
-                width = 120
-            self.stream.write("\r\033[K" + text[:max(20, width)])
-            self.stream.flush()
-        elif force or step - self.last_step >= self.every_steps or now - self.last_print >= self.every_seconds:
-            self.stream.write(text + "\n")
-            self.stream.flush()
-            self.last_print, self.last_step = now, step
-
-    def message(self, text: str) -> None:
-        self.stream.write(("\r\033[K" if self.live else "") + text + "\n")
-        self.stream.flush()
-
-    def finish(self) -> None:
-        if self.live:
-            self.stream.write("\n")
-            self.stream.flush()
+_Progress = LineProgress  # the name the tests and benches have used
 
 
 class TrainingRun:
     """One run directory: set up (fresh or resumed), train to ``settings.steps``, stop cleanly."""
 
-    def __init__(self, out: Path, settings: RunSettings, base_config: CellConfig, progress: _Progress,
+    def __init__(self, out: Path, settings: RunSettings, base_config: CellConfig,
+                 progress: LineProgress | BarProgress,
                  threads: int | None = None):
         self.out = out
         self.settings = settings
@@ -150,15 +122,20 @@ class TrainingRun:
     def _write_run_info(self, status: str) -> None:
         info = dict(self.run_info)
         info.update({"settings": dataclasses.asdict(self.settings), "status": status,
-                     "step": self.runner.step if self.runner is not None else info.get("step", 0),
+                     "step": self.step,
                      "updates": self.learner.updates if self.learner is not None else info.get("updates", 0),
                      "rolling_success_50": rolling(self.grasps, 50),
                      "rolling_success_200": rolling(self.grasps, 200),
                      "updated": _now()})
+        info.update(self._extra_run_info())
         if self.learner is not None:  # how the double-DQN a' of the targets was found (this segment)
             info["next_argmax"] = {"reused": self.learner.argmax_reused, "computed": self.learner.argmax_computed}
         self.run_info = info
         write_atomically(self.out / RUN_FILE, (json.dumps(info, indent=2) + "\n").encode(), mode=0o644)
+
+    def _extra_run_info(self) -> dict[str, Any]:
+        """What a kind of run adds to run.json (the multi-worker run: its workers)."""
+        return {}
 
     def _take_lock(self) -> None:
         """The state directory's one lock (``flgd.state_dir_lock``): a daemon or another run there refuses us."""
@@ -277,7 +254,7 @@ class TrainingRun:
                "method": TRAIN_VARIANTS[self.settings.variant][2], "train_variant": self.settings.variant,
                "seed": self.settings.seed, "curriculum": self.settings.curriculum, "objects": self.settings.objects,
                "grasp_only": self.settings.grasp_only}
-        meta = CheckpointMeta(int(self.runner.step), self.config.name or self.config.backend, updates,
+        meta = CheckpointMeta(int(self.step), self.config.name or self.config.backend, updates,
                               f"flgd train {self.out.name}", run)
         self.learning.write_checkpoint(network, updates, meta)
         self.learning.write_trainer_state()
@@ -305,6 +282,7 @@ class TrainingRun:
         target = self.settings.steps
         if start_step >= target:
             self.progress.message(f"flgd train: already at step {start_step} >= --steps {target}; nothing to do")
+        self.progress.start(start_step, target)
         while self.runner.step < target and not self.stop_signals:
             cycle = self.cell_loop.cycle()
             if cycle is None:
@@ -338,16 +316,18 @@ class TrainingRun:
                     "t_update": t_update, "t_store": t_store})
         self.actions.append(row)
 
-    def _status(self, rate: float | None, eta: float | None) -> str:
+    def _status(self, rate: float | None, eta: float | None, objects: Any = None) -> dict[str, str]:
+        """The progress fields: rolling grasp success, objects on the table, learner updates, actions/s, ETA."""
         r50, r200 = rolling(self.grasps, 50), rolling(self.grasps, 200)
         pct = lambda v: "-" if v is None else f"{100 * v:.0f}%"  # noqa: E731
-        text = (f"step {self.runner.step}/{self.settings.steps} | grasp success {pct(r50)} (last 50) "
-                f"{pct(r200)} (last 200) | objects {self.cell.object_count}")
+        fields = {"grasp success": f"{pct(r50)} (last 50) {pct(r200)} (last 200)",
+                  "objects": str(self.cell.object_count if objects is None else objects),
+                  "updates": str(self.learner.updates)}
         if rate is not None:
-            text += f" | {rate:.2f} actions/s"
+            fields["actions/s"] = f"{rate:.2f}"
         if eta is not None and math.isfinite(eta):
-            text += f" | ETA {_duration(eta)}"
-        return text
+            fields["ETA"] = _duration(eta)
+        return fields
 
     def close(self) -> None:
         for closer in (self.cell_loop, self.store):
@@ -424,6 +404,10 @@ def main(argv: list[str]) -> int:
                                  + ("1..60" if name == "objects" else ">= 0"))
         if args.threads is not None and args.threads < 0:
             raise ValueError(f"--threads: got {args.threads!r}, expected >= 0")
+        if args.workers < 0:
+            raise ValueError(f"--workers: got {args.workers!r}, expected >= 0 (0 = one process, no Ray)")
+        if args.address and not args.workers:
+            raise ValueError("--address: joins a Ray cluster for --workers N; give --workers too")
     except ValueError as exc:
         print(f"flgd train: {exc}", file=sys.stderr)
         return EXIT_USAGE
@@ -456,9 +440,14 @@ def main(argv: list[str]) -> int:
             print(f"flgd train: {config_path}: learning.init_trunk: {exc}", file=sys.stderr)
             return EXIT_USAGE
 
-    live = sys.stderr.isatty()
-    progress = _Progress(sys.stderr, live, every_steps=max(1, args.log_every))
-    run = TrainingRun(out, settings, base, progress, threads=args.threads)
+    progress = make_progress(sys.stderr, every_steps=max(1, args.log_every))
+    if args.workers:
+        from flgd.training.distributed import DistributedTrainingRun
+
+        run: TrainingRun = DistributedTrainingRun(out, settings, base, progress, threads=args.threads,
+                                                  workers=args.workers, address=args.address)
+    else:
+        run = TrainingRun(out, settings, base, progress, threads=args.threads)
 
     def on_signal(signum, _frame) -> None:
         run.stop_signals.append(signum)
@@ -476,7 +465,7 @@ def main(argv: list[str]) -> int:
     except Exception as exc:
         progress.finish()
         print(f"flgd train: {type(exc).__name__}: {exc}", file=sys.stderr)
-        if run.runner is not None:
+        if run.learner is not None and run.actions is not None:
             try:
                 run.final_checkpoint()
                 run._write_run_info("failed")

@@ -155,7 +155,14 @@ def command_line() -> argparse.ArgumentParser:
     p.add_argument("--give-up-after", type=int, metavar="N",
                    help="start a new scene after N actions in a row without a successful grasp (default 0: never; "
                         "a run started without it keeps never)")
-    p.add_argument("--threads", type=int, help="torch CPU threads (default: learning.threads of the config)")
+    p.add_argument("--threads", type=int, help="torch CPU threads of the learner (default: learning.threads of the "
+                                               "config; each worker of --workers uses one)")
+    p.add_argument("--workers", type=int, default=0, metavar="N",
+                   help="collect with N simulated cells at once, each a Ray worker of one CPU, for one learner in "
+                        "this process (default 0: one cell in this process, no Ray); a run may resume with another N")
+    p.add_argument("--address", metavar="HOST:PORT",
+                   help="with --workers: join the Ray cluster at this address (`ray start --head` prints it) "
+                        "instead of starting a local one for the run")
     p.add_argument("--log-every", type=int, default=25, help="steps between plain progress lines (no terminal)")
     return p
 

@@ -1,0 +1,147 @@
+"""A training worker: one simulated cell with its own seed, acting network and agent, collecting for the learner.
+
+``flgd train --workers N`` runs N of these as Ray actors (``flgd.training.distributed``).  Each builds
+everything inside its own process -- torch limited to its threads, the PyBullet simulation, the network, the
+daemon's agent (``flgd.wiring.make_agent``) -- from plain data (the config, the run settings, a weights
+dictionary), so nothing that holds a simulator or a thread is ever pickled.  ``collect`` runs one cycle of the
+daemon's cycle (``flgd.training.cell_loop.TrainingCell``) with the newest weights the learner sent and returns
+what it did: the action-log row and the transition for the learner's store and replay, the scene it acted
+on, and any fault or give-up.  The worker stores nothing itself; a worker that dies loses at most the cycle
+it was running.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from flgd.config import CellConfig
+
+__all__ = ["CollectedCycle", "WorkerReport", "CollectingStore", "CellWorker", "worker_seed"]
+
+
+def worker_seed(seed: int, segment: int, worker: int, incarnation: int, stream: int) -> int:
+    """A worker's seed for one random stream (sim, agent, curriculum): distinct per run seed, segment, worker,
+    restart of that worker and stream, so that no two workers -- or a worker and its replacement -- lay out
+    the same scenes or make the same exploration draws."""
+    return int(np.random.SeedSequence([int(seed), int(segment), int(worker), int(incarnation),
+                                       int(stream)]).generate_state(1)[0])
+
+
+@dataclass
+class CollectedCycle:
+    """One step as the worker saw it; the learner gives it its global step when it stores it."""
+
+    row: dict[str, Any]  # CycleRecord.row()
+    transition: Any  # flgd.learning.replay.Transition, or None (nothing to learn: refused is kept, faults not)
+    outcome: str
+    primitive: str | None
+    success: bool | None
+    objects_left: int | None = None
+    scene: int = 0  # the worker's own scene number
+    scene_kind: str = ""
+    store_seconds: float | None = None
+
+
+@dataclass
+class WorkerReport:
+    """What one ``collect`` call returns."""
+
+    worker: int
+    cycles: list[CollectedCycle] = field(default_factory=list)
+    notes: list[tuple[str, str, str]] = field(default_factory=list)  # (kind, event, message)
+    weights_version: int = -1
+    cpu_seconds: float = 0.0  # of the worker's process since it started
+    objects: int | None = None  # objects on its table now
+
+
+class CollectingStore:
+    """The worker's stand-in for the store: the cycle's rows and transitions are kept for the learner.
+
+    The cycle runner writes through ``commit_cycle`` (and a fault's row with no transition); the write-ahead
+    intent and the space check are the learner's store's business, so this has neither."""
+
+    def __init__(self) -> None:
+        self.committed: list[tuple[dict[str, Any], Any]] = []
+        self.store_seconds: float | None = None
+
+    def commit_cycle(self, row: dict, transition: Any | None = None, priority: float | None = None) -> None:
+        self.committed.append((dict(row), transition))
+        return None
+
+    def note_store_time(self, step: int, seconds: float) -> None:
+        self.store_seconds = float(seconds)
+
+    def forget_last_state(self) -> None:
+        pass
+
+    def take(self) -> list[tuple[dict[str, Any], Any]]:
+        out, self.committed = self.committed, []
+        return out
+
+
+class CellWorker:
+    """One simulated cell of a multi-worker run (module doc); made a Ray actor by the driver."""
+
+    def __init__(self, config: CellConfig, settings: Any, index: int, incarnation: int, segment: int,
+                 weights: dict[str, Any], version: int, threads: int = 1) -> None:
+        import torch
+
+        from flgd.learning.networks import build_network
+        from flgd.training.cell_loop import TrainingCell
+        from flgd.wiring import make_agent
+
+        torch.set_num_threads(max(1, int(threads)))
+        self.index = index
+        self.notes: list[tuple[str, str, str]] = []
+        seed = settings.seed
+        config = dataclasses.replace(
+            config, sim=dataclasses.replace(config.sim, seed=worker_seed(seed, segment, index, incarnation, 2)))
+        lc = config.learning
+        network = build_network(lc.network, rotations=lc.rotations, seed=0)
+        network.load_state_dict(weights)
+        self.agent = make_agent(config, network, worker_seed(seed, segment, index, incarnation, 4))
+        self.agent.weights_version = version
+        self.store = CollectingStore()
+        self.loop = TrainingCell(config, settings, self.agent, step=0, scene=0,
+                                 curriculum_seed=worker_seed(seed, segment, index, incarnation, 5),
+                                 note=self._note, store=self.store)
+        self.started = time.process_time()
+
+    def _note(self, kind: str, event: str, message: str) -> None:
+        self.notes.append((kind, event, message))
+
+    def pid(self) -> int:
+        return os.getpid()
+
+    def collect(self, step: int, weights: dict[str, Any] | None = None, version: int = -1) -> WorkerReport:
+        """One cycle at the run's ``step`` (exploration and curriculum follow it), with ``weights`` (the learner's
+        newest, when it sent them) acting; what it did (module doc)."""
+        if weights is not None:
+            self.agent.mailbox.post(weights, version=version)
+        self.loop.runner.step = int(step)
+        report = WorkerReport(self.index)
+        try:
+            cycle = self.loop.cycle()
+        finally:
+            report.notes, self.notes = self.notes, []
+        committed = self.store.take()
+        for row, transition in committed:
+            report.cycles.append(CollectedCycle(row, transition, str(row.get("outcome")), row.get("primitive"),
+                                                None if row.get("success") is None else bool(row["success"])))
+        if cycle is not None and report.cycles:
+            last = report.cycles[-1]
+            last.objects_left, last.scene, last.scene_kind = cycle.objects_left, cycle.scene, cycle.scene_kind
+            last.store_seconds = self.store.store_seconds
+        report.weights_version = self.agent.weights_version
+        report.cpu_seconds = time.process_time()
+        report.objects = self.loop.cell.object_count
+        return report
+
+    def close(self) -> None:
+        self.loop.close()

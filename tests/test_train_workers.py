@@ -1,0 +1,155 @@
+"""``flgd train --workers N`` on a local Ray cluster: the run directory, a worker killed mid-run, the learner's
+updates per collected action, a killed driver resumed, and nothing of Ray left behind."""
+
+from __future__ import annotations
+
+import io
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import yaml
+
+from flgd.config import load_config
+from flgd.store import Store
+from flgd.training.actionlog import read_rows
+from flgd.training.run import main as train_main
+
+pytest.importorskip("ray")
+
+REPO = Path(__file__).resolve().parents[1]
+CONFIG = REPO / "cell_config" / "sim.yaml"
+
+pytestmark = pytest.mark.slow  # each test starts a Ray cluster and simulated cells
+
+
+def _config(tmp_path: Path, updates_per_action: int, sync_every: int = 0) -> str:
+    """sim.yaml with the learner's updates per action and the workers' weight sync changed."""
+    cfg = yaml.safe_load(CONFIG.read_text())
+    cfg["learning"].update({"updates_per_action": updates_per_action, "sync_every": sync_every})
+    cfg["learning"]["init_trunk"] = load_config(str(CONFIG)).learning.init_trunk
+    cfg["policy"] = ""
+    path = tmp_path / "workers.yaml"
+    path.write_text(yaml.safe_dump(cfg))
+    return str(path)
+
+
+def _ray_processes_of(pids: set[int]) -> set[int]:
+    alive = set()
+    for pid in pids:
+        try:
+            os.kill(pid, 0)
+        except OSError:
+            continue
+        alive.add(pid)
+    return alive
+
+
+def test_two_workers_fill_one_run_directory_survive_a_killed_worker_and_resume_in_one_process(tmp_path):
+    from flgd.training.distributed import DistributedTrainingRun
+    from flgd.training.progress import LineProgress
+    from flgd.training.settings import RunSettings
+
+    out = tmp_path / "run"
+    config = load_config(_config(tmp_path, updates_per_action=2))
+    run = DistributedTrainingRun(out, RunSettings(steps=6, seed=3), config, LineProgress(io.StringIO(), False),
+                                 threads=1, workers=2)
+    killed: list[int] = []
+    take = run._take
+
+    def take_and_kill_worker_1(slot, report):
+        take(slot, report)
+        if not killed and run.step >= 2:  # mid-run: worker 1's process is killed (its cycle in flight is lost)
+            pid = run.engine.ray.get(run.slots[1].actor.pid.remote())
+            os.kill(pid, signal.SIGKILL)
+            killed.append(pid)
+
+    run._take = take_and_kill_worker_1
+    try:
+        run.setup()
+        assert run.train() == 0
+    finally:
+        run.close()
+    assert killed
+
+    info = json.loads((out / "run.json").read_text())
+    assert info["status"] == "finished" and info["step"] == 6
+    assert info["segments"][0]["workers"] == 2
+    workers = {w["worker"]: w for w in info["workers"]}
+    assert workers[1]["replacements"] == 1 and "lost" not in workers[0]["last_error"]
+    assert workers[1]["last_error"] and workers[0]["replacements"] == 0
+    assert sum(w["cycles"] for w in workers.values()) == 6
+
+    rows = read_rows(out / "actions.csv")
+    assert [int(r["step"]) for r in rows] == list(range(6))
+    store = Store(out)
+    try:
+        assert store.transition_count() == 6
+        assert any(e["message"].startswith("worker 1 lost") for e in store.events("worker"))
+        steps = [int(r[0]) for r in store.query("SELECT step FROM actions ORDER BY step")]
+    finally:
+        store.close()
+    assert steps == list(range(6))
+    # the learner ran exactly the config's updates for every collected action, whichever worker sent it
+    assert info["updates"] == 2 * 6
+    assert [int(r["updates"]) for r in rows] == [2 * (i + 1) for i in range(6)]
+    assert (out / "curve.png").stat().st_size > 0 and sorted((out / "checkpoints").glob("*.safetensors"))
+
+    # the same run directory goes on in one process (no Ray)
+    assert train_main(["--out", str(out), "--steps", "8", "--threads", "1"]) == 0
+    info = json.loads((out / "run.json").read_text())
+    assert info["step"] == 8 and info["updates"] == 2 * 8 and len(info["segments"]) == 2
+    assert [int(r["step"]) for r in read_rows(out / "actions.csv")] == list(range(8))
+
+
+def test_a_killed_driver_leaves_no_ray_process_and_the_same_command_resumes(tmp_path):
+    out = tmp_path / "run"
+    cmd = [sys.executable, "-m", "flgd.cli", "train", "--config", _config(tmp_path, updates_per_action=1),
+           "--out", str(out), "--seed", "4", "--threads", "1", "--workers", "1"]
+    driver = subprocess.Popen(cmd + ["--steps", "200"], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                              cwd=REPO, start_new_session=True)
+    deadline = time.monotonic() + 240
+    try:
+        while time.monotonic() < deadline and len(read_rows(out / "actions.csv")) < 2:
+            assert driver.poll() is None, driver.stderr.read().decode()
+            time.sleep(0.5)
+        assert len(read_rows(out / "actions.csv")) >= 2
+        ray_pids = _descendant_ray_pids(driver.pid)
+        assert ray_pids  # the local cluster runs under the driver
+        driver.kill()
+        driver.wait(30)
+    finally:
+        if driver.poll() is None:
+            driver.kill()
+    gone_by = time.monotonic() + 30
+    while time.monotonic() < gone_by and _ray_processes_of(ray_pids):
+        time.sleep(0.5)
+    assert not _ray_processes_of(ray_pids), "Ray processes of the killed driver live on"
+
+    done = len(read_rows(out / "actions.csv"))
+    resumed = subprocess.run(cmd + ["--steps", str(done + 2)], capture_output=True, text=True, cwd=REPO, timeout=300)
+    assert resumed.returncode == 0, resumed.stderr
+    assert "resumed at step" in resumed.stderr
+    info = json.loads((out / "run.json").read_text())
+    assert info["step"] == done + 2 and info["status"] == "finished" and len(info["segments"]) == 2
+    assert [int(r["step"]) for r in read_rows(out / "actions.csv")] == list(range(done + 2))
+
+
+def test_workers_and_address_are_checked_before_anything_starts(tmp_path, capsys):
+    out = tmp_path / "run"
+    assert train_main(["--config", str(CONFIG), "--out", str(out), "--workers", "-1"]) == 2
+    assert "--workers: got -1" in capsys.readouterr().err
+    assert train_main(["--config", str(CONFIG), "--out", str(out), "--address", "127.0.0.1:6379"]) == 2
+    assert "give --workers too" in capsys.readouterr().err
+    assert not out.exists()
+
+
+def _descendant_ray_pids(root: int) -> set[int]:
+    from flgd.training.ray_reaper import _descendants, _is_ray
+
+    return {pid for pid in _descendants(root) if _is_ray(pid)}
