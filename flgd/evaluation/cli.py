@@ -99,6 +99,12 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--png", metavar="OUT", help="write the summary bars as PNG (default: next to --json)")
     p.add_argument("--save-qmaps", metavar="DIR", help="write a Q-map picture of every action into DIR")
     p.add_argument("--quiet", action="store_true", help="no per-run progress lines")
+    p.add_argument("--workers", type=int, default=0, metavar="N",
+                   help="spread the runs over N Ray workers of one CPU each (frozen evaluation only); each run then "
+                        "gets its own seed from --seed, the scene and the run number, so the report is the same "
+                        "for every N but not the one-process report of the same --seed (default 0: one process)")
+    p.add_argument("--address", metavar="HOST:PORT",
+                   help="with --workers: join the Ray cluster at this address instead of starting a local one")
     return p
 
 
@@ -162,9 +168,13 @@ def main(argv: list[str]) -> int:
     if not (args.scenes or args.objects is not None or args.sets):
         return _fail("nothing to evaluate: give --scenes FILE..., --objects GLOB [--count N] or --set NAME")
     for name, value, lo in (("--runs", args.runs, 1), ("--max-actions", args.max_actions, 1),
-                            ("--seed", args.seed, 0)):
+                            ("--seed", args.seed, 0), ("--workers", args.workers, 0)):
         if value is not None and value < lo:
             return _fail(f"{name}: got {value}, expected >= {lo}")
+    if args.workers and args.learn:
+        return _fail("--workers: a learning evaluation (--learn) runs in one process; drop one of the two")
+    if args.address and not args.workers:
+        return _fail("--address: joins a Ray cluster for --workers N; give --workers too")
     try:
         config = load_config(args.config)
     except ConfigError as exc:
@@ -208,7 +218,8 @@ def main(argv: list[str]) -> int:
     planned = len(scenes) * options.runs
     option_fields = {"runs": options.runs, "seed": options.seed, "learn": options.learn,
                      "grasp_only": options.grasp_only, "max_actions": options.max_actions,
-                     "failure_limit": options.failure_limit}
+                     "failure_limit": options.failure_limit, "workers": args.workers,
+                     "run_seeds": "per run, from (seed, scene, run)" if args.workers else "one stream per object set"}
 
     def report_of(results: list, status: str, stopped: str = "") -> dict[str, Any]:
         return build_report(results, policy=policy, config=str(args.config), options=option_fields,
@@ -220,7 +231,15 @@ def main(argv: list[str]) -> int:
     with _sigterm_raises():
         try:
             try:
-                evaluator = Evaluator(config, network, options, training_steps=int(policy.get("training_steps", 0)))
+                if args.workers:
+                    from flgd.evaluation.parallel import ParallelEvaluator
+
+                    evaluator = ParallelEvaluator(config, network, options,
+                                                  training_steps=int(policy.get("training_steps", 0)),
+                                                  workers=args.workers, address=args.address)
+                else:
+                    evaluator = Evaluator(config, network, options,
+                                          training_steps=int(policy.get("training_steps", 0)))
             except (EvaluationError, ValueError) as exc:
                 return _fail(str(exc))
 
@@ -236,6 +255,8 @@ def main(argv: list[str]) -> int:
         except Terminated:
             code, status, stopped = EXIT_TERMINATED, "interrupted", "terminated by SIGTERM"
         except (EvaluationError, ValueError) as exc:
+            code, status, stopped = EXIT_ERROR, "failed", str(exc)
+        except RuntimeError as exc:  # the Ray engine could not start (flgd.training.ray_engine.EngineError)
             code, status, stopped = EXIT_ERROR, "failed", str(exc)
         try:
             with _signals_ignored():   # a second Ctrl-C must not cut the final report short
