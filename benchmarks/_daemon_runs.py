@@ -61,9 +61,13 @@ def run_controller(cfg: Any, state_dir: Path, actions: int) -> int:
     return 0
 
 
-def run_workers(jobs: list[tuple[str, list[str]]], root: Path, parallel: int) -> dict[str, int]:
+def run_workers(jobs: list[tuple[str, list[str]]], root: Path, parallel: int, *, ray: bool = False,
+                address: str | None = None) -> dict[str, int]:
     """Run ``(name, argv)`` worker commands (``python -m flgd.cli`` + argv), ``parallel`` at a time, one core each,
-    logging to ``root/NAME.log``; returns each name's exit code."""
+    logging to ``root/NAME.log``; returns each name's exit code.  With ``ray`` each command is a Ray task of one
+    CPU (``run_on_ray``)."""
+    if ray:
+        return run_on_ray(jobs, root, parallel, address)
     todo = list(jobs)
     running: list[tuple[subprocess.Popen, str]] = []
     codes: dict[str, int] = {}
@@ -84,6 +88,56 @@ def run_workers(jobs: list[tuple[str, list[str]]], root: Path, parallel: int) ->
                 running.remove((proc, name))
                 codes[name] = proc.returncode
                 print(f"{name} finished with {proc.returncode}", flush=True)
+    return codes
+
+
+def _run_command(argv: list[str], log: str) -> int:
+    """One worker command, where Ray placed it (the repository and ``root`` at the same paths on every node)."""
+    env = dict(os.environ, OMP_NUM_THREADS="1")
+    with open(log, "ab") as out:
+        return subprocess.run([sys.executable, "-m", "flgd.cli", *argv], stdout=out, stderr=subprocess.STDOUT,
+                              env=env, cwd=REPO).returncode
+
+
+def run_on_ray(jobs: list[tuple[str, list[str]]], root: Path, parallel: int, address: str | None = None,
+               retries: int = 1) -> dict[str, int]:
+    """``run_workers`` on Ray: each command a task of one CPU on a local cluster of ``parallel`` CPUs (or the one at
+    ``address``).  A task whose Ray worker died (a node lost) runs again ``retries`` times: every run resumes
+    from its state directory, so nothing is done twice."""
+    from flgd.training.ray_engine import start_engine, worker_lost_errors
+
+    root.mkdir(parents=True, exist_ok=True)
+    if not jobs:
+        return {}
+    engine = start_engine(address, parallel)
+    ray = engine.ray
+    lost = worker_lost_errors(ray)
+    task = ray.remote(num_cpus=1, max_retries=0)(_run_command)
+    codes: dict[str, int] = {}
+    tries: dict[str, int] = {}
+    try:
+        todo = list(jobs)
+        running: dict[Any, tuple[str, list[str]]] = {}
+        while todo or running:
+            while todo and len(running) < parallel:
+                name, argv = todo.pop(0)
+                log = root.resolve() / f"{name}.log"
+                running[task.remote(argv, str(log))] = (name, argv)
+                print(f"started {name} on Ray (log {log})", flush=True)
+            ready, _ = ray.wait(list(running), num_returns=1)
+            name, argv = running.pop(ready[0])
+            try:
+                codes[name] = int(ray.get(ready[0]))
+            except lost as exc:
+                tries[name] = tries.get(name, 0) + 1
+                print(f"{name}: its Ray worker was lost ({str(exc).splitlines()[0]})", flush=True)
+                if tries[name] <= retries:
+                    todo.append((name, argv))
+                    continue
+                codes[name] = -1
+            print(f"{name} finished with {codes[name]}", flush=True)
+    finally:
+        engine.stop()
     return codes
 
 

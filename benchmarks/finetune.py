@@ -32,6 +32,7 @@ the curves.  A run that is continued (cut short, then the bench run again)
 draws new seeds for its continuation.
 
     flgd bench finetune [--root runs/finetune] [--actions 1000] [--seeds 0 1 2] [--rows ...] [--jobs 2]
+                        [--engine ray|processes] [--address HOST:PORT]
                         [--shifted FILE] [--set KEY=VALUE ...] [--tag NAME] [--out FILE.json]
     flgd bench finetune --report-only ...
 """
@@ -287,7 +288,12 @@ def main(argv: list[str]) -> int:
     p.add_argument("--actions", type=int, default=1000)
     p.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     p.add_argument("--rows", nargs="+", choices=ROWS, default=list(ROWS))
-    p.add_argument("--jobs", type=int, default=2)
+    p.add_argument("--jobs", type=int, default=2, help="runs at once: Ray tasks of one CPU each (default 2)")
+    p.add_argument("--engine", choices=("ray", "processes"), default="ray",
+                   help="ray (default): the runs are tasks on a local Ray cluster or the one at --address; "
+                        "processes: plain child processes on this machine")
+    p.add_argument("--address", metavar="HOST:PORT",
+                   help="join this Ray cluster (its nodes must see this repository and --root at the same paths)")
     p.add_argument("--shifted", type=Path, default=SHIFTED_CONFIG, help="the second cell's config")
     p.add_argument("--set", dest="settings", action="append", default=[], metavar="KEY=VALUE",
                    help="a learner setting of the learning rows (repeatable)")
@@ -330,7 +336,8 @@ def main(argv: list[str]) -> int:
             common += ["--set", item]
         todo = [(run_name(r, s, args.tag), ["bench", "finetune", *common, "--worker", r, str(s)])
                 for s in args.seeds for r in args.rows if steps_done(args.root / run_name(r, s, args.tag)) < args.actions]
-        failed = {name: code for name, code in run_workers(todo, args.root, args.jobs).items() if code != 0}
+        failed = {name: code for name, code in run_workers(todo, args.root, args.jobs, ray=args.engine == "ray",
+                                                           address=args.address).items() if code != 0}
         if failed:
             print(f"flgd bench finetune: runs failed (see their logs in {args.root}): "
                   + ", ".join(f"{n} (exit {c})" for n, c in failed.items()), file=sys.stderr)
