@@ -62,10 +62,12 @@ class RunSpec:
     seed: int
     grasp_only: bool = False
 
-    def args(self, config: Path, objects: int, steps: int, out: Path) -> list[str]:
+    def args(self, config: Path, objects: int, steps: int, out: Path, workers: int = 0) -> list[str]:
         cmd = [sys.executable, "-m", "flgd.cli", "train", "--config", str(config), "--variant", self.variant,
                "--objects", str(objects), "--steps", str(steps), "--seed", str(self.seed), "--threads", "1",
                "--out", str(out)]
+        if workers:
+            cmd += ["--workers", str(workers)]
         return cmd + (["--grasp-only"] if self.grasp_only else [])
 
 
@@ -102,7 +104,8 @@ def read_run(directory: Path, spec: RunSpec, steps: int) -> RunResult | None:
 
 # ---------------------------------------------------------------------- running
 
-def train_all(specs: list[RunSpec], root: Path, config: Path, objects: int, steps: int, jobs: int) -> bool:
+def train_all(specs: list[RunSpec], root: Path, config: Path, objects: int, steps: int, jobs: int,
+              workers: int = 0) -> bool:
     """Start or continue every unfinished run, ``jobs`` at a time; Ctrl-C stops them cleanly.
 
     Returns False when interrupted (the runs resume on the next call)."""
@@ -134,7 +137,7 @@ def train_all(specs: list[RunSpec], root: Path, config: Path, objects: int, step
                 print(f"  {spec.name}: training to {steps} steps (log {log.name})")
                 # own session: a terminal's Ctrl-C reaches only the bench, which forwards exactly one
                 # SIGINT (a second one would make a run exit without its final checkpoint)
-                running[spec.name] = subprocess.Popen(spec.args(config, objects, steps, out), stdout=log,
+                running[spec.name] = subprocess.Popen(spec.args(config, objects, steps, out, workers), stdout=log,
                                                       stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
                                                       env=env, cwd=REPO, start_new_session=True)
             for name, proc in list(running.items()):
@@ -336,6 +339,8 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--objects", type=int, default=10)
     ap.add_argument("--steps", type=int, default=1000, help="training steps per run")
     ap.add_argument("--jobs", type=int, default=2, help="parallel training processes (one torch thread each)")
+    ap.add_argument("--workers", type=int, default=0,
+                    help="each run is `flgd train --workers N` (N Ray workers and its learner; default 0: one process)")
     ap.add_argument("--no-table2", action="store_true", help="skip the grasp-only vs grasp-and-move part")
     ap.add_argument("--eval-runs", type=int, default=2, help="Table II: runs per preset scene")
     ap.add_argument("--report-only", action="store_true", help="no training: report on the runs that exist")
@@ -350,7 +355,7 @@ def main(argv: list[str]) -> int:
     try:
         if not args.report_only:
             interrupted = not train_all(specs, root, Path(args.config).resolve(), args.objects, args.steps,
-                                        args.jobs)
+                                        args.jobs, max(0, args.workers))
             if interrupted:
                 print("flgd bench learning: interrupted; run the same command again to resume (no Table II "
                       "evaluation started)", file=sys.stderr)

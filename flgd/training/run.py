@@ -99,6 +99,7 @@ class TrainingRun:
             self.config = dataclasses.replace(self.config, learning=dataclasses.replace(
                 self.config.learning, threads=threads))
         self.stop_signals: list[int] = []
+        self._cpu_at_start = time.process_time()
         self.grasps: deque = deque(maxlen=200)
         self._lock_fd: int | None = None
         # the daemon's learning stack; the priorities live in the trainer state (written with each checkpoint)
@@ -128,6 +129,10 @@ class TrainingRun:
                      "rolling_success_200": rolling(self.grasps, 200),
                      "updated": _now()})
         info.update(self._extra_run_info())
+        segments = info.get("segments")
+        if segments and isinstance(segments[-1], dict) and self.learner is not None:
+            # this process's CPU seconds in this segment: the learner's, and in one process the cell's too
+            segments[-1]["process_cpu_seconds"] = round(time.process_time() - self._cpu_at_start, 1)
         if self.learner is not None:  # how the double-DQN a' of the targets was found (this segment)
             info["next_argmax"] = {"reused": self.learner.argmax_reused, "computed": self.learner.argmax_computed}
         self.run_info = info
