@@ -7,6 +7,7 @@ import io
 import json
 import os
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -146,6 +147,13 @@ def test_workers_and_address_are_checked_before_anything_starts(tmp_path, capsys
     assert "--workers: got -1" in capsys.readouterr().err
     assert train_main(["--config", str(CONFIG), "--out", str(out), "--address", "127.0.0.1:6379"]) == 2
     assert "give --workers too" in capsys.readouterr().err
+    # nothing listens there: said at once (Ray itself would retry for minutes), the run directory not made
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        free = s.getsockname()[1]
+    assert train_main(["--config", str(CONFIG), "--out", str(out), "--workers", "1",
+                       "--address", f"127.0.0.1:{free}"]) == 1
+    assert f"--address 127.0.0.1:{free}: no Ray cluster answers there" in capsys.readouterr().err
     assert not out.exists()
 
 

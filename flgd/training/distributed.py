@@ -78,15 +78,22 @@ class DistributedTrainingRun(TrainingRun):
     def step(self) -> int:
         return self._next_step
 
+    def setup(self) -> None:
+        """The Ray engine first (a cluster that cannot be started or joined leaves the run directory as it
+        was), then the run as in one process, with N workers instead of a cell."""
+        from flgd.training.ray_engine import start_engine
+
+        self.engine = start_engine(self.address, self.workers)
+        super().setup()
+
     def _setup_cell(self, step: int) -> None:
-        """Instead of a cell here: the Ray engine and N workers."""
+        """Instead of a cell here: N workers."""
         from flgd.training.cell_worker import CellWorker
-        from flgd.training.ray_engine import remote_class, start_engine
+        from flgd.training.ray_engine import remote_class
         from flgd.training.run import _next_scene_id
 
         self._next_step = step
         self._next_scene = _next_scene_id(self.actions.rows)
-        self.engine = start_engine(self.address, self.workers)
         if self.engine.cpus < self.workers:
             self.progress.message(f"flgd train: the Ray cluster has {self.engine.cpus:g} CPUs for {self.workers} "
                                   f"workers of one CPU each: the rest wait until CPUs free up")

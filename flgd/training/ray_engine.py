@@ -3,8 +3,9 @@
 ``flgd train --workers N``, ``flgd eval --workers N`` and ``flgd bench finetune --jobs N`` start here.  Without
 ``--address`` a local cluster is started for the run (``ray.init``) and stopped with it; with one the run joins
 an existing cluster (``ray start --head`` on one machine, ``ray start --address=HEAD:6379`` on the others;
-docs/training-and-evaluation.md).  Ray's usage reporting is off unless the environment turns it on, and a local
-cluster starts without its dashboard.  The daemon never imports this module: a cell PC needs no Ray.
+docs/training-and-evaluation.md).  Ray's usage reporting is off unless the environment turns it on, a local
+cluster starts without its dashboard, and Ray's token authentication is on unless the environment says
+otherwise (``RAY_AUTH_MODE``).  The daemon never imports this module: a cell PC needs no Ray.
 
 Why a reaper: a local cluster's processes are children of the driver, and Ray stops them on a clean exit, but
 when the driver is killed (``kill -9``, the OOM killer) some of them (its dashboard and runtime-env agents)
@@ -53,11 +54,16 @@ class Engine:
 def start_engine(address: str | None, workers: int) -> Engine:
     """Start a local cluster with at least ``workers`` CPUs (one per worker), or join the one at ``address``."""
     os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
+    # token authentication (a shared secret, ~/.ray/auth_token or RAY_AUTH_TOKEN): a local cluster makes its
+    # own; a cluster joined must have been started with it too (docs/training-and-evaluation.md)
+    os.environ.setdefault("RAY_AUTH_MODE", "token")
     try:
         import ray
     except ImportError as exc:
         raise EngineError(f"Ray is not installed ({exc}); install it with `pip install -e '.[train]'` (or run "
                           f"`bash .ci/install.sh`), or train in one process without --workers") from None
+    if address:
+        _check_reachable(address)
     if ray.is_initialized():
         ray.shutdown()
     reaper = None
@@ -72,9 +78,27 @@ def start_engine(address: str | None, workers: int) -> Engine:
         if reaper is not None:
             _close_reaper(reaper, keep=False)
         where = f"the Ray cluster at {address!r}" if address else "a local Ray cluster"
-        raise EngineError(f"could not start or join {where}: {type(exc).__name__}: {exc}") from None
+        hint = ("; is it running (`ray status`), and do this machine and every node share its auth token "
+                "(RAY_AUTH_MODE=token, the head's ~/.ray/auth_token or RAY_AUTH_TOKEN)?") if address else ""
+        raise EngineError(f"could not start or join {where}: {type(exc).__name__}: {exc}{hint}") from None
     cpus = float(ray.cluster_resources().get("CPU", 0.0))
     return Engine(ray, address or "", cpus, reaper)
+
+
+def _check_reachable(address: str, timeout: float = 5.0) -> None:
+    """EngineError at once when nothing listens at a HOST:PORT address (ray.init would retry for minutes)."""
+    import socket
+
+    host, sep, port = address.rpartition(":")
+    if not sep or "://" in address or not port.isdigit():
+        return  # "auto", a ray:// client address ...: Ray's to judge
+    try:
+        with socket.create_connection((host or "127.0.0.1", int(port)), timeout=timeout):
+            pass
+    except OSError as exc:
+        raise EngineError(f"--address {address}: no Ray cluster answers there ({exc.strerror or exc}); start one "
+                          f"with `ray start --head --port={port}` on that machine (docs/training-and-evaluation.md) "
+                          f"or leave --address out for a local cluster") from None
 
 
 def remote_class(ray: Any, cls: type, cpus: float = 1.0) -> Any:
