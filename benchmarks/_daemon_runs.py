@@ -91,12 +91,26 @@ def run_workers(jobs: list[tuple[str, list[str]]], root: Path, parallel: int, *,
     return codes
 
 
+def _interruptible_child() -> None:
+    """In the command's process before it starts: SIGINT unblocked (a Ray worker blocks it, and its children
+    inherit that) and sent when the Ray worker dies, so a stopped bench stops its runs cleanly (a checkpoint)."""
+    import ctypes
+    import signal
+
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        ctypes.CDLL(None, use_errno=True).prctl(1, int(signal.SIGINT))  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        pass
+
+
 def _run_command(argv: list[str], log: str) -> int:
     """One worker command, where Ray placed it (the repository and ``root`` at the same paths on every node)."""
     env = dict(os.environ, OMP_NUM_THREADS="1")
     with open(log, "ab") as out:
         return subprocess.run([sys.executable, "-m", "flgd.cli", *argv], stdout=out, stderr=subprocess.STDOUT,
-                              env=env, cwd=REPO).returncode
+                              env=env, cwd=REPO, preexec_fn=_interruptible_child).returncode
 
 
 def run_on_ray(jobs: list[tuple[str, list[str]]], root: Path, parallel: int, address: str | None = None,
@@ -124,10 +138,15 @@ def run_on_ray(jobs: list[tuple[str, list[str]]], root: Path, parallel: int, add
                 log = root.resolve() / f"{name}.log"
                 running[task.remote(argv, str(log))] = (name, argv)
                 print(f"started {name} on Ray (log {log})", flush=True)
-            ready, _ = ray.wait(list(running), num_returns=1)
+            ready, _ = ray.wait(list(running), num_returns=1, timeout=1.0)  # Ctrl-C gets a turn
+            if not ready:
+                continue
             name, argv = running.pop(ready[0])
             try:
                 codes[name] = int(ray.get(ready[0]))
+            except ray.exceptions.RayTaskError as exc:  # starting the command failed (no Python, no log dir)
+                print(f"{name}: {str(exc).strip().splitlines()[-1]}", flush=True)
+                codes[name] = -1
             except lost as exc:
                 tries[name] = tries.get(name, 0) + 1
                 print(f"{name}: its Ray worker was lost ({str(exc).splitlines()[0]})", flush=True)

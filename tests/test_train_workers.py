@@ -98,6 +98,8 @@ def test_two_workers_fill_one_run_directory_survive_a_killed_worker_and_resume_i
     assert steps == list(range(6))
     # the learner ran exactly the config's updates for every collected action, whichever worker sent it
     assert info["updates"] == 2 * 6
+    # the workers' decisions reach the learner's double-DQN target cache, as the agent's do in one process
+    assert info["next_argmax"]["reused"] > 0
     assert [int(r["updates"]) for r in rows] == [2 * (i + 1) for i in range(6)]
     assert (out / "curve.png").stat().st_size > 0 and sorted((out / "checkpoints").glob("*.safetensors"))
 
@@ -161,3 +163,31 @@ def _descendant_ray_pids(root: int) -> set[int]:
     from flgd.training.ray_reaper import _descendants, _is_ray
 
     return {pid for pid in _descendants(root) if _is_ray(pid)}
+
+
+def test_an_error_in_a_workers_cycle_stops_the_run_after_storing_its_rows(tmp_path):
+    """A cycle that raised in the worker ("N cell faults in a row") is not a lost worker to replace for ever: the
+    rows it sent are stored, then the run stops, as it does in one process."""
+    from flgd.training.distributed import DistributedTrainingRun
+    from flgd.training.progress import LineProgress
+    from flgd.training.settings import RunSettings
+
+    out = tmp_path / "run"
+    run = DistributedTrainingRun(out, RunSettings(steps=5, seed=2), load_config(_config(tmp_path, 1)),
+                                 LineProgress(io.StringIO(), False), threads=1, workers=1)
+    try:
+        run.setup()
+        slot = run.slots[0]
+        report = run.engine.ray.get(slot.actor.collect.remote(0))
+        assert len(report.cycles) == 1 and not report.error
+        report.error = "RuntimeError: 5 cell faults in a row; last: bodies 0 and 11 overlap"
+        with pytest.raises(RuntimeError, match="worker 0: RuntimeError: 5 cell faults in a row"):
+            run._take(slot, report)
+        assert run.step == 1 and run.learner.updates == 1 and slot.replacements == 0
+    finally:
+        run.close()
+    store = Store(out)
+    try:
+        assert store.transition_count() == 1
+    finally:
+        store.close()

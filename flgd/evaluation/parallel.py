@@ -106,17 +106,19 @@ class ParallelEvaluator:
             while todo and idle:
                 actor, unit = idle.pop(), todo.pop()
                 in_flight[actor.run.remote(scenes[unit[0]], unit[0], unit[1])] = (actor, unit)
-            ready, _ = ray.wait(list(in_flight), num_returns=1)
+            ready, _ = ray.wait(list(in_flight), num_returns=1, timeout=1.0)  # Ctrl-C and SIGTERM get a turn
+            if not ready:
+                continue
             actor, (index, number) = in_flight.pop(ready[0])
             spec = scenes[index]
             try:
                 log = ray.get(ready[0])
-            except lost as exc:
-                inner = getattr(exc, "cause", None)
-                if isinstance(inner, Exception) and not isinstance(inner, lost):  # the run itself failed
-                    what = str(inner) if isinstance(inner, EvaluationError) else f"{type(inner).__name__}: {inner}"
-                    raise EvaluationError(f"scene {spec.name} ({spec.describe()}), run {number} of "
-                                          f"{self.options.runs}: {what}; the evaluation stopped there") from None
+            except ray.exceptions.RayTaskError as exc:  # the run itself raised: stop, as in one process
+                inner = exc.cause if isinstance(getattr(exc, "cause", None), BaseException) else exc
+                what = str(inner) if isinstance(inner, EvaluationError) else f"{type(inner).__name__}: {inner}"
+                raise EvaluationError(f"scene {spec.name} ({spec.describe()}), run {number} of "
+                                      f"{self.options.runs}: {what}; the evaluation stopped there") from None
+            except lost as exc:  # its worker died: a fresh one runs it again
                 retries[(index, number)] = retries.get((index, number), 0) + 1
                 if retries[(index, number)] > MAX_RETRIES:
                     raise EvaluationError(f"scene {spec.name}, run {number}: its worker died "
@@ -128,6 +130,9 @@ class ParallelEvaluator:
                 todo.append((index, number))
                 idle.append(self._spawn(actor_class, weights_ref))
                 continue
+            except ray.exceptions.RayError as exc:  # Ray itself failed (object store, scheduling ...)
+                raise EvaluationError(f"scene {spec.name}, run {number}: Ray: {type(exc).__name__}: "
+                                      f"{str(exc).splitlines()[0] if str(exc) else ''}") from None
             logs = self.results[index][1]
             logs.append(log)
             logs.sort(key=lambda r: r.run)

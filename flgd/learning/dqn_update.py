@@ -222,8 +222,16 @@ class DQNUpdate:
         if index is None:   # a Decision built without it (older callers): the same argmax, computed here
             index = greedy_index(decision.q_maps, decision.grasp_mask, decision.move_mask,
                                  self.config.exploration.grasp_only)
+        self.note_greedy(state_key(state), weights_version, index)
+
+    def note_greedy(self, key: bytes, weights_version: int, index: tuple[int, int, int, int] | None) -> None:
+        """``note_decision`` for a decision made elsewhere (a worker of ``flgd train --workers``): the state's
+        replay key (``state_key``), the update count of the weights that decided, and their greedy a'."""
+        max_age = self.config.learning.next_argmax_max_age
+        if max_age <= 0 or weights_version < 0 or not 0 <= self.updates - weights_version <= max_age:
+            return
         with self._argmax_lock:
-            self._next_argmax[state_key(state)] = (int(weights_version), index)
+            self._next_argmax[key] = (int(weights_version), None if index is None else tuple(int(v) for v in index))
 
     def _greedy_next(self, t: Transition) -> tuple[int, int, int, int] | None:
         """a' for ``t.next_state``: from the cache while fresh enough, else from the online network."""

@@ -81,6 +81,11 @@ class TrainingCell:
     def step(self) -> int:
         return self.runner.step
 
+    @property
+    def scene_of_cycle(self) -> tuple[int | None, str]:
+        """(objects, kind) of the scene the last cycle acted on."""
+        return self._cycle_scene
+
     def cycle(self) -> TrainingCycle | None:
         """Run one cycle; None when it took no step (an empty table, a fault recovered from).
 

@@ -55,9 +55,30 @@ class WorkerReport:
     worker: int
     cycles: list[CollectedCycle] = field(default_factory=list)
     notes: list[tuple[str, str, str]] = field(default_factory=list)  # (kind, event, message)
+    # the greedy a' of each decision: (replay key of the state, weights' update count, index), for the learner's
+    # double-DQN target cache (``DQNUpdate.note_greedy``; as ``note_decision`` in one process)
+    decisions: list[tuple[bytes, int, Any]] = field(default_factory=list)
     weights_version: int = -1
     cpu_seconds: float = 0.0  # of the worker's process since it started
     objects: int | None = None  # objects on its table now
+    error: str = ""  # the cycle raised: the run stops, as it does in one process (rows and notes still sent)
+
+
+class DecisionNotes:
+    """The worker's stand-in for the learner: the cycle runner tells it each decision (``note_decision``)."""
+
+    def __init__(self) -> None:
+        self.notes: list[tuple[bytes, int, Any]] = []
+
+    def note_decision(self, state: Any, decision: Any, weights_version: int) -> None:
+        from flgd.learning.replay import state_key
+
+        if getattr(decision, "greedy", None) is not None and weights_version >= 0:
+            self.notes.append((state_key(state), int(weights_version), tuple(int(v) for v in decision.greedy)))
+
+    def take(self) -> list[tuple[bytes, int, Any]]:
+        out, self.notes = self.notes, []
+        return out
 
 
 class CollectingStore:
@@ -89,7 +110,7 @@ class CellWorker:
     """One simulated cell of a multi-worker run (module doc); made a Ray actor by the driver."""
 
     def __init__(self, config: CellConfig, settings: Any, index: int, incarnation: int, segment: int,
-                 weights: dict[str, Any], version: int, threads: int = 1) -> None:
+                 weights: dict[str, Any], version: int, step: int = 0, threads: int = 1) -> None:
         import torch
 
         from flgd.learning.networks import build_network
@@ -108,9 +129,11 @@ class CellWorker:
         self.agent = make_agent(config, network, worker_seed(seed, segment, index, incarnation, 4))
         self.agent.weights_version = version
         self.store = CollectingStore()
-        self.loop = TrainingCell(config, settings, self.agent, step=0, scene=0,
+        self.decisions = DecisionNotes()
+        # the run's step: the curriculum's first scene and the exploration schedule follow it
+        self.loop = TrainingCell(config, settings, self.agent, step=step, scene=0,
                                  curriculum_seed=worker_seed(seed, segment, index, incarnation, 5),
-                                 note=self._note, store=self.store)
+                                 note=self._note, store=self.store, learner=self.decisions)
         self.started = time.process_time()
 
     def _note(self, kind: str, event: str, message: str) -> None:
@@ -126,18 +149,23 @@ class CellWorker:
             self.agent.mailbox.post(weights, version=version)
         self.loop.runner.step = int(step)
         report = WorkerReport(self.index)
+        scene = self.loop.scene  # the scene this cycle acts on (a fault in it moves the loop to the next)
+        cycle = None
         try:
             cycle = self.loop.cycle()
-        finally:
-            report.notes, self.notes = self.notes, []
-        committed = self.store.take()
-        for row, transition in committed:
+        except Exception as exc:  # StoreError cannot happen here; "N cell faults in a row" and the like
+            report.error = f"{type(exc).__name__}: {exc}"
+        report.notes, self.notes = self.notes, []
+        report.decisions = self.decisions.take()
+        objects, kind = self.loop.scene_of_cycle  # noted during this cycle's plan and judge phases
+        for row, transition in self.store.take():
+            # a row whose cycle then failed (a reset after it) still belongs to the scene it acted on
             report.cycles.append(CollectedCycle(row, transition, str(row.get("outcome")), row.get("primitive"),
-                                                None if row.get("success") is None else bool(row["success"])))
+                                                None if row.get("success") is None else bool(row["success"]),
+                                                objects, scene, kind, self.store.store_seconds))
         if cycle is not None and report.cycles:
             last = report.cycles[-1]
             last.objects_left, last.scene, last.scene_kind = cycle.objects_left, cycle.scene, cycle.scene_kind
-            last.store_seconds = self.store.store_seconds
         report.weights_version = self.agent.weights_version
         report.cpu_seconds = time.process_time()
         report.objects = self.loop.cell.object_count

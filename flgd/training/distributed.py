@@ -67,7 +67,7 @@ class DistributedTrainingRun(TrainingRun):
         self.address = address or ""
         self.engine: Any = None
         self.slots: list[_WorkerSlot] = []
-        self._next_step = 0
+        self._next_step = int(self.run_info.get("step", 0))  # until setup reads the store
         self._next_scene = 0
         self._worker_class: Any = None
         self._weights_ref: tuple[int, Any] | None = None  # (version, Ray object ref) of the newest weights sent
@@ -85,6 +85,7 @@ class DistributedTrainingRun(TrainingRun):
 
         self.engine = start_engine(self.address, self.workers)
         super().setup()
+        self.learner.mailbox = None  # nobody acts in this process: the weights go to the workers (``_weights``)
 
     def _setup_cell(self, step: int) -> None:
         """Instead of a cell here: N workers."""
@@ -113,7 +114,7 @@ class DistributedTrainingRun(TrainingRun):
         """A fresh actor in ``slot`` (its first, or the replacement of a lost one), with the learner's weights."""
         version, ref = self._weights()
         slot.actor = self._worker_class.remote(self.config, self.settings, slot.index, slot.incarnation,
-                                               self.segment, ref, version)
+                                               self.segment, ref, version, self._next_step)
         slot.version = version
         slot.scene = None
 
@@ -126,6 +127,7 @@ class DistributedTrainingRun(TrainingRun):
         return self._weights_ref
 
     def _submit(self, slot: _WorkerSlot) -> Any:
+        self.store.check_space()  # StoreError before a worker acts on a cycle that could not be stored
         sync_every = max(1, self.config.learning.sync_every)
         if self.learner.updates - slot.version >= sync_every:
             version, ref = self._weights()
@@ -177,10 +179,12 @@ class DistributedTrainingRun(TrainingRun):
         return EXIT_INTERRUPTED if interrupted else EXIT_OK
 
     def _take(self, slot: _WorkerSlot, report: Any) -> None:
-        """Store a worker's cycle under the run's next step, learn from it, log it."""
-        slot.failures_in_a_row = 0
+        """Store a worker's cycle under the run's next step, learn from it, log it; a cycle that raised in the
+        worker stops the run after its rows are stored, as it does in one process."""
         slot.cpu_seconds = slot.cpu_before + report.cpu_seconds
         slot.objects = report.objects
+        for key, version, index in report.decisions:  # the double-DQN a' the worker found, for the learner
+            self.learner.note_greedy(key, version, index)
         for kind, event, message in report.notes:
             self.progress.message(f"flgd train: worker {slot.index}: {message}")
             if event:
@@ -189,6 +193,10 @@ class DistributedTrainingRun(TrainingRun):
             if self._next_step >= self.settings.steps:
                 break  # a cycle beyond --steps (several workers were in flight): not taken
             self._store_cycle(slot, cycle)
+            slot.failures_in_a_row = 0
+        if report.error:
+            slot.last_error = report.error
+            raise RuntimeError(f"worker {slot.index}: {report.error}")
 
     def _store_cycle(self, slot: _WorkerSlot, cycle: Any) -> None:
         row = dict(cycle.row, step=self._next_step)
@@ -200,6 +208,7 @@ class DistributedTrainingRun(TrainingRun):
             self.learner.notify_new_transition()
             self._last_state = None if transition.next_state is None else (slot.index, transition.next_state)
         t_store = time.perf_counter() - t_store
+        self.store.note_store_time(row["step"], t_store)
         self._next_step += 1
         if cycle.outcome == "fault":  # as in one process: in the store's action log, not in actions.csv
             slot.scene = None

@@ -4,8 +4,8 @@
 ``--address`` a local cluster is started for the run (``ray.init``) and stopped with it; with one the run joins
 an existing cluster (``ray start --head`` on one machine, ``ray start --address=HEAD:6379`` on the others;
 docs/training-and-evaluation.md).  Ray's usage reporting is off unless the environment turns it on, a local
-cluster starts without its dashboard, and Ray's token authentication is on unless the environment says
-otherwise (``RAY_AUTH_MODE``).  The daemon never imports this module: a cell PC needs no Ray.
+cluster starts without its dashboard, and Ray's token authentication is on (Ray's default for a local
+cluster; asked for when joining one, unless ``RAY_AUTH_MODE`` says otherwise).  The daemon never imports this module: a cell PC needs no Ray.
 
 Why a reaper: a local cluster's processes are children of the driver, and Ray stops them on a clean exit, but
 when the driver is killed (``kill -9``, the OOM killer) some of them (its dashboard and runtime-env agents)
@@ -17,8 +17,10 @@ driver ends.
 from __future__ import annotations
 
 import os
+import signal
 import subprocess
 import sys
+import threading
 from dataclasses import dataclass
 from typing import Any
 
@@ -43,20 +45,24 @@ class Engine:
         return not self.address
 
     def stop(self) -> None:
+        clean = False
         try:
             self.ray.shutdown()
+            clean = True
         finally:
-            if self.reaper is not None:
-                _close_reaper(self.reaper, keep=True)
+            if self.reaper is not None:  # a shutdown that failed leaves the reaper to kill what is left
+                _close_reaper(self.reaper, keep=clean)
                 self.reaper = None
 
 
 def start_engine(address: str | None, workers: int) -> Engine:
     """Start a local cluster with at least ``workers`` CPUs (one per worker), or join the one at ``address``."""
     os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
-    # token authentication (a shared secret, ~/.ray/auth_token or RAY_AUTH_TOKEN): a local cluster makes its
-    # own; a cluster joined must have been started with it too (docs/training-and-evaluation.md)
-    os.environ.setdefault("RAY_AUTH_MODE", "token")
+    # Token authentication (a shared secret, ~/.ray/auth_token or RAY_AUTH_TOKEN): Ray gives a local cluster its
+    # own; to join a cluster started with it (docs/training-and-evaluation.md) the driver must ask for it too.
+    # Ray reads the mode when it is imported, so only a first import here can take this default.
+    if address and "ray" not in sys.modules:
+        os.environ.setdefault("RAY_AUTH_MODE", "token")
     try:
         import ray
     except ImportError as exc:
@@ -67,6 +73,10 @@ def start_engine(address: str | None, workers: int) -> Engine:
     if ray.is_initialized():
         ray.shutdown()
     reaper = None
+    # ray.init installs a SIGTERM handler of its own (exit at once): the caller's (a checkpoint, a report first)
+    # is put back
+    keep_sigterm = threading.current_thread() is threading.main_thread()
+    sigterm = signal.getsignal(signal.SIGTERM) if keep_sigterm else None
     try:
         if address:
             ray.init(address=address, logging_level="ERROR", log_to_driver=False)
@@ -81,6 +91,9 @@ def start_engine(address: str | None, workers: int) -> Engine:
         hint = ("; is it running (`ray status`), and do this machine and every node share its auth token "
                 "(RAY_AUTH_MODE=token, the head's ~/.ray/auth_token or RAY_AUTH_TOKEN)?") if address else ""
         raise EngineError(f"could not start or join {where}: {type(exc).__name__}: {exc}{hint}") from None
+    finally:
+        if keep_sigterm and sigterm is not None:
+            signal.signal(signal.SIGTERM, sigterm)
     cpus = float(ray.cluster_resources().get("CPU", 0.0))
     return Engine(ray, address or "", cpus, reaper)
 
@@ -108,11 +121,11 @@ def remote_class(ray: Any, cls: type, cpus: float = 1.0) -> Any:
 
 
 def worker_lost_errors(ray: Any) -> tuple[type[BaseException], ...]:
-    """The exceptions that mean a worker (actor) died or its call failed inside it."""
+    """The exceptions that mean a worker (an actor, or a task's process) or its node died -- not an error raised
+    by the code it ran, which Ray raises as a ``RayTaskError`` carrying it."""
     exc = ray.exceptions
-    return tuple(e for e in (getattr(exc, "RayActorError", None), getattr(exc, "RayTaskError", None),
-                             getattr(exc, "ObjectLostError", None), getattr(exc, "WorkerCrashedError", None))
-                 if e is not None)
+    names = ("RayActorError", "WorkerCrashedError", "ObjectLostError", "NodeDiedError", "OutOfMemoryError")
+    return tuple(e for e in (getattr(exc, n, None) for n in names) if isinstance(e, type))
 
 
 # ---------------------------------------------------------------------- reaper

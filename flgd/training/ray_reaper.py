@@ -42,11 +42,16 @@ def _start_time(pid: int) -> str:
 
 
 def _is_ray(pid: int) -> bool:
+    """A process of Ray's: its workers and agents (``ray::...``), its binaries, its Python services."""
     try:
-        cmd = Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").lower()
+        argv = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")
     except OSError:
         return False
-    return b"ray" in cmd
+    if not argv or not argv[0]:
+        return False
+    if argv[0].startswith(b"ray::") or Path(argv[0].decode(errors="replace")).name in ("raylet", "gcs_server"):
+        return True
+    return any(b"/site-packages/ray/" in a or b"/dist-packages/ray/" in a for a in argv[:3])
 
 
 def _descendants(root: int) -> set[int]:
@@ -61,6 +66,7 @@ def _descendants(root: int) -> set[int]:
 
 def main(argv: list[str]) -> int:
     driver = int(argv[0])
+    driver_started = _start_time(driver)  # a pid reused after the driver died is not the driver
     me = os.getpid()
     noted: dict[int, str] = {}  # pid -> start time (a reused pid is not the process noted)
     while True:
@@ -71,6 +77,8 @@ def main(argv: list[str]) -> int:
                 return 0
             if not line:
                 break  # the pipe closed: the driver is gone
+        if _start_time(driver) != driver_started:
+            break  # the driver is gone (its pipe closing is seen next; its processes are noted already)
         for pid in _descendants(driver):
             if pid != me and pid not in noted and _is_ray(pid):
                 noted[pid] = _start_time(pid)
