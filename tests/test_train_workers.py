@@ -64,11 +64,12 @@ def test_two_workers_fill_one_run_directory_survive_a_killed_worker_and_resume_i
     take = run._take
 
     def take_and_kill_worker_1(slot, report):
-        take(slot, report)
+        stored = take(slot, report)
         if not killed and run.step >= 2:  # mid-run: worker 1's process is killed (its cycle in flight is lost)
             pid = run.engine.ray.get(run.slots[1].actor.pid.remote())
             os.kill(pid, signal.SIGKILL)
             killed.append(pid)
+        return stored
 
     run._take = take_and_kill_worker_1
     try:

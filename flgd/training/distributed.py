@@ -7,11 +7,12 @@ actors (``flgd.training.cell_worker.CellWorker``), each with its own seed, simul
 network, running the daemon's cycle and agent.
 
 One rule keeps learning per action independent of N: every collected action is stored, added to the replay
-and followed by exactly ``learning.updates_per_action`` updates (``Learner.update_pending``, as in one process)
-before the next collected action is taken in.  Workers wait for the learner when it is the slower part; they
-never run ahead of it by more than the one cycle each is running.  A worker gets the learner's newest weights
-with its next cycle once they are ``learning.sync_every`` updates newer than the ones it acts with (0: after
-every action's updates), so it acts with weights at most N actions old.
+and followed by exactly ``learning.updates_per_action`` updates (``Learner.update_pending``, as in one process).
+A worker's next cycle starts as soon as its last one is stored, and the learner runs that one's updates while
+the worker acts, so cells and learner work side by side; a worker never runs ahead by more than that one cycle,
+and waits when the learner is the slower part.  It gets the learner's newest weights with its next cycle once
+they are ``learning.sync_every`` updates newer than its own (0: whenever they changed), so it acts with weights
+that lack at most the updates of the last N actions (one process: none).
 
 Faults: a worker that dies (killed, out of memory, a simulator crash) loses the cycle it was running; it is
 replaced by a fresh one (new seeds) and the run goes on, said on the progress display and kept in the store's
@@ -162,9 +163,12 @@ class DistributedTrainingRun(TrainingRun):
                 self._replace(slot, exc)
                 in_flight[self._submit(slot)] = slot
                 continue
-            self._take(slot, report)
+            stored = self._take(slot, report)
+            # the worker's next cycle starts before this one is learned from: the learner's updates and the
+            # worker's cycle run side by side (the worker acts with weights one action older)
             if self._next_step < target:
                 in_flight[self._submit(slot)] = slot
+            self._learn(stored)
             self._show(start_step, t0)
         interrupted = bool(self.stop_signals) and self._next_step < target
         self._show(start_step, t0, force=True)
@@ -178,9 +182,10 @@ class DistributedTrainingRun(TrainingRun):
                               + f"; log {self.out / LOG_FILE}, curve {self.out / CURVE_FILE}")
         return EXIT_INTERRUPTED if interrupted else EXIT_OK
 
-    def _take(self, slot: _WorkerSlot, report: Any) -> None:
-        """Store a worker's cycle under the run's next step, learn from it, log it; a cycle that raised in the
-        worker stops the run after its rows are stored, as it does in one process."""
+    def _take(self, slot: _WorkerSlot, report: Any) -> list[tuple[_WorkerSlot, Any, dict, float]]:
+        """Store a worker's cycle under the run's next step (``_learn`` learns from it and logs it); a cycle that
+        raised in the worker stops the run after its rows are stored and learned from, as it does in one
+        process."""
         slot.cpu_seconds = slot.cpu_before + report.cpu_seconds
         slot.objects = report.objects
         for key, version, index in report.decisions:  # the double-DQN a' the worker found, for the learner
@@ -189,16 +194,21 @@ class DistributedTrainingRun(TrainingRun):
             self.progress.message(f"flgd train: worker {slot.index}: {message}")
             if event:
                 self.store.record_event(kind, f"worker {slot.index}: {event}")
+        stored = []
         for cycle in report.cycles:
             if self._next_step >= self.settings.steps:
                 break  # a cycle beyond --steps (several workers were in flight): not taken
-            self._store_cycle(slot, cycle)
+            stored.append(self._store_cycle(slot, cycle))
             slot.failures_in_a_row = 0
         if report.error:
             slot.last_error = report.error
+            self._learn(stored)
             raise RuntimeError(f"worker {slot.index}: {report.error}")
+        return stored
 
-    def _store_cycle(self, slot: _WorkerSlot, cycle: Any) -> None:
+    def _store_cycle(self, slot: _WorkerSlot, cycle: Any) -> tuple[_WorkerSlot, Any, dict, float]:
+        """Commit one collected cycle under the run's next step; its transition goes to the replay and
+        schedules the learner's updates (``notify_new_transition``), which ``_learn`` runs."""
         row = dict(cycle.row, step=self._next_step)
         transition = self._relinked(slot, cycle.transition)
         t_store = time.perf_counter()
@@ -210,19 +220,24 @@ class DistributedTrainingRun(TrainingRun):
         t_store = time.perf_counter() - t_store
         self.store.note_store_time(row["step"], t_store)
         self._next_step += 1
-        if cycle.outcome == "fault":  # as in one process: in the store's action log, not in actions.csv
-            slot.scene = None
-            return
-        slot.cycles += 1
+        return slot, cycle, row, t_store
+
+    def _learn(self, stored: list[tuple[_WorkerSlot, Any, dict, float]]) -> None:
+        """The updates the stored cycles scheduled (``learning.updates_per_action`` each), then their rows in
+        actions.csv (a fault's row stays in the store's action log only, as in one process)."""
         t_update = time.perf_counter()
         updates = self.learner.update_pending()
         t_update = time.perf_counter() - t_update
-        if slot.scene is None or slot.scene[0] != cycle.scene:  # a new scene of this worker: a new run-wide id
-            slot.scene = (cycle.scene, self._next_scene)
-            self._next_scene += 1
-        record = _RowRecord(row, cycle)
-        self._log_step(record, _SceneOf(cycle.objects_left, slot.scene[1], cycle.scene_kind), updates, t_update,
-                       t_store)
+        for slot, cycle, row, t_store in stored:
+            if cycle.outcome == "fault":
+                slot.scene = None
+                continue
+            slot.cycles += 1
+            if slot.scene is None or slot.scene[0] != cycle.scene:  # a new scene of this worker: a new run-wide id
+                slot.scene = (cycle.scene, self._next_scene)
+                self._next_scene += 1
+            self._log_step(_RowRecord(row, cycle), _SceneOf(cycle.objects_left, slot.scene[1], cycle.scene_kind),
+                           updates, t_update, t_store)
 
     def _relinked(self, slot: _WorkerSlot, transition: Any) -> Any:
         """The transition with its state replaced by the very object stored as the previous next state, when it
