@@ -71,7 +71,7 @@ def test_vpg_test_case_end_to_end_gives_a_well_formed_report(policy_file, tmp_pa
     assert {"format", "version", "policy", "config", "options", "scenes", "sets", "overall", "seconds"} <= set(report)
     assert report["format"] == "flgd-eval" and report["policy"]["training_steps"] == 120
     assert report["options"] == {"runs": 2, "seed": 0, "learn": False, "grasp_only": False, "max_actions": 2,
-                                 "failure_limit": 10}
+                                 "failure_limit": 10, "workers": 0, "run_seeds": "one stream per object set"}
     [scene] = report["scenes"]
     assert scene["scene"] == "test-10-obj-00" and scene["runs"] == 2 and len(scene["run_logs"]) == 2
     for key in ("completion", "grasp_success", "grasp_success_completed", "action_efficiency", "mean_actions",
