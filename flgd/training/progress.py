@@ -67,15 +67,23 @@ class BarProgress:
     def start(self, initial: int, total: int) -> None:
         from tqdm import tqdm
 
-        self.bar = tqdm(total=total, initial=initial, unit="action", file=self.stream, dynamic_ncols=True,
-                        smoothing=0.05, leave=True)
+        try:
+            size = os.get_terminal_size(self.stream.fileno())
+            width, lines = size.columns, size.lines
+        except (OSError, ValueError, AttributeError):
+            width = lines = 0
+        # a terminal that reports no size (a pty nobody sized) would otherwise get no bar at all
+        self.bar = tqdm(total=total, initial=initial, unit="action", file=self.stream, dynamic_ncols=width > 0,
+                        ncols=None if width > 0 else 120, nrows=None if lines > 0 else 24, smoothing=0.05,
+                        leave=True)
 
     def show(self, step: int, fields: dict[str, str], force: bool = False) -> None:
         if self.bar is None:
             return
         if step != self.bar.n:
             self.bar.update(step - self.bar.n)
-        self.bar.set_postfix_str(" | ".join(f"{k} {v}" for k, v in fields.items()), refresh=force)
+        shown = {k: v for k, v in fields.items() if k not in ("actions/s", "ETA")}  # the bar shows its own
+        self.bar.set_postfix_str(" | ".join(f"{k} {v}" for k, v in shown.items()), refresh=force)
 
     def message(self, text: str) -> None:
         if self.bar is None:
