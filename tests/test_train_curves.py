@@ -172,7 +172,7 @@ def test_bench_trains_skips_finished_runs_and_continues_longer_ones(tmp_path, ca
 class _SleepingRun(bench.RunSpec):
     """A run whose 'training' is a child process that sleeps until it gets SIGINT (stands in for flgd train)."""
 
-    def args(self, config, objects, steps, out):
+    def args(self, config, objects, steps, out, workers=0):
         return [sys.executable, "-c",
                 "import pathlib, sys, time\n"
                 f"pathlib.Path({str(out)!r}, 'started').write_text('yes')\n"
