@@ -49,7 +49,6 @@ from collections import deque
 from pathlib import Path
 from typing import Any
 
-
 from flgd.atomic_file import write_atomically
 from flgd.config import CellConfig, ConfigError, dump_config, load_sim_config
 from flgd.learning_stack import CheckpointMeta, LearningStack
