@@ -99,8 +99,6 @@ def test_two_workers_fill_one_run_directory_survive_a_killed_worker_and_resume_i
     assert steps == list(range(6))
     # the learner ran exactly the config's updates for every collected action, whichever worker sent it
     assert info["updates"] == 2 * 6
-    # the workers' decisions reach the learner's double-DQN target cache, as the agent's do in one process
-    assert info["next_argmax"]["reused"] > 0
     assert [int(r["updates"]) for r in rows] == [2 * (i + 1) for i in range(6)]
     assert (out / "curve.png").stat().st_size > 0 and sorted((out / "checkpoints").glob("*.safetensors"))
 
@@ -181,10 +179,14 @@ def test_an_error_in_a_workers_cycle_stops_the_run_after_storing_its_rows(tmp_pa
         slot = run.slots[0]
         report = run.engine.ray.get(slot.actor.collect.remote(0))
         assert len(report.cycles) == 1 and not report.error
+        # the worker's decision reaches the learner's double-DQN target cache, as the agent's does in one process
+        [(key, version, _)] = report.decisions
+        assert version == 0 and key not in run.learner._next_argmax
         report.error = "RuntimeError: 5 cell faults in a row; last: bodies 0 and 11 overlap"
         with pytest.raises(RuntimeError, match="worker 0: RuntimeError: 5 cell faults in a row"):
             run._take(slot, report)
         assert run.step == 1 and run.learner.updates == 1 and slot.replacements == 0
+        assert key in run.learner._next_argmax
     finally:
         run.close()
     store = Store(out)
