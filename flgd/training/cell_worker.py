@@ -45,7 +45,6 @@ class CollectedCycle:
     objects_left: int | None = None
     scene: int = 0  # the worker's own scene number
     scene_kind: str = ""
-    store_seconds: float | None = None
 
 
 @dataclass
@@ -89,14 +88,13 @@ class CollectingStore:
 
     def __init__(self) -> None:
         self.committed: list[tuple[dict[str, Any], Any]] = []
-        self.store_seconds: float | None = None
 
     def commit_cycle(self, row: dict, transition: Any | None = None, priority: float | None = None) -> None:
         self.committed.append((dict(row), transition))
         return None
 
     def note_store_time(self, step: int, seconds: float) -> None:
-        self.store_seconds = float(seconds)
+        pass  # the learner times its own commit of the row
 
     def forget_last_state(self) -> None:
         pass
@@ -134,7 +132,6 @@ class CellWorker:
         self.loop = TrainingCell(config, settings, self.agent, step=step, scene=0,
                                  curriculum_seed=worker_seed(seed, segment, index, incarnation, 5),
                                  note=self._note, store=self.store, learner=self.decisions)
-        self.started = time.process_time()
 
     def _note(self, kind: str, event: str, message: str) -> None:
         self.notes.append((kind, event, message))
@@ -162,7 +159,7 @@ class CellWorker:
             # a row whose cycle then failed (a reset after it) still belongs to the scene it acted on
             report.cycles.append(CollectedCycle(row, transition, str(row.get("outcome")), row.get("primitive"),
                                                 None if row.get("success") is None else bool(row["success"]),
-                                                objects, scene, kind, self.store.store_seconds))
+                                                objects, scene, kind))
         if cycle is not None and report.cycles:
             last = report.cycles[-1]
             last.objects_left, last.scene, last.scene_kind = cycle.objects_left, cycle.scene, cycle.scene_kind
