@@ -1,4 +1,4 @@
-"""The simulated D415's depth noise: today's model unchanged by default, opt-in outliers and stereo shadow."""
+"""The simulated D415's depth noise: the bare model unchanged, outliers and stereo shadow on in a cell's defaults."""
 
 from __future__ import annotations
 
@@ -67,7 +67,17 @@ def test_the_default_model_is_bit_for_bit_the_old_one_and_draws_the_same_numbers
                 assert got.dtype == expected.dtype and np.array_equal(got, expected)
                 assert rng.bit_generator.state == ref_rng.bit_generator.state   # no extra draws
     assert DepthNoise().outlier_rate == 0.0 and DepthNoise().stereo_shadow is False
-    assert DepthNoise.from_config(SimConfig()) == DepthNoise()
+
+
+def test_a_cell_config_without_depth_keys_renders_like_a_d415_not_kinder():
+    """The config's default cell has the two parts of a D415's depth the bare model leaves out (docs/training-and-evaluation.md)."""
+    noise = DepthNoise.from_config(SimConfig())
+    assert noise == dataclasses.replace(DepthNoise(), outlier_rate=0.003, stereo_shadow=True)
+    z = scene()
+    bare = add_depth_noise(z, np.random.default_rng(2), DepthNoise(), fx=FX)
+    cell = add_depth_noise(z, np.random.default_rng(2), noise, fx=FX)
+    assert np.count_nonzero(cell == 0) > np.count_nonzero(bare == 0)           # the shadow beside the raised part
+    assert np.count_nonzero(np.abs(cell - bare)[(cell != 0) & (bare != 0)] > 0.005) > 0   # gross outliers
 
 
 def test_the_knobs_draw_after_the_old_draws_and_leave_them_unchanged():
@@ -152,8 +162,8 @@ def test_sim_config_accepts_the_new_keys_and_refuses_a_negative_outlier_share():
     assert cfg.sim.depth_outliers == 0.01 and cfg.sim.stereo_shadow is True
     noise = DepthNoise.from_config(cfg.sim)
     assert noise.outlier_rate == 0.01 and noise.stereo_shadow is True
-    shipped = load_config(REPO / "cell_config" / "sim.yaml").sim
-    assert shipped.depth_outliers == 0.0 and shipped.stereo_shadow is False
+    bare = config_from_dict({"sim": {"depth_outliers": 0, "stereo_shadow": False}})
+    assert DepthNoise.from_config(bare.sim) == DepthNoise()          # the bare model stays one config away
     with pytest.raises(ConfigError, match=r"sim\.depth_outliers"):
         config_from_dict({"sim": {"depth_outliers": -0.01}})
     with pytest.raises(ConfigError, match=r"sim\.depth_outliers"):

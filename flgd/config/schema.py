@@ -372,10 +372,10 @@ class SimConfig:
     depth_edge_holes: float = param(0.5, ge=0.0, le=1.0,
                                     help="chance that a pixel at a depth edge (a step > 8 mm to a neighbour) has "
                                          "no reading, as stereo matching fails there (with depth_noise on)")
-    depth_outliers: float = param(0.0, ge=0.0, le=0.1,
+    depth_outliers: float = param(0.003, ge=0.0, le=0.1,
                                   help="share of valid pixels with a gross depth error, uniform in +-3 cm (flying "
                                        "pixels, speckle) (with depth_noise on)")
-    stereo_shadow: bool = param(False, help="no depth reading where a nearer surface hides a pixel from the D415's "
+    stereo_shadow: bool = param(True, help="no depth reading where a nearer surface hides a pixel from the D415's "
                                             "right imager, 55 mm beside the left (with depth_noise on)")
     table_shade: Range = param((0.25, 0.6), ge=0.0, le=1.0,
                                help="grey level range of the table top, drawn per scene")
