@@ -63,7 +63,7 @@ def _run(config: Path, out: Path, steps: int, seed: int, workers: int, warmup: i
     times = sorted(float(r["time"]) for r in rows if r.get("time"))
     steady = (len(times) - 1 - warmup) / (times[-1] - times[warmup]) if len(times) > warmup + 1 else None
     driver = float(info["segments"][-1].get("process_cpu_seconds", 0.0))
-    worker_cpu = [float(w["cpu_seconds"]) for w in info.get("workers", [])]
+    worker_cpu = [float(w["cpu_seconds"]) for w in info["segments"][-1].get("worker_stats", [])]
     learner = sum(float(r["t_update"] or 0) for r in rows)
     n = len(rows)
     return {"workers": workers, "steps": n, "wall_s": round(wall, 1), "actions_per_s": n / wall,

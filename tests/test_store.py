@@ -94,6 +94,45 @@ def test_schema_version_mismatch_is_a_clear_error(tmp_path):
         Store(tmp_path)
 
 
+def _interleaved_chains(store: Store) -> None:
+    """Two cells' cycles, alternating: a0->a1, b0->b1, a1->a2, b1->b2, ... (``flgd train --workers 2``)."""
+    a = [random_heightmaps(100 + i) for i in range(5)]
+    b = [random_heightmaps(200 + i) for i in range(5)]
+    step = 0
+    for i in range(4):
+        for chain in (a, b):
+            store.commit_cycle(action_row(step), Transition(chain[i], Action("grasp", 0, 0, 0), 0.0,
+                                                            chain[i + 1], False))
+            step += 1
+
+
+def test_interleaved_cells_store_each_state_once_when_the_store_remembers_one_per_cell(tmp_path):
+    one = Store(tmp_path / "one")
+    _interleaved_chains(one)
+    assert one.state_count() == 16            # every state twice, as a next state and again as a start
+    two = Store(tmp_path / "two")
+    two.remember_states = 2
+    _interleaved_chains(two)
+    assert two.state_count() == 10            # a0..a4, b0..b4 once
+    read = list(two.iter_transitions())
+    assert all(r.next_state is not None for r in read) and two.integrity_check() == "ok"
+    np.testing.assert_array_equal(read[2].state.height, read[0].next_state.height)   # a1 links a0->a1 and a1->a2
+
+
+def test_a_remembered_state_whose_row_was_pruned_is_stored_again(tmp_path, monkeypatch):
+    monkeypatch.setattr(Store, "PRUNE_EVERY", 1)
+    store = Store(tmp_path, keep_transitions=1)
+    store.remember_states = 3
+    s = [random_heightmaps(i) for i in range(4)]
+    store.commit_cycle(action_row(0), Transition(s[0], Action("grasp", 0, 0, 0), 0.0, s[1], False))
+    store.commit_cycle(action_row(1), Transition(s[2], Action("grasp", 0, 0, 0), 0.0, s[3], False))  # prunes 0
+    # s[1] is still remembered, but its row went with transition 0: a fresh row, not a dangling id
+    store.commit_cycle(action_row(2), Transition(s[1], Action("grasp", 0, 0, 0), 0.0, None, True))
+    read = list(store.iter_transitions())
+    np.testing.assert_allclose(read[-1].state.height, s[1].height, atol=HEIGHT_QUANTUM)
+    assert store.integrity_check() == "ok"
+
+
 def test_retention_keeps_the_newest_transitions_and_the_whole_log(tmp_path, monkeypatch):
     monkeypatch.setattr(Store, "PRUNE_EVERY", 5)
     store = Store(tmp_path, keep_transitions=7)

@@ -51,14 +51,16 @@ def _ray_processes_of(pids: set[int]) -> set[int]:
     return alive
 
 
-def test_two_workers_fill_one_run_directory_survive_a_killed_worker_and_resume_in_one_process(tmp_path):
+def test_two_workers_fill_one_run_directory_survive_a_killed_worker_and_resume_in_one_process(tmp_path, monkeypatch):
     from flgd.training.distributed import DistributedTrainingRun
     from flgd.training.progress import LineProgress
     from flgd.training.settings import RunSettings
 
     out = tmp_path / "run"
     config = load_config(_config(tmp_path, updates_per_action=2))
-    run = DistributedTrainingRun(out, RunSettings(steps=6, seed=3), config, LineProgress(io.StringIO(), False),
+    monkeypatch.setattr(os, "cpu_count", lambda: 2)   # the CI machine's: two workers and the learner share it
+    said = io.StringIO()
+    run = DistributedTrainingRun(out, RunSettings(steps=6, seed=3), config, LineProgress(said, False),
                                  threads=1, workers=2)
     killed: list[int] = []
     take = run._take
@@ -79,10 +81,11 @@ def test_two_workers_fill_one_run_directory_survive_a_killed_worker_and_resume_i
         run.close()
     assert killed
 
+    assert "2 workers and the learner on 2 cores" in said.getvalue()
     info = json.loads((out / "run.json").read_text())
     assert info["status"] == "finished" and info["step"] == 6
     assert info["segments"][0]["workers"] == 2
-    workers = {w["worker"]: w for w in info["workers"]}
+    workers = {w["worker"]: w for w in info["segments"][0]["worker_stats"]}
     assert workers[1]["replacements"] == 1 and "lost" not in workers[0]["last_error"]
     assert workers[1]["last_error"] and workers[0]["replacements"] == 0
     assert sum(w["cycles"] for w in workers.values()) == 6
@@ -106,6 +109,9 @@ def test_two_workers_fill_one_run_directory_survive_a_killed_worker_and_resume_i
     assert train_main(["--out", str(out), "--steps", "8", "--threads", "1"]) == 0
     info = json.loads((out / "run.json").read_text())
     assert info["step"] == 8 and info["updates"] == 2 * 8 and len(info["segments"]) == 2
+    # the workers' record stays with the segment they ran in; the one-process segment has none
+    assert sum(w["cycles"] for w in info["segments"][0]["worker_stats"]) == 6
+    assert "worker_stats" not in info["segments"][1] and "workers" not in info
     assert [int(r["step"]) for r in read_rows(out / "actions.csv")] == list(range(8))
 
 

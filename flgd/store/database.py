@@ -63,7 +63,11 @@ class Store:
         self.state_dir = Path(state_dir)
         self.path = self.state_dir / DB_NAME
         self._lock = threading.RLock()
-        self._last_state: tuple[Any, int] | None = None
+        # the newest next states stored, (Heightmaps object, state id), newest last: a transition whose state is
+        # one of these very objects refers to its row instead of storing it again. One in a daemon; one per cell
+        # where several cells' cycles interleave (``flgd train --workers N``).
+        self.remember_states = 1
+        self._recent_states: list[tuple[Any, int]] = []
         self._pending_store_time: tuple[int, float] | None = None
         self._open_intent: int | None = None  # the step recorded by record_intent and not completed yet
         self._state_bytes = 0  # encoded size of the newest stored state: what evicting one transition frees
@@ -114,7 +118,7 @@ class Store:
                 self._first_failure = ""
                 return out
             except (sqlite3.Error, OSError) as exc:
-                self._last_state = None
+                self._recent_states = []
                 raise StoreError(self._diagnose(exc)) from exc
 
     def _read(self, sql: str, args: tuple = ()) -> list[tuple]:
@@ -140,8 +144,10 @@ class Store:
         return why
 
     def _state_id(self, db: sqlite3.Connection, hm: Heightmaps) -> int:
-        if self._last_state is not None and self._last_state[0] is hm:
-            return self._last_state[1]
+        for known, sid in reversed(self._recent_states):
+            # still there: retention or the disk budget may have removed an older transition's rows since
+            if known is hm and db.execute("SELECT 1 FROM states WHERE id=?", (sid,)).fetchone():
+                return sid
         encoded = replay_rows.encode_heightmaps(hm)
         self._state_bytes = len(encoded[2]) + len(encoded[3])
         cur = db.execute("INSERT INTO states(rows, cols, color, height) VALUES(?,?,?,?)", encoded)
@@ -179,8 +185,8 @@ class Store:
         """Write one cycle: its action-log ``row`` and, if any, its transition.
 
         ``transition`` has ``state``, ``action``, ``reward``, ``next_state`` and
-        ``done``.  A state that is the very object stored as the previous
-        transition's next state is not stored again.  A row whose intent was
+        ``done``.  A state that is the very object stored as a recent
+        transition's next state (``remember_states``) is not stored again.  A row whose intent was
         recorded (``record_intent``) is completed in place.  Returns the transition id.
         """
         unknown = set(row) - set(ACTION_COLUMNS)
@@ -216,7 +222,9 @@ class Store:
                 self._evict_to_budget(db)
             if self.action_log_days > 0 and (self._commits + 1) % self.RETAIN_EVERY == 0:
                 retention.retain_action_log(db, self.action_log_days)
-            self._last_state = new_last
+            if new_last is not None:
+                self._recent_states = ([s for s in self._recent_states if s[0] is not new_last[0]]
+                                       + [new_last])[-max(1, self.remember_states):]
             return tid
 
         out = self._write(write)
@@ -288,7 +296,7 @@ class Store:
 
     def forget_last_state(self) -> None:
         """The next transition starts from a fresh capture (after a reset or a discarded action)."""
-        self._last_state = None
+        self._recent_states = []
 
     def record_event(self, kind: str, message: str) -> None:
         self._write(lambda db: db.execute("INSERT INTO events(time, kind, message) VALUES(?,?,?)",

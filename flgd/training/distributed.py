@@ -19,13 +19,14 @@ replaced by a fresh one (new seeds) and the run goes on, said on the progress di
 events (kind ``worker``).  A worker replaced ``MAX_REPLACEMENTS`` times in a row without completing a cycle stops
 the run.  Ctrl-C / SIGTERM: the cycles in flight are dropped, a checkpoint is written, exit 130; a killed driver
 (``kill -9``) is resumed by running the same command again (what the single-process run restores, restored).
-What is recorded per worker (cycles, replacements, CPU seconds) is in ``run.json`` under ``workers``.
+What is recorded per worker (cycles, replacements, CPU seconds) is in ``run.json``, per segment, under ``worker_stats``.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import math
+import os
 import time
 from typing import Any
 
@@ -72,7 +73,7 @@ class DistributedTrainingRun(TrainingRun):
         self._next_scene = 0
         self._worker_class: Any = None
         self._weights_ref: tuple[int, Any] | None = None  # (version, Ray object ref) of the newest weights sent
-        self._last_state: tuple[int, Any] | None = None  # (worker, Heightmaps) of the newest stored next state
+        self._last_states: dict[int, Any] = {}  # worker -> the Heightmaps of its newest stored next state
 
     # ------------------------------------------------------------------ setup
     @property
@@ -96,9 +97,16 @@ class DistributedTrainingRun(TrainingRun):
 
         self._next_step = step
         self._next_scene = _next_scene_id(self.actions.rows)
+        self.store.remember_states = self.workers   # each worker's last next state, their cycles interleaved
         if self.engine.cpus < self.workers:
             self.progress.message(f"flgd train: the Ray cluster has {self.engine.cpus:g} CPUs for {self.workers} "
                                   f"workers of one CPU each: the rest wait until CPUs free up")
+        cores = os.cpu_count() or 1
+        if not self.address and self.workers + 1 > cores:
+            # the local cluster gives every worker a CPU slot anyway: they and the learner share the cores
+            self.progress.message(f"flgd train: {self.workers} workers and the learner on {cores} cores: they share "
+                                  f"them, so workers beyond {max(1, cores - 1)} add little (docs/"
+                                  f"training-and-evaluation.md, 'Training on many simulated cells')")
         self._worker_class = remote_class(self.engine.ray, CellWorker, cpus=1.0)
         self.slots = [_WorkerSlot(i) for i in range(self.workers)]
         for slot in self.slots:
@@ -216,7 +224,10 @@ class DistributedTrainingRun(TrainingRun):
         if transition is not None:
             self.replay.add(transition, tag=tid)
             self.learner.notify_new_transition()
-            self._last_state = None if transition.next_state is None else (slot.index, transition.next_state)
+            if transition.next_state is None:
+                self._last_states.pop(slot.index, None)
+            else:
+                self._last_states[slot.index] = transition.next_state
         t_store = time.perf_counter() - t_store
         self.store.note_store_time(row["step"], t_store)
         self._next_step += 1
@@ -240,12 +251,13 @@ class DistributedTrainingRun(TrainingRun):
                            updates, t_update, t_store)
 
     def _relinked(self, slot: _WorkerSlot, transition: Any) -> Any:
-        """The transition with its state replaced by the very object stored as the previous next state, when it
-        is that state (same worker, nothing stored in between, same pixels): the store then keeps it once, as
-        it does in one process, instead of a second copy per action."""
-        if transition is None or self._last_state is None or self._last_state[0] != slot.index:
+        """The transition with its state replaced by the very object stored as this worker's last next state,
+        when it is that state (same pixels): the store, which remembers one recent next state per worker, then
+        keeps it once, as in one process, instead of a second copy per action -- also when other workers'
+        cycles were stored in between."""
+        previous = self._last_states.get(slot.index)
+        if transition is None or previous is None:
             return transition
-        previous = self._last_state[1]
         state = transition.state
         if previous.height.shape == state.height.shape and np.array_equal(previous.height, state.height) \
                 and np.array_equal(previous.color, state.color):
@@ -271,6 +283,7 @@ class DistributedTrainingRun(TrainingRun):
             pass
         slot.cpu_before = slot.cpu_seconds
         slot.incarnation += 1
+        self._last_states.pop(slot.index, None)
         self._spawn(slot)
 
     # ------------------------------------------------------------------ records
@@ -286,8 +299,8 @@ class DistributedTrainingRun(TrainingRun):
         fields["workers"] = f"{self._alive()}/{self.workers}"
         self.progress.show(self._next_step, fields, force=force)
 
-    def _extra_run_info(self) -> dict[str, Any]:
-        return {"workers": [{"worker": s.index, "cycles": s.cycles, "replacements": s.replacements,
+    def _segment_run_info(self) -> dict[str, Any]:
+        return {"worker_stats": [{"worker": s.index, "cycles": s.cycles, "replacements": s.replacements,
                              "cpu_seconds": round(s.cpu_seconds, 1), "last_error": s.last_error}
                             for s in self.slots]}
 

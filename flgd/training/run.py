@@ -126,18 +126,20 @@ class TrainingRun:
                      "rolling_success_50": rolling(self.grasps, 50),
                      "rolling_success_200": rolling(self.grasps, 200),
                      "updated": _now()})
-        info.update(self._extra_run_info())
+        info.pop("workers", None)   # where runs before per-segment records kept the last segment's workers
         segments = info.get("segments")
         if segments and isinstance(segments[-1], dict) and self.learner is not None:
             # this process's CPU seconds in this segment: the learner's, and in one process the cell's too
             segments[-1]["process_cpu_seconds"] = round(time.process_time() - self._cpu_at_start, 1)
+            segments[-1].update(self._segment_run_info())
         if self.learner is not None:  # how the double-DQN a' of the targets was found (this segment)
             info["next_argmax"] = {"reused": self.learner.argmax_reused, "computed": self.learner.argmax_computed}
         self.run_info = info
         write_atomically(self.out / RUN_FILE, (json.dumps(info, indent=2) + "\n").encode(), mode=0o644)
 
-    def _extra_run_info(self) -> dict[str, Any]:
-        """What a kind of run adds to run.json (the multi-worker run: its workers)."""
+    def _segment_run_info(self) -> dict[str, Any]:
+        """What a kind of run adds to its segment in run.json (the multi-worker run: its workers), so that a
+        resumed run keeps every segment's record."""
         return {}
 
     def _take_lock(self) -> None:
