@@ -5,10 +5,12 @@ one adds (specks, holes, shadows).  This renders random scenes of a cell config
 twice from the same seed -- once with the config's depth noise, once without --
 and reads off, pixel for pixel:
 
-* on the flat table away from objects (Intel's flat-target conditions): the
-  share of pixels with a reading (fill rate; the datasheet promises >= 99 %),
-  the RMS depth error without gross errors and the share of gross errors
-  (|error| > 10 mm: outliers, flying pixels);
+* on the flat table away from objects (Intel's flat-target conditions; the
+  camera looking straight down): the share of pixels with a reading (fill
+  rate; the datasheet promises >= 99 %), the RMS depth error without gross
+  errors (both renders rounded to the depth unit, 1 mm: about 0.4 mm of it in
+  quadrature) and the share of gross errors (|error| > 10 mm: outliers, flying
+  pixels);
 * over the whole frame and beside objects (within 6 px of one): the share of
   pixels without a reading the noise-free render had (edge holes, the stereo
   shadow, dropouts).
@@ -65,10 +67,10 @@ def depth_stats(noisy: np.ndarray, clean: np.ndarray, labels: np.ndarray) -> dic
     return {
         "table_z_m": table_z,
         "flat_pixels": int(flat.sum()),
-        "flat_fill_rate": float(read[flat].mean()),
+        "flat_fill_rate": float(read[flat].mean()) if flat.any() else 0.0,
         "flat_rms_m": float(np.sqrt(np.mean(err[~gross] ** 2))) if (~gross).any() else 0.0,
         "flat_gross_share": float(gross.mean()) if err.size else 0.0,
-        "frame_missing_share": float((seen & ~read).sum() / seen.sum()),
+        "frame_missing_share": float((seen & ~read).sum() / max(1, seen.sum())),
         "beside_objects_missing_share": float((beside & ~read).sum() / max(1, beside.sum())),
         "object_missing_share": float((objects & seen & ~read).sum() / max(1, (objects & seen).sum())),
     }
@@ -109,8 +111,17 @@ def main(argv: list[str]) -> int:
             finally:
                 cell.close()
             views.append((frame.depth.astype(np.float64) * scale, labels))
-        (noisy, _), (clean, labels) = views
-        frames.append(depth_stats(noisy, clean, labels))
+        (noisy, noisy_labels), (clean, labels) = views
+        if not np.array_equal(noisy_labels, labels):
+            print(f"flgd bench depth_model: scene seed {args.seed + i} drew a different scene with the noise off",
+                  file=sys.stderr)
+            return 1
+        stats = depth_stats(noisy, clean, labels)
+        if not stats["flat_pixels"]:
+            print(f"flgd bench depth_model: scene seed {args.seed + i}: no flat table pixel away from objects (is "
+                  f"the camera looking straight down at the table?)", file=sys.stderr)
+            return 1
+        frames.append(stats)
 
     def med(key: str) -> float:
         return float(np.median([f[key] for f in frames]))

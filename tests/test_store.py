@@ -94,16 +94,16 @@ def test_schema_version_mismatch_is_a_clear_error(tmp_path):
         Store(tmp_path)
 
 
-def _interleaved_chains(store: Store) -> None:
-    """Two cells' cycles, alternating: a0->a1, b0->b1, a1->a2, b1->b2, ... (``flgd train --workers 2``)."""
-    a = [random_heightmaps(100 + i) for i in range(5)]
-    b = [random_heightmaps(200 + i) for i in range(5)]
-    step = 0
-    for i in range(4):
-        for chain in (a, b):
-            store.commit_cycle(action_row(step), Transition(chain[i], Action("grasp", 0, 0, 0), 0.0,
-                                                            chain[i + 1], False))
-            step += 1
+def _interleaved_chains(store: Store, order: str = "abababab") -> None:
+    """Two cells' cycles in ``order``: a0->a1, b0->b1, a1->a2, ... (``flgd train --workers 2``; one cell can be
+    faster than the other)."""
+    chains = {c: [random_heightmaps((100 if c == "a" else 200) + i) for i in range(order.count(c) + 1)] for c in "ab"}
+    done = {"a": 0, "b": 0}
+    for step, c in enumerate(order):
+        i = done[c]
+        store.commit_cycle(action_row(step), Transition(chains[c][i], Action("grasp", 0, 0, 0), 0.0,
+                                                        chains[c][i + 1], False))
+        done[c] += 1
 
 
 def test_interleaved_cells_store_each_state_once_when_the_store_remembers_one_per_cell(tmp_path):
@@ -117,6 +117,10 @@ def test_interleaved_cells_store_each_state_once_when_the_store_remembers_one_pe
     read = list(two.iter_transitions())
     assert all(r.next_state is not None for r in read) and two.integrity_check() == "ok"
     np.testing.assert_array_equal(read[2].state.height, read[0].next_state.height)   # a1 links a0->a1 and a1->a2
+    uneven = Store(tmp_path / "uneven")
+    uneven.remember_states = 2
+    _interleaved_chains(uneven, "abbabbba")   # b's used-up states must not push out a's current one
+    assert uneven.state_count() == 4 + 6       # a0..a3, b0..b5 once
 
 
 def test_a_remembered_state_whose_row_was_pruned_is_stored_again(tmp_path, monkeypatch):

@@ -221,3 +221,15 @@ def test_pretrain_names_a_damaged_file_and_keeps_it(tmp_path, capsys, name, cont
     assert f"{out / name}: " in err and problem in err and "Traceback" not in err
     assert (out / name).read_bytes() == content
     assert not (out / "trunk.safetensors").exists()
+
+
+def test_an_older_runs_top_level_worker_record_moves_into_its_segment_on_resume():
+    from flgd.training.run import _move_old_worker_record
+
+    stats = [{"worker": 0, "cycles": 40, "replacements": 0, "cpu_seconds": 12.5, "last_error": ""}]
+    info = {"workers": stats, "segments": [{"from_step": 0, "workers": 1}, {"from_step": 40}]}
+    _move_old_worker_record(info)
+    assert "workers" not in info
+    assert info["segments"][0]["worker_stats"] == stats and "worker_stats" not in info["segments"][1]
+    _move_old_worker_record(info)   # nothing left to move: unchanged
+    assert info["segments"][0]["worker_stats"] == stats

@@ -58,7 +58,7 @@ def test_two_workers_fill_one_run_directory_survive_a_killed_worker_and_resume_i
 
     out = tmp_path / "run"
     config = load_config(_config(tmp_path, updates_per_action=2))
-    monkeypatch.setattr(os, "cpu_count", lambda: 2)   # the CI machine's: two workers and the learner share it
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {0, 1})   # two cores: the workers and the learner share them
     said = io.StringIO()
     run = DistributedTrainingRun(out, RunSettings(steps=6, seed=3), config, LineProgress(said, False),
                                  threads=1, workers=2)

@@ -101,7 +101,7 @@ class DistributedTrainingRun(TrainingRun):
         if self.engine.cpus < self.workers:
             self.progress.message(f"flgd train: the Ray cluster has {self.engine.cpus:g} CPUs for {self.workers} "
                                   f"workers of one CPU each: the rest wait until CPUs free up")
-        cores = os.cpu_count() or 1
+        cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
         if not self.address and self.workers + 1 > cores:
             # the local cluster gives every worker a CPU slot anyway: they and the learner share the cores
             self.progress.message(f"flgd train: {self.workers} workers and the learner on {cores} cores: they share "

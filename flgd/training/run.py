@@ -126,8 +126,8 @@ class TrainingRun:
                      "rolling_success_50": rolling(self.grasps, 50),
                      "rolling_success_200": rolling(self.grasps, 200),
                      "updated": _now()})
-        info.pop("workers", None)   # where runs before per-segment records kept the last segment's workers
         segments = info.get("segments")
+        _move_old_worker_record(info)
         if segments and isinstance(segments[-1], dict) and self.learner is not None:
             # this process's CPU seconds in this segment: the learner's, and in one process the cell's too
             segments[-1]["process_cpu_seconds"] = round(time.process_time() - self._cpu_at_start, 1)
@@ -350,6 +350,18 @@ _LOG_KEYS = frozenset({"step", "time", "outcome", "primitive", "kind", "row", "c
                        "success", "rule", "epsilon",
                        "q_value", "mu", "eta", "refused", "failure", "contact_stop_mm", "t_capture", "t_perceive", "t_decide",
                        "t_plan", "t_execute", "t_judge", "duration"})
+
+
+def _move_old_worker_record(info: dict[str, Any]) -> None:
+    """A run started before run.json kept workers per segment had one top-level ``workers`` list (its last
+    multi-worker segment's): it moves into that segment, so that resuming keeps it."""
+    old = info.pop("workers", None)
+    if not isinstance(old, list):
+        return
+    for segment in reversed(info.get("segments") or []):
+        if isinstance(segment, dict) and "workers" in segment and "worker_stats" not in segment:
+            segment["worker_stats"] = old
+            return
 
 
 def _next_scene_id(rows: list[dict[str, str]]) -> int:
