@@ -195,12 +195,9 @@ class Store:
         pending = self._pending_store_time
         intent = self._open_intent
 
-        remembered: dict[str, Any] = {}   # what the committed write leaves to remember (set by ``write``)
-
-        def write(db: sqlite3.Connection) -> int | None:
+        def write(db: sqlite3.Connection) -> tuple[int | None, tuple[Any, int] | None]:
             tid = None
             new_last = None
-            remembered.clear()
             if transition is not None:
                 sid = self._state_id(db, transition.state)
                 nid = None
@@ -225,15 +222,13 @@ class Store:
                 self._evict_to_budget(db)
             if self.action_log_days > 0 and (self._commits + 1) % self.RETAIN_EVERY == 0:
                 retention.retain_action_log(db, self.action_log_days)
-            remembered["new"] = new_last
-            return tid
+            return tid, new_last
 
-        out = self._write(write)
+        out, new_last = self._write(write)
         # only after the commit: a rolled-back write's ids may be handed to other states
         if transition is not None:
             # a next state taken up as this transition's start has done its job: it leaves room for other cells'
             kept = [s for s in self._recent_states if s[0] is not transition.state]
-            new_last = remembered.get("new")
             if new_last is not None:
                 kept = [s for s in kept if s[0] is not new_last[0]] + [new_last]
             self._recent_states = kept[-max(1, self.remember_states):]
