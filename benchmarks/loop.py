@@ -7,6 +7,7 @@ difference between two rows is the variant's settings.  Per variant and cell, po
 
 * grasp success (successful / attempted grasps) and picks per action (successful grasps / actions) side by side;
 * completion, the longest failure streak, the failed actions in streaks of >= 5, runs ended stuck;
+* objects lost (left the workspace other than in the gripper) and, of them, dropped from the gripper after a lift;
 
 and per variant the mean over cells of each.  A variant is ``NAME:KEY=VALUE,KEY=VALUE`` with dotted config keys
 (``rewards.min_object_area=36``, ``exploration.failure_memory=false``, ``camera.depth_fill=none``); the cells are
@@ -88,7 +89,12 @@ def pooled(rows: list[dict]) -> dict[str, Any]:
             "completion": (sum(1 for r in counted if r["completed"]) / len(counted)) if counted else None,
             "longest_failure_streak": max((r["longest_failure_streak"] for r in counted), default=0),
             "streak_actions": sum(r["streak_actions"] for r in counted),
-            "stuck_runs": sum(1 for r in counted if r["end"] == "stuck")}
+            "stuck_runs": sum(1 for r in counted if r["end"] == "stuck"),
+            # why a cleared table was not a completed run: objects lost, and of them the ones dropped from the
+            # gripper after a lift (None: rows kept from before the bench counted drops)
+            "objects_lost": sum(r["objects_lost"] for r in counted),
+            "objects_dropped": (sum(r["objects_dropped"] for r in counted)
+                                if all("objects_dropped" in r for r in counted) else None)}
 
 
 def _mean(values: list[float | None]) -> float | None:

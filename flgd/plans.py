@@ -39,6 +39,7 @@ __all__ = [
     "move_kind",
     "plan_action",
     "plan_grasp",
+    "LIFT_LABEL",
     "plan_push",
     "plan_shift",
     "plan_release",
@@ -81,6 +82,8 @@ class MeasureWidth:
 
 
 Step = Union[MoveL, GripperCommand, MeasureWidth]
+
+LIFT_LABEL = "lift"   # a grasp's move up with the gripper closed: what is between the pads then was picked up
 
 
 @dataclass(frozen=True)
@@ -139,7 +142,7 @@ def plan_grasp(x: float, y: float, surface_height: float, angle: float, config: 
         MoveL(ToolPose.top_down(x, y, z, yaw), rb.approach_speed, rb.acceleration, "descend",
               stop_on_contact=rb.descent_contact_force),
         GripperCommand(gr.closed_width, gr.force, "close"),
-        MoveL(ToolPose.top_down(x, y, table + rb.lift_height, yaw), rb.approach_speed, rb.acceleration, "lift"),
+        MoveL(ToolPose.top_down(x, y, table + rb.lift_height, yaw), rb.approach_speed, rb.acceleration, LIFT_LABEL),
         MoveL(ToolPose.top_down(*home.position, home.yaw), rb.speed, rb.acceleration, "home"),
         MeasureWidth("held"),
     )

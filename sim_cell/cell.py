@@ -65,7 +65,10 @@ place pose of plan_release, or anywhere if the caller skips the place step) it
 is removed and counted in ``stats["grasped_out"]``.  Any other object whose
 centre leaves the workspace or falls off the table is removed and counted in
 ``stats["left_workspace"]`` (one that falls off the table at once, in mid-fall:
-there is no floor, and a long fall is no unstable physics).  An unstable simulation (NaNs, objects faster than
+there is no floor, and a long fall is no unstable physics); of those, the ones that were
+between the pads when a grasp plan's lift step ended are also counted in
+``stats["dropped"]`` (lifted, then the grip gave way: the evaluation reports them apart
+from objects pushed out).  An unstable simulation (NaNs, objects faster than
 4 m/s or thrown up, interpenetration > 15 mm at three checks 0.2 s apart or
 > 40 mm at once) resets the scene and fails the plan with a failure text
 starting with "unstable" and naming the plan step (``stats["unstable_resets"]``).
@@ -85,7 +88,7 @@ import pybullet as p
 from flgd.cell import Cell, CellFault, ContactStop, ExecutionResult, Frame
 from flgd.config import CellConfig
 from flgd.geometry import ToolPose, pose_matrix
-from flgd.plans import GripperCommand, MeasureWidth, MoveL
+from flgd.plans import LIFT_LABEL, GripperCommand, MeasureWidth, MoveL
 from flgd.safety import CheckedPlan
 from sim_cell import camera as simcam
 from sim_cell import free_space, kinematics, motion, objects, scene_maker, scenes
@@ -223,6 +226,7 @@ class SimCell(Cell):
             # that much extra squeeze is the intended press, not a collision.
             self._press_allowance = self.config.robot.shift_press if planned.primitive == "shift" else 0.0
             self._press_yield = 0.0
+            self._world.lifted = set()
             try:
                 for i, step in enumerate(steps):
                     if isinstance(step, MoveL):
@@ -231,6 +235,8 @@ class SimCell(Cell):
                             stops.append(ContactStop(step.label, short))
                             # a guarded move met resistance: the rest of the plan starts where it stopped
                             lines.update(self._plan_lines(steps, first=i + 1))
+                        if step.label == LIFT_LABEL:
+                            self._world.lifted = self._in_gripper()
                     elif isinstance(step, GripperCommand):
                         self._run_gripper(step.width, step.force)
                     elif isinstance(step, MeasureWidth):

@@ -52,7 +52,10 @@ class World:
         self.ws = config.workspace
         self.objects: dict[int, objects.SpawnedObject] = {}
         self.held: set[int] = set()           # objects measured as held: carried out when the gripper opens
-        self.stats = {"grasped_out": 0, "left_workspace": 0, "unstable_resets": 0, "scenes": 0}
+        # objects in the gripper when this plan's grasp finished lifting: one of them lost from here was dropped
+        self.lifted: set[int] = set()
+        # dropped: of left_workspace, those lost after the gripper had lifted them (a grip that gave way)
+        self.stats = {"grasped_out": 0, "left_workspace": 0, "dropped": 0, "unstable_resets": 0, "scenes": 0}
         self.sim_time = 0.0
         self._steps = 0
         self._iterations = SOLVER_ITERATIONS
@@ -144,11 +147,18 @@ class World:
         self.objects.pop(body, None)
         self.stability.forget(body)
         self.held.discard(body)
+        self.lifted.discard(body)
         self.stats[reason] += 1
 
     def remove_lost(self, body: int) -> None:
-        """An object out of the cell: carried out when held, else it left the workspace."""
-        self.remove(body, "grasped_out" if body in self.held else "left_workspace")
+        """An object out of the cell: carried out when held, else it left the workspace (and was dropped, when
+        the gripper had lifted it in this plan)."""
+        if body in self.held:
+            self.remove(body, "grasped_out")
+            return
+        if body in self.lifted:
+            self.stats["dropped"] += 1
+        self.remove(body, "left_workspace")
 
     def remove_outside(self) -> None:
         """Remove every object whose centre left the workspace or fell off the table."""
@@ -166,6 +176,7 @@ class World:
         self.objects.clear()
         self.stability.reset()
         self.held.clear()
+        self.lifted.clear()
         if self.client is not None:
             self.set_solver(squeeze=False)   # a scene reset mid-squeeze must not drop the next pile at 150
             self.robot.teleport(self._home_joints, self._open_width)

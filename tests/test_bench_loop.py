@@ -35,15 +35,19 @@ def test_a_variant_is_checked_as_a_config_is():
 
 def test_pooled_numbers_leave_aborted_runs_out():
     rows = [{"end": "cleared", "grasp_attempts": 4, "grasp_successes": 3, "actions": 6, "completed": True,
-             "longest_failure_streak": 2, "streak_actions": 0},
+             "longest_failure_streak": 2, "streak_actions": 0, "objects_lost": 1, "objects_dropped": 1},
             {"end": "stuck", "grasp_attempts": 2, "grasp_successes": 1, "actions": 16, "completed": False,
-             "longest_failure_streak": 7, "streak_actions": 7},
+             "longest_failure_streak": 7, "streak_actions": 7, "objects_lost": 2, "objects_dropped": 0},
             {"end": "unstable", "grasp_attempts": 9, "grasp_successes": 0, "actions": 9, "completed": False,
-             "longest_failure_streak": 9, "streak_actions": 9}]
+             "longest_failure_streak": 9, "streak_actions": 9, "objects_lost": 5, "objects_dropped": 5}]
     got = pooled(rows)
     assert got["counted"] == 2 and got["grasp_success"] == 4 / 6 and got["picks_per_action"] == 4 / 22
     assert got["longest_failure_streak"] == 7 and got["streak_actions"] == 7 and got["stuck_runs"] == 1
     assert got["completion"] == 0.5
+    assert got["objects_lost"] == 3 and got["objects_dropped"] == 1
+    # rows kept in --root from before drops were counted: the drops are unknown, not zero
+    old = [{k: v for k, v in r.items() if k != "objects_dropped"} for r in rows]
+    assert pooled(old)["objects_dropped"] is None and pooled(old)["objects_lost"] == 3
 
 
 @pytest.mark.slow

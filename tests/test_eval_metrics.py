@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import re
 
 import pytest
 
@@ -126,3 +127,32 @@ def test_the_run_line_says_whether_a_cleared_run_completed_and_what_was_lost():
     gave_up = dataclasses.replace(clean, end="unstable", objects_left=2, objects_grasped=1)
     line = run_line("pile", gave_up)
     assert "unstable (not counted in the rates)" in line and "objects left" not in line
+
+
+def test_objects_dropped_from_the_gripper_are_told_apart_from_those_pushed_out():
+    """Of the lost objects, the run line, the run's JSON row and the summary say how many the gripper had lifted."""
+    from flgd.evaluation.metrics import summarize
+    from flgd.evaluation.report import _run_row, format_table, run_line
+
+    grasps = (ActionEntry("grasp", True), ActionEntry("grasp", False), ActionEntry("grasp", True))
+    dropped = RunLog(scene="pile", run=1, objects=4, actions=grasps, objects_left=0, objects_grasped=2,
+                     end="cleared", objects_dropped=1)   # one fell out of the fingers, one was knocked out
+    line = run_line("pile", dropped)
+    assert line.startswith("pile run 1: cleared (not completed, 2 lost (1 dropped from the gripper)), ")
+    row = _run_row(dropped, FAILURE_LIMIT)
+    assert row["objects_lost"] == 2 and row["objects_dropped"] == 1
+    pushed = dataclasses.replace(dropped, run=2, objects=3, objects_dropped=0)
+    s = summarize([dropped, pushed])
+    assert s.objects_lost == 3 and s.objects_dropped == 1
+    from flgd.evaluation.report import build_report
+    from flgd.evaluation.scene_sets import SceneSpec
+
+    report = build_report([(SceneSpec(name="pile"), [dropped, pushed])], policy={"path": "p"}, config="c",
+                          options={"runs": 2, "seed": 0}, seconds=1.0)
+    assert report["overall"]["objects_dropped"] == 1 and report["scenes"][0]["run_logs"][0]["objects_dropped"] == 1
+    table = format_table(report).splitlines()
+    header, overall = (re.split(r"\s{2,}", table[i].strip()) for i in (1, -2))
+    assert header[-2:] == ["dropped", "ends"] and overall[0] == "OVERALL"
+    assert overall[header.index("lost")] == "3" and overall[header.index("dropped")] == "1"
+    with pytest.raises(ValueError, match="counts"):
+        dataclasses.replace(dropped, objects_dropped=-1)

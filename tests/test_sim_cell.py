@@ -12,7 +12,7 @@ import pytest
 from flgd.clutter import grasp_reward
 from flgd.geometry import ToolPose
 from flgd.perception import base_to_pixel, frame_heightmaps
-from flgd.plans import MoveL, Plan, plan_grasp, plan_home, plan_push
+from flgd.plans import LIFT_LABEL, MoveL, Plan, plan_grasp, plan_home, plan_push
 from flgd.safety import CheckedPlan, PlanRefused, check_plan
 from sim_cell.cell import SimCell
 from sim_cell.objects import ObjectSpec
@@ -416,3 +416,28 @@ def test_a_block_falling_off_the_table_leaves_the_cell_instead_of_aborting_the_s
     assert empty_cell.stats["unstable_resets"] == 0
     assert empty_cell.stats["left_workspace"] == 1 and state(empty_cell, body) is None
     assert state(empty_cell, stay) is not None and empty_cell.object_count == 1
+
+
+def test_an_object_lost_after_the_gripper_lifted_it_counts_as_dropped_one_knocked_out_does_not(empty_cell):
+    """Completion is lost both ways; the evaluation tells a grip that gave way on the way out (``dropped``) from
+    an object pushed out.  What is between the pads when a grasp's lift ends is marked lifted for that plan."""
+    cfg = empty_cell.config
+    body = cube_at(empty_cell, -0.52, 0.04, yaw=0.3)
+    other = cube_at(empty_cell, -0.40, -0.12)
+    s = state(empty_cell, body)
+    grasp = plan_grasp(s.position[0], s.position[1], s.top - cfg.workspace.table_z, 0.3 + math.pi / 2, cfg)
+    lift = next(i for i, step in enumerate(grasp.steps) if getattr(step, "label", "") == LIFT_LABEL)
+    result = empty_cell.execute(check_plan(dataclasses.replace(grasp, steps=grasp.steps[:lift + 1]), cfg))
+    assert result.completed, result.failure
+    assert empty_cell._world.lifted == {body} and state(empty_cell, body).position[2] > 0.15
+    # the grip gives way beyond the workspace's edge; the other block is knocked out of it
+    for b, y in ((body, 0.30), (other, -0.30)):
+        wake(empty_cell, b)
+        p.resetBasePositionAndOrientation(b, [-0.45, y, 0.02], [0, 0, 0, 1], physicsClientId=empty_cell._client)
+    empty_cell._world.remove_outside()
+    assert empty_cell.stats["left_workspace"] == 2 and empty_cell.stats["dropped"] == 1
+    assert empty_cell.stats["grasped_out"] == 0
+    # the next plan starts with nothing lifted: a push lifts nothing
+    third = cube_at(empty_cell, -0.55, 0.0)
+    empty_cell.execute(check_plan(plan_push(-0.60, 0.0, 0.0, cfg), cfg))
+    assert empty_cell._world.lifted == set() and state(empty_cell, third) is not None

@@ -290,7 +290,7 @@ class Evaluator:
         cell = self._cell_for(spec)
         self.episode.use(cell)
         objects = self._set_scene(cell, spec)
-        grasped_before = cell.stats["grasped_out"]
+        grasped_before, dropped_before = cell.stats["grasped_out"], cell.stats["dropped"]
         limit = self.options.max_actions or max(MIN_DEFAULT_ACTIONS, DEFAULT_ACTIONS_PER_OBJECT * objects)
         self.agent.reset_episode()
         self.runner.forget_state()
@@ -332,7 +332,8 @@ class Evaluator:
         return RunLog(scene=spec.name, run=number, objects=objects, actions=tuple(actions),
                       objects_left=cell.object_count if end not in ("unstable", "fault") else objects,
                       objects_grasped=cell.stats["grasped_out"] - grasped_before, end=end,
-                      seconds=time.perf_counter() - t0, note=note)
+                      seconds=time.perf_counter() - t0, note=note,
+                      objects_dropped=cell.stats["dropped"] - dropped_before)
 
     def _save_qmap(self, spec: SceneSpec, run: int, number: int, record: CycleRecord) -> None:
         from flgd.visualize import ActionGlyph, qmap_picture, write_png

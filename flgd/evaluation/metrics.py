@@ -23,6 +23,10 @@ A *run* is one attempt to clear one scene.  Definitions:
 * **picks per action**: successful grasps / actions, pooled over the counted
   runs -- beside grasp success per grasp, since a run that spends 150 actions
   pushing can keep a good rate per grasp.
+* **lost objects**: objects that left the workspace other than in the gripper;
+  **dropped** counts those of them the gripper had lifted (a grip that gave way
+  on the way out), the rest were pushed or knocked out.  Either makes a cleared
+  table an incomplete run.
 * **loops**: the longest failure streak (consecutive failed actions), the
   actions spent in streaks of at least ``LONG_STREAK`` (5), and the runs that
   ended because the cell declared itself **stuck** (``exploration.stuck_after``
@@ -75,11 +79,12 @@ class RunLog:
     end: str                              # why the run stopped, one of RUN_ENDS
     seconds: float = 0.0
     note: str = ""
+    objects_dropped: int = 0              # of the lost ones: lifted by the gripper, then dropped out
 
     def __post_init__(self) -> None:
         if self.end not in RUN_ENDS:
             raise ValueError(f"RunLog.end: got {self.end!r}, expected one of {RUN_ENDS}")
-        if min(self.objects, self.objects_left, self.objects_grasped) < 0:
+        if min(self.objects, self.objects_left, self.objects_grasped, self.objects_dropped) < 0:
             raise ValueError("RunLog: object counts must be >= 0")
 
     @property
@@ -173,6 +178,7 @@ class Summary:
     objects_grasped: int
     objects_lost: int
     ends: dict[str, int] = field(default_factory=dict)
+    objects_dropped: int = 0                # of objects_lost: lifted by the gripper, then dropped out
     aborted: int = 0
     picks_per_action: float | None = None   # successful grasps / actions, pooled over counted runs
     longest_failure_streak: int = 0         # over the counted runs
@@ -214,6 +220,7 @@ def summarize(runs: Sequence[RunLog], failure_limit: int = FAILURE_LIMIT) -> Sum
         objects=sum(r.objects for r in counted),
         objects_grasped=sum(r.objects_grasped for r in counted),
         objects_lost=sum(r.objects_lost for r in counted),
+        objects_dropped=sum(min(r.objects_dropped, r.objects_lost) for r in counted),
         ends=ends,
         aborted=len(runs) - len(counted),
         picks_per_action=(successes / sum(res.actions for res in results)) if any(r.actions for r in results)

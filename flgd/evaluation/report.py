@@ -44,7 +44,8 @@ def _run_row(log: RunLog, failure_limit: int) -> dict[str, Any]:
     return {"run": log.run, "objects": log.objects, "actions": res.actions, "grasp_attempts": res.grasp_attempts,
             "grasp_successes": res.grasp_successes, "push": res.moves["push"], "shift": res.moves["shift"],
             "refused": res.refused, "objects_grasped": log.objects_grasped, "objects_left": log.objects_left,
-            "objects_lost": log.objects_lost, "longest_failure_streak": res.failure_streak,
+            "objects_lost": log.objects_lost, "objects_dropped": min(log.objects_dropped, log.objects_lost),
+            "longest_failure_streak": res.failure_streak,
             "streak_actions": res.streak_actions, "end": log.end,
             "completed": res.completed, "seconds": round(log.seconds, 3), "note": log.note}
 
@@ -93,7 +94,9 @@ def run_line(scene: str, log: RunLog, runs: int | None = None) -> str:
     if log.aborted:  # the simulator gave up: the scene was reset, its objects were not counted
         verdict, left = "not counted in the rates", ""
     else:
-        verdict = "completed" if res.completed else ("not completed" + (f", {lost} lost" if lost else ""))
+        dropped = min(log.objects_dropped, lost)
+        how = f" ({dropped} dropped from the gripper)" if dropped else ""
+        verdict = "completed" if res.completed else ("not completed" + (f", {lost} lost{how}" if lost else ""))
     return (f"{scene} run {log.run}{of}: {log.end} ({verdict}), {res.actions} actions, "
             f"{res.grasp_successes}/{res.grasp_attempts} grasps, {res.moves['push']} push, "
             f"{res.moves['shift']} shift{left} ({log.seconds:.1f} s)")
@@ -123,7 +126,8 @@ def _num(v: float | None) -> str:
 
 _COLUMNS = (("scene", "<"), ("runs", ">"), ("aborted", ">"), ("complete", ">"), ("grasp ok", ">"), ("grasps", ">"),
             ("picks/act", ">"), ("act.eff", ">"), ("actions/run", ">"), ("streak", ">"), ("in>=5", ">"),
-            ("stuck", ">"), ("push", ">"), ("shift", ">"), ("lost", ">"), ("ends", "<"))
+            ("stuck", ">"), ("push", ">"), ("shift", ">"), ("lost", ">"), ("dropped", ">"),
+            ("ends", "<"))
 
 
 def _row(name: str, s: dict[str, Any]) -> list[str]:
@@ -132,7 +136,8 @@ def _row(name: str, s: dict[str, Any]) -> list[str]:
             f"{s['grasp_successes']}/{s['grasp_attempts']}", _ratio(s.get("picks_per_action")),
             _pct(s["action_efficiency"]), _num(s["mean_actions"]), str(s.get("longest_failure_streak", "-")),
             str(s.get("streak_actions", "-")), str(s.get("stuck_runs", "-")),
-            str(s["moves"]["push"]), str(s["moves"]["shift"]), str(s["objects_lost"]), ends]
+            str(s["moves"]["push"]), str(s["moves"]["shift"]), str(s["objects_lost"]), str(s.get("objects_dropped", 0)),
+            ends]
 
 
 def format_table(report: dict[str, Any]) -> str:
@@ -160,7 +165,7 @@ def format_table(report: dict[str, Any]) -> str:
            "(aborted: the simulator gave up, the run is in no rate); grasp ok: successful/attempted "
            "grasps; picks/act: successful grasps/actions; act.eff: objects/actions over completed runs; streak: longest "
            "run of consecutive failed actions; in>=5: failed actions in streaks of 5 or more; stuck: runs the cell "
-           "gave up (exploration.stuck_after); lost: objects that left the workspace other than in the gripper (pushed off, or dropped on the way out)",
+           "gave up (exploration.stuck_after); lost: objects that left the workspace other than in the gripper (pushed off, or dropped on the way out); dropped: of those, lifted by the gripper first",
            *([note] if note else [])]
     return "\n".join(out)
 
