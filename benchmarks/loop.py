@@ -9,7 +9,7 @@ difference between two rows is the variant's settings.  Per variant and cell, po
 * completion, the longest failure streak, the failed actions in streaks of >= 5, runs ended stuck;
 * objects lost (left the workspace other than in the gripper) and, of them, dropped from the gripper after a lift;
 
-and per variant the mean over cells of each.  A variant is ``NAME:KEY=VALUE,KEY=VALUE`` with dotted config keys
+and per variant the mean over cells of each rate and loop number.  A variant is ``NAME:KEY=VALUE,KEY=VALUE`` with dotted config keys
 (``rewards.min_object_area=36``, ``exploration.failure_memory=false``, ``camera.depth_fill=none``); the cells are
 config files (default: the training cell and the two noisy cells in benchmarks/cells).  Results of each
 (variant, cell, seed) are kept in ``--root`` as they finish: the bench run again skips what is done.

@@ -66,7 +66,7 @@ is removed and counted in ``stats["grasped_out"]``.  Any other object whose
 centre leaves the workspace or falls off the table is removed and counted in
 ``stats["left_workspace"]`` (one that falls off the table at once, in mid-fall:
 there is no floor, and a long fall is no unstable physics); of those, the ones that were
-between the pads when a grasp plan's lift step ended are also counted in
+in the gripper when this plan's grasp lift step ended are also counted in
 ``stats["dropped"]`` (lifted, then the grip gave way: the evaluation reports them apart
 from objects pushed out).  An unstable simulation (NaNs, objects faster than
 4 m/s or thrown up, interpenetration > 15 mm at three checks 0.2 s apart or
@@ -201,6 +201,7 @@ class SimCell(Cell):
             p.removeBody(body, physicsClientId=self._client)
             self._world.objects.pop(body)
             self._world.held.discard(body)
+            self._world.lifted.discard(body)
             try:
                 self._world.settle(settle)
             except _Unstable:
@@ -235,8 +236,8 @@ class SimCell(Cell):
                             stops.append(ContactStop(step.label, short))
                             # a guarded move met resistance: the rest of the plan starts where it stopped
                             lines.update(self._plan_lines(steps, first=i + 1))
-                        if step.label == LIFT_LABEL:
-                            self._world.lifted = self._in_gripper()
+                        if step.label == LIFT_LABEL:   # pinched pairs too (``held``), as a measurement counts them
+                            self._world.lifted = self._in_gripper() | self._contacts.held()
                     elif isinstance(step, GripperCommand):
                         self._run_gripper(step.width, step.force)
                     elif isinstance(step, MeasureWidth):

@@ -437,7 +437,21 @@ def test_an_object_lost_after_the_gripper_lifted_it_counts_as_dropped_one_knocke
     empty_cell._world.remove_outside()
     assert empty_cell.stats["left_workspace"] == 2 and empty_cell.stats["dropped"] == 1
     assert empty_cell.stats["grasped_out"] == 0
-    # the next plan starts with nothing lifted: a push lifts nothing
-    third = cube_at(empty_cell, -0.55, 0.0)
-    empty_cell.execute(check_plan(plan_push(-0.60, 0.0, 0.0, cfg), cfg))
-    assert empty_cell._world.lifted == set() and state(empty_cell, third) is not None
+
+
+def test_what_a_grasp_lifted_is_forgotten_when_the_next_plan_starts(empty_cell):
+    """An object lifted by one plan and lost in a later one is no drop of that grasp: every plan starts with
+    nothing lifted, and a push lifts nothing."""
+    cfg = empty_cell.config
+    body = cube_at(empty_cell, -0.52, 0.04, yaw=0.3)
+    s = state(empty_cell, body)
+    grasp = plan_grasp(s.position[0], s.position[1], s.top - cfg.workspace.table_z, 0.3 + math.pi / 2, cfg)
+    lift = next(i for i, step in enumerate(grasp.steps) if getattr(step, "label", "") == LIFT_LABEL)
+    empty_cell.execute(check_plan(dataclasses.replace(grasp, steps=grasp.steps[:lift + 1]), cfg))
+    assert empty_cell._world.lifted == {body}
+    # the block is put back on the table, still in the scene; a push elsewhere follows
+    wake(empty_cell, body)
+    p.resetBasePositionAndOrientation(body, [-0.40, 0.10, 0.02], [0, 0, 0, 1], physicsClientId=empty_cell._client)
+    result = empty_cell.execute(check_plan(plan_push(-0.62, -0.12, 0.0, cfg), cfg))
+    assert result.completed, result.failure
+    assert state(empty_cell, body) is not None and empty_cell._world.lifted == set()

@@ -7,7 +7,7 @@ JSON (``format: flgd-eval``, ``version: 1``):
 * ``scenes``: one entry per scene -- ``scene``, ``set``, ``source``, the
   ``flgd.evaluation.metrics.Summary`` fields, and ``run_logs`` (per run:
   objects, actions, grasp attempts/successes, pushes, shifts, refused,
-  objects grasped/left/lost, end, completed, seconds);
+  objects grasped/left/lost/dropped, end, completed, seconds);
 * ``sets``: a Summary per named set; ``overall``: a Summary of every run;
 * ``seconds``: wall time of the evaluation;
 * ``status``: ``complete`` (every planned run finished), ``in-progress``
