@@ -76,6 +76,9 @@ A single deep check is not enough: a closing finger wedging a prism or half-disk
 into the table dips it 15-30 mm for a moment, which the solver resolves (in 20-block
 clutter that alone aborted about half of all evaluation runs).
 In their own modules: world, stability, scene_maker, randomisation, gripper_contacts, free_space.
+What stays here is one plan's execution -- the step loop, the arm's lines, the fingers and the carry --
+which share per-plan state (press allowance and give, carry trials, what was lifted) under one lock;
+split, each part would reach into the others' state, so the module stays whole at ~600 lines.
 """
 
 from __future__ import annotations

@@ -93,6 +93,11 @@ class RunLog:
         return max(0, self.objects - self.objects_grasped - self.objects_left)
 
     @property
+    def dropped_lost(self) -> int:
+        """Of ``objects_lost``, those dropped from the gripper (none in an aborted run, whose objects count as left)."""
+        return min(self.objects_dropped, self.objects_lost)
+
+    @property
     def aborted(self) -> bool:
         return self.end in ABORTED_ENDS
 
@@ -220,7 +225,7 @@ def summarize(runs: Sequence[RunLog], failure_limit: int = FAILURE_LIMIT) -> Sum
         objects=sum(r.objects for r in counted),
         objects_grasped=sum(r.objects_grasped for r in counted),
         objects_lost=sum(r.objects_lost for r in counted),
-        objects_dropped=sum(min(r.objects_dropped, r.objects_lost) for r in counted),
+        objects_dropped=sum(r.dropped_lost for r in counted),
         ends=ends,
         aborted=len(runs) - len(counted),
         picks_per_action=(successes / sum(res.actions for res in results)) if any(r.actions for r in results)

@@ -44,7 +44,7 @@ def _run_row(log: RunLog, failure_limit: int) -> dict[str, Any]:
     return {"run": log.run, "objects": log.objects, "actions": res.actions, "grasp_attempts": res.grasp_attempts,
             "grasp_successes": res.grasp_successes, "push": res.moves["push"], "shift": res.moves["shift"],
             "refused": res.refused, "objects_grasped": log.objects_grasped, "objects_left": log.objects_left,
-            "objects_lost": log.objects_lost, "objects_dropped": min(log.objects_dropped, log.objects_lost),
+            "objects_lost": log.objects_lost, "objects_dropped": log.dropped_lost,
             "longest_failure_streak": res.failure_streak,
             "streak_actions": res.streak_actions, "end": log.end,
             "completed": res.completed, "seconds": round(log.seconds, 3), "note": log.note}
@@ -94,7 +94,7 @@ def run_line(scene: str, log: RunLog, runs: int | None = None) -> str:
     if log.aborted:  # the simulator gave up: the scene was reset, its objects were not counted
         verdict, left = "not counted in the rates", ""
     else:
-        dropped = min(log.objects_dropped, lost)
+        dropped = log.dropped_lost
         how = f" ({dropped} dropped from the gripper)" if dropped else ""
         verdict = "completed" if res.completed else ("not completed" + (f", {lost} lost{how}" if lost else ""))
     return (f"{scene} run {log.run}{of}: {log.end} ({verdict}), {res.actions} actions, "
