@@ -10,11 +10,13 @@ Why the operator can always stop the cell: connections are capped in all
 runaway script cannot take the slots of the others), and a request line must
 arrive whole within ``REQUEST_TIMEOUT`` of its first byte (a client trickling
 a byte at a time is cut off).  A connection over either cap is not refused
-outright: it goes to the urgent lane, which reads one request within
-``URGENT_TIMEOUT`` and serves it only if it is ``stop`` or ``pause`` (both are
-answered at once, without the run loop).  Lane connections live for seconds,
-so connections held open -- idle, trickling or by the hundred -- cannot take
-stop and pause away; the lane has its own caps in all and per uid.
+outright: it goes to the urgent lane (``flgd/daemon/urgent_lane.py``), where
+the accept loop itself reads its first line within ``URGENT_TIMEOUT`` and
+serves it only if it is ``stop`` or ``pause`` (both are answered at once,
+without the run loop).  The lane never fills up against a newcomer: the
+connection that has waited longest makes room, so clients that open
+connections and hold them -- idle, trickling or by the hundred, from any
+number of threads -- cannot keep stop and pause from being read and answered.
 
 Why the operator can still stop the cell when the process is out of file
 descriptors (a leak, or a flood of connections elsewhere): the server holds one
@@ -40,6 +42,7 @@ import math
 import os
 import pwd
 import resource
+import selectors
 import socket
 import stat
 import struct
@@ -51,6 +54,7 @@ from typing import Any, Callable
 from flgd.daemon.protocol import (MAX_REQUEST_BYTES, ProtocolError, Request, encode, error_reply,
                                   ok_reply, parse_request)
 from flgd.daemon.peer_access import unreadable_path_arg
+from flgd.daemon.urgent_lane import Peer, UrgentLane
 
 __all__ = ["PeerPolicy", "ControlServer", "ConnectionSlots", "SocketInUse", "peer_credentials",
            "URGENT_COMMANDS"]
@@ -63,9 +67,11 @@ IDLE_TIMEOUT = 120.0  # seconds a connection may wait between two requests
 REQUEST_TIMEOUT = 10.0  # seconds from a request line's first byte to its newline
 # The urgent lane, for connections over the caps: one request, read within URGENT_TIMEOUT.
 URGENT_COMMANDS = frozenset({"stop", "pause"})
-MAX_URGENT = 16
+URGENT_WAITING = 64  # connections waiting in the lane for their first line (the oldest makes room)
+MAX_URGENT = 16  # stop and pause requests being answered at once
 MAX_URGENT_PER_UID = 8
 URGENT_TIMEOUT = 2.0
+ACCEPT_BATCH = 16  # accepts per pass of the loop: what waits in the lane is read in between
 _SO_PEERCRED_FORMAT = "3i"  # struct ucred {pid_t pid; uid_t uid; gid_t gid;}
 
 
@@ -193,6 +199,7 @@ class ControlServer:
         self._closers: dict[int, Callable[[], None]] = {}
         self._exhausted_since = 0.0  # monotonic time accepts began to fail (0: they do not)
         self._exhausted_failures = 0
+        self._lane: UrgentLane | None = None  # set while the accept loop runs
 
     # ------------------------------------------------------------------ life cycle
     def bind(self) -> None:
@@ -298,21 +305,45 @@ class ControlServer:
 
     # ------------------------------------------------------------------ serving
     def _accept_loop(self) -> None:
+        """Accept connections and read the urgent lane's, in one selector loop that never blocks on a client."""
         assert self._sock is not None
         self._open_reserve()
-        while not self._stopping.is_set():
+        self._sock.setblocking(False)
+        with selectors.DefaultSelector() as selector:
+            selector.register(self._sock, selectors.EVENT_READ, None)
+            self._lane = UrgentLane(selector, capacity=URGENT_WAITING, timeout=self.urgent_timeout,
+                                    answer=self._answer_from_lane, refuse=self._refuse_from_lane)
             try:
-                conn, _ = self._sock.accept()
-            except socket.timeout:
-                continue
+                while not self._stopping.is_set():
+                    for key, _ in selector.select(self._lane.seconds_to_next_deadline(0.5)):
+                        try:
+                            if key.data is None:
+                                self._accept_batch()
+                            elif self._lane.owns(key.data):
+                                self._lane.readable(key.data)
+                        except Exception:  # never let one connection end the accept loop
+                            log.exception("control socket: serving a connection failed")
+                    self._lane.expire()
+            finally:
+                self._lane.close_all()
+                self._lane = None
+
+    def _accept_batch(self) -> None:
+        """Up to ``ACCEPT_BATCH`` waiting connections; the loop reads the lane before taking more."""
+        for _ in range(ACCEPT_BATCH):
+            try:
+                conn, _ = self._sock.accept()  # type: ignore[union-attr]
+            except BlockingIOError:
+                return
             except OSError as exc:
                 if self._stopping.is_set():
                     return
                 if exc.errno in (errno.EMFILE, errno.ENFILE):
                     self._accept_with_reserve(exc)
-                    continue
-                self._accept_failed(exc)
-                continue
+                else:
+                    self._accept_failed(exc)
+                return
+            conn.setblocking(True)
             if self._reserve_fd is None:
                 self._open_reserve()
             if self._reserve_fd is None:
@@ -358,6 +389,7 @@ class ControlServer:
             self._open_reserve()
             self._stopping.wait(0.05)
             return
+        conn.setblocking(True)
         self._admit_safely(conn, on_close=self._open_reserve)
 
     def _accept_failed(self, exc: OSError) -> None:
@@ -376,7 +408,7 @@ class ControlServer:
             self._exhausted_failures = 0
 
     def _admit(self, conn: socket.socket, on_close: Callable[[], None] | None = None) -> None:
-        """Check the caller, then give the connection a slot, an urgent-lane slot, or a ``busy`` reply.
+        """Check the caller, then give the connection a slot or a place in the urgent lane.
 
         ``on_close`` runs once the connection is closed (the reserve descriptor is taken back then).
         """
@@ -399,9 +431,8 @@ class ControlServer:
         if self._slots.acquire(uid):
             threading.Thread(target=self._serve_connection, args=(conn, peer), name="flgd-client",
                              daemon=True).start()
-        elif self._urgent.acquire(uid):
-            threading.Thread(target=self._serve_urgent, args=(conn, peer), name="flgd-urgent",
-                             daemon=True).start()
+        elif self._lane is not None:
+            self._lane.add(conn, peer)
         else:
             self._refuse(conn, "busy", self._busy_message(uid))
 
@@ -412,13 +443,7 @@ class ControlServer:
 
     def _refuse(self, conn: socket.socket, code: str, message: str) -> None:
         """One error line without waiting for the peer (the accept loop must never block), then close."""
-        try:
-            conn.setblocking(False)
-            conn.send(encode(error_reply(None, self.state_name(), code, message)))
-        except OSError:
-            pass
-        finally:
-            self._close(conn)
+        self._send_and_close(conn, error_reply(None, self.state_name(), code, message))
 
     def _close(self, conn: socket.socket) -> None:
         """Close a connection, then run what waits for its descriptor (see ``_admit``)."""
@@ -436,43 +461,50 @@ class ControlServer:
             finally:
                 self._slots.release(peer[1])
 
-    def _serve_urgent(self, conn: socket.socket, peer: tuple[int, int, int]) -> None:
-        """One request, read within ``urgent_timeout``; only stop and pause are served."""
+    def _answer_from_lane(self, conn: socket.socket, peer: Peer, line: bytes) -> None:
+        """A first line read in the urgent lane: stop and pause are served on a thread; the rest get ``busy``."""
         try:
-            line = self._read_one_line(conn, time.monotonic() + self.urgent_timeout)
-            if line is None:
-                return
-            try:
-                request = parse_request(line.rstrip(b"\r"))
-            except ProtocolError as exc:
-                self._reply(conn, error_reply(exc.request_id, self.state_name(), exc.code, exc.message))
-                return
-            if request.cmd in URGENT_COMMANDS:
-                reply = self._answer(line, peer)
-            else:
-                reply = error_reply(request.id, self.state_name(), "busy", self._busy_message(peer[1]))
-            self._reply(conn, reply)
+            request = parse_request(line.rstrip(b"\r"))
+        except ProtocolError as exc:
+            self._send_and_close(conn, error_reply(exc.request_id, self.state_name(), exc.code, exc.message))
+            return
+        if request.cmd not in URGENT_COMMANDS:
+            self._send_and_close(conn, error_reply(request.id, self.state_name(), "busy",
+                                                   self._busy_message(peer[1])))
+        elif not self._urgent.acquire(peer[1]):
+            self._send_and_close(conn, error_reply(request.id, self.state_name(), "busy",
+                                                   f"{MAX_URGENT} stop and pause requests are being answered; "
+                                                   "try again (flgctl does)"))
+        else:
+            threading.Thread(target=self._serve_urgent, args=(conn, peer, line), name="flgd-urgent",
+                             daemon=True).start()
+
+    def _refuse_from_lane(self, conn: socket.socket, peer: Peer, line: bytes | None) -> None:
+        if line is None:
+            self._refuse(conn, "busy", self._busy_message(peer[1]))
+        else:
+            self._refuse(conn, "too_long", f"request line is over the {MAX_REQUEST_BYTES}-byte limit")
+
+    def _send_and_close(self, conn: socket.socket, reply: dict) -> None:
+        """One reply line without waiting for the peer (the accept loop must never block), then close."""
+        try:
+            conn.setblocking(False)
+            conn.send(encode(_json_safe(reply)))
+        except OSError:
+            pass
+        finally:
+            self._close(conn)
+
+    def _serve_urgent(self, conn: socket.socket, peer: Peer, line: bytes) -> None:
+        """Answer a stop or pause read in the urgent lane, then close."""
+        try:
+            conn.setblocking(True)
+            self._reply(conn, self._answer(line, peer))
         finally:
             try:
                 self._close(conn)
             finally:
                 self._urgent.release(peer[1])
-
-    def _read_one_line(self, conn: socket.socket, deadline: float) -> bytes | None:
-        buf = bytearray()
-        while b"\n" not in buf:
-            remaining = deadline - time.monotonic()
-            if remaining <= 0 or len(buf) >= MAX_REQUEST_BYTES:
-                return None
-            try:
-                conn.settimeout(remaining)
-                chunk = conn.recv(MAX_REQUEST_BYTES)
-            except OSError:  # socket.timeout included
-                return None
-            if not chunk:
-                return None
-            buf += chunk
-        return bytes(buf[:buf.find(b"\n")])
 
     def _serve_lines(self, conn: socket.socket, peer: tuple[int, int, int]) -> None:
         buf = bytearray()
