@@ -140,6 +140,33 @@ def test_a_cached_argmax_older_than_the_limit_is_recomputed_with_the_current_net
     assert lrn.argmax_computed == 1 and lrn._next_argmax[t.next_key][0] == 4
 
 
+def test_with_actor_argmax_the_deciding_weights_a_prime_is_used_however_many_updates_later():
+    # the exact target while the weights are those that decided; thousands of updates later the cell's a' still
+    # picks the rotation and pixel, and only Q_target(s', a') is computed (one rotation of the target network)
+    cfg = learner_config(gamma=0.5, actor_argmax=True, target_update_every=1000)
+    replay = PrioritizedReplay(8, seed=0)
+    lrn = learner(cfg, replay)
+    s2 = block_scene(4)
+    t = _replayed(replay, Transition(block_scene(3), Action("grasp", 5, 5, 0), 0.25, s2, False))
+    exact = learner(learner_config(gamma=0.5), PrioritizedReplay(8, seed=0))
+    exact.online.load_state_dict(lrn.online.state_dict())
+    exact.target.load_state_dict(lrn.target.state_dict())
+    decision = Agent(cfg, lrn.online).decide(s2, step=10_000)
+    lrn.note_decision(s2, decision, weights_version=0)
+    assert lrn.targets([t])[0] == pytest.approx(exact.targets([t])[0], abs=1e-6)
+    lrn.updates = 5000
+    lrn._next_value.clear()  # a target sync: the value is recomputed, the choice of a' is not
+    rot, ch, row, col = decision.greedy
+    with torch.no_grad():
+        q_t = q_maps(lrn.target, s2, rotation_indices=[rot])[0, ch, row, col].item()
+    assert lrn.targets([t])[0] == pytest.approx(0.25 + 0.5 * q_t, abs=1e-6)
+    assert (lrn.argmax_reused, lrn.argmax_computed) == (2, 0)
+    # a decision of weights ahead of this learner's line is still refused
+    lrn._next_argmax.clear()
+    lrn.note_decision(s2, decision, weights_version=6000)
+    assert lrn._next_argmax == {}
+
+
 def test_decisions_of_old_weights_are_not_cached_and_nothing_is_cached_with_age_zero():
     s2 = block_scene(4)
     for max_age, version, updates in ((0, 0, 0), (3, 0, 5), (3, -1, 0)):

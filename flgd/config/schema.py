@@ -223,6 +223,10 @@ class LearningConfig:
                                       help="chance a replayed transition is trained as its mirror image")
     next_argmax_max_age: int = param(0, ge=0, unit="updates",
                                      help="reuse a next state's double-DQN argmax this long (0 = always recompute)")
+    actor_argmax: bool = param(False, help="keep each next state's double-DQN argmax for as long as the state is "
+                                           "replayed: the a' of the decision that acted on it (or, where none was "
+                                           "recorded, the learner's first) is never recomputed, so a target costs "
+                                           "one or two rotations of the target network (`flgd train`'s recipe)")
     max_backlog: int = param(0, ge=0, unit="updates",
                              help="most scheduled updates the background learner may owe; more are dropped "
                                   "(0 = no limit)")
