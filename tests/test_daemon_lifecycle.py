@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import random
 import signal
 import socket
@@ -266,6 +267,45 @@ def test_read_only_state_dir_gives_a_fault_at_startup(daemon_factory, tmp_path):
         assert d.ok("status")["state"] == "FAULT"
         d.proc.send_signal(signal.SIGTERM)
         assert d.wait_exit() == 0
+
+
+def test_a_daemon_started_on_a_read_only_state_dir_holds_it_once_it_is_writable(daemon_factory, tmp_path):
+    """The first daemon starts in FAULT on a read-only directory; made writable, the directory is still the
+    first one's: a second daemon on it is refused, naming why, and never reaches ready."""
+    with tmpfs(tmp_path / "ro", size="4m") as state_dir:
+        subprocess.run(["mount", "-o", "remount,ro", str(state_dir)], check=True)
+        first = daemon_factory(state_dir=state_dir).start().wait_ready()
+        assert first.ok("status")["state"] == "FAULT"
+        subprocess.run(["mount", "-o", "remount,rw", str(state_dir)], check=True)
+        (tmp_path / "second").mkdir()
+        second = DaemonProcess(tmp_path / "second", config=first.config, state_dir=state_dir)
+        try:
+            code = second.start().wait_exit(timeout=120)
+            assert code != 0
+            assert "is using the state directory" in second.log() and str(state_dir) in second.log()
+        finally:
+            second.cleanup()
+        assert not (state_dir / "flgd.sqlite").exists()  # nobody wrote a store there
+        assert first.ok("status")["state"] == "FAULT"
+        first.proc.send_signal(signal.SIGTERM)
+        assert first.wait_exit() == 0
+
+
+def test_the_state_dir_lock_needs_no_write_access_and_a_missing_dir_is_no_lock(tmp_path):
+    """What the daemon's start relies on: the lock of a directory nobody may write is taken and excludes the
+    next taker; a directory that cannot be made is an error, never a start without the lock."""
+    from flgd.state_dir_lock import StateDirBusy, lock_state_dir
+
+    with tmpfs(tmp_path / "ro", size="1m") as state_dir:
+        subprocess.run(["mount", "-o", "remount,ro", str(state_dir)], check=True)
+        fd = lock_state_dir(state_dir, create=True)
+        try:
+            with pytest.raises(StateDirBusy):
+                lock_state_dir(state_dir, create=True)
+        finally:
+            os.close(fd)
+        with pytest.raises(OSError):
+            lock_state_dir(state_dir / "inside", create=True)
 
 
 def test_a_second_daemon_on_the_same_state_directory_is_refused(daemon_factory, tmp_path):

@@ -410,7 +410,7 @@ def test_calibrate_command_refuses_a_wrong_marker_offset(tmp_path, capsys):
 
 def test_calibrate_refuses_while_a_daemon_holds_the_cell_and_runs_once_it_is_gone(tmp_path, capsys):
     """The daemon and calibrate would both drive the arm: calibrate checks the daemon's state-dir lock
-    (the same ``flgd.lock`` the daemon takes) before it opens anything."""
+    (the same flock on the state directory the daemon takes) before it opens anything."""
     from flgd.state_dir_lock import StateDirBusy, lock_state_dir
 
     state = tmp_path / "state"

@@ -181,9 +181,9 @@ class Controller:
             self._lock_fd = lock_state_dir(self.state_dir, create=True)
         except StateDirBusy as exc:
             raise StartupError(str(exc)) from None
-        except OSError as exc:
-            log.warning("cannot create the lock file in %s: %s", self.state_dir, exc)
-            # the store will report the same problem as a FAULT
+        except OSError as exc:  # a daemon without the lock could share the store with the next one
+            raise StartupError(f"cannot lock the state directory {self.state_dir}: {exc.strerror or exc}; "
+                               "make it (or its parent) exist and readable by this user, then start again") from None
 
     def _open_store(self) -> bool:
         try:
