@@ -138,7 +138,8 @@ def trial(mode: str, threads: int, hold: int) -> dict:
                 if daemon.poll() is None:
                     daemon.send_signal(signal.SIGKILL)
                     daemon.wait()
-    return {"mode": mode, "stop_seconds": round(seconds, 3), "flgctl_exit": stop.returncode,
+    return {"mode": mode, "stop_seconds": round(seconds, 3), "load_average_1min": round(os.getloadavg()[0], 2),
+            "flgctl_exit": stop.returncode,
             "flgctl_output": (stop.stdout + stop.stderr).strip()[:200], "daemon_exit": code}
 
 

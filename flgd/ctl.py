@@ -133,7 +133,7 @@ def call(socket_path: str | os.PathLike, cmd: str, args: dict[str, Any] | None =
 
 
 def _find_socket(explicit: str | None) -> Path:
-    from flgd.daemon.run import socket_candidates
+    from flgd.daemon.socket_path import socket_candidates
 
     if explicit:
         return Path(explicit)

@@ -40,40 +40,13 @@ from flgd.daemon.preflight import PreflightError, check_policy, check_state_dir,
 from flgd.daemon.protocol import ProtocolError, Request
 from flgd.daemon.state import State
 from flgd.daemon.server import ControlServer, PeerPolicy, SocketInUse
+from flgd.daemon.socket_path import default_socket_path, socket_candidates
 
 __all__ = ["main", "default_socket_path", "socket_candidates"]
 
 log = logging.getLogger("flgd")
 
 EXIT_OK, EXIT_STARTUP = 0, 1
-
-
-def socket_candidates(environ: dict[str, str] | None = None) -> list[Path]:
-    """Where the control socket is looked for, in order (flgctl tries each)."""
-    env = os.environ if environ is None else environ
-    out = []
-    if env.get("FLGD_SOCKET"):
-        out.append(Path(env["FLGD_SOCKET"]))
-    if env.get("RUNTIME_DIRECTORY"):
-        out.append(Path(env["RUNTIME_DIRECTORY"].split(":")[0]) / "flgd.sock")
-    out.append(Path("/run/flgd/flgd.sock"))
-    if env.get("XDG_RUNTIME_DIR"):
-        out.append(Path(env["XDG_RUNTIME_DIR"]) / "flgd" / "flgd.sock")
-    return out
-
-
-def default_socket_path(environ: dict[str, str] | None = None) -> Path:
-    """The daemon's socket: $FLGD_SOCKET, $RUNTIME_DIRECTORY/flgd.sock, /run/flgd/flgd.sock if writable,
-    else $XDG_RUNTIME_DIR/flgd/flgd.sock."""
-    cands = socket_candidates(environ)
-    for p in cands:
-        try:
-            p.parent.mkdir(parents=True, exist_ok=True)
-        except OSError:
-            continue
-        if os.access(p.parent, os.W_OK):
-            return p
-    return cands[0]
 
 
 class _StatusLine(logging.Handler):
