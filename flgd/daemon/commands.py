@@ -177,12 +177,24 @@ def _policy_history(ctl: Controller, req: Request) -> dict:
 
 # ================================================================== policies, backend, snapshot
 def policy_load(ctl: Controller, path: str, who: str = "") -> dict:
-    """Validate the file here, then make it the champion between cycles (see ``swap_in_policy``)."""
+    """Validate the file here, then make it the champion between cycles (see ``swap_in_policy``); a refusal is
+    logged and recorded as an event with its reason."""
+    try:
+        return _load_policy(ctl, path, who)
+    except ProtocolError as exc:
+        log.warning("policy load of %s by %s refused: %s", path, who or "operator", exc.message)
+        ctl._event("policy", f"load of {path} by {who or 'operator'} refused: {exc.message}")
+        raise
+
+
+def _load_policy(ctl: Controller, path: str, who: str) -> dict:
     from flgd.learning.policy_file import PolicyFileError, load_policy
+    from flgd.policy_header import check_policy_header
 
     if not os.path.isabs(path):
         raise ProtocolError("bad_request", f"policy_load: path must be absolute, got {path!r}")
     try:
+        check_policy_header(path)  # a file that is no policy is refused before its body is read
         running = ctl.agent.network.architecture() if ctl.agent is not None else None
         loaded = load_policy(path, expected_variant=ctl.config.learning.network, expected_architecture=running)
     except PolicyFileError as exc:
