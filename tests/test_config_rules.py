@@ -152,3 +152,40 @@ def test_a_device_error_found_only_at_learner_construction_is_still_a_clear_exit
 def test_shipped_configs_still_pass():
     for path in sorted((REPO / "cell_config").glob("*.yaml")):
         load_config(path)
+
+
+# --------------------------------------------------------------------------- the arm's reach (flgd/config/reach.py)
+
+def _moved_out(data: dict, dx: float) -> dict:
+    """The sim cell with workspace, envelope, home and place all moved ``dx`` further from the base in x
+    (every box check still holds: the mistake only the reach can catch)."""
+    data["workspace"]["x"] = [round(v - dx, 3) for v in data["workspace"]["x"]]
+    data["safety"]["envelope_x"] = [round(v - dx, 3) for v in data["safety"]["envelope_x"]]
+    for pose in ("home", "place"):
+        data["robot"][pose]["position"][0] = round(data["robot"][pose]["position"][0] - dx, 3)
+    return data
+
+
+@pytest.mark.parametrize("backend", ["sim", "ur5e"])
+def test_a_workspace_2_4_to_3_1_m_from_the_base_is_out_of_the_ur5es_reach(backend):
+    data = _moved_out(sim_data(), 2.3)  # workspace x [-3.024, -2.576]: 2.6-3.0 m from the base
+    if backend == "ur5e":
+        data["backend"] = "ur5e"
+        data.setdefault("gripper", {})["driver"] = "rg2_xmlrpc"
+    problems = problems_of(data)
+    assert len(problems) == 4, problems
+    ws, env, home, place = problems
+    assert ws.startswith("workspace:") and "-3.024" in ws and "reach of 0.85 m" in ws and "UR5e" in ws
+    assert env.startswith("safety.envelope:") and "-3.08" in env and "no point of the envelope" in env
+    assert home.startswith("robot.home.position:") and "-2.75" in home and "reach of 0.85 m" in home
+    assert place.startswith("robot.place.position:") and "-2.8" in place
+
+
+def test_one_far_workspace_corner_is_named_and_the_shipped_configs_are_within_reach():
+    data = sim_data()
+    data["workspace"]["y"] = [-0.524, 0.224]  # the far corner (x -0.724, y -0.524) is 0.89 m out
+    data["safety"]["envelope_y"] = [-0.60, 0.40]
+    (p,) = problems_of(data)
+    assert p.startswith("workspace:") and "y -0.524" in p and "0.89 m away" in p
+    for path in sorted((REPO / "cell_config").glob("*.yaml")):
+        load_config(path)  # raises ConfigError if any part were out of reach

@@ -1,6 +1,6 @@
 """The rules between keys of a cell config, which single-field limits cannot express.
 
-Among them: the workspace, home and place inside the safety envelope, motion within the safety caps, a backend
+Among them: the workspace, home and place inside the safety envelope and the arm's reach (``flgd.config.reach``), motion within the safety caps, a backend
 that exists and can drive the configured gripper (names from the leaf ``flgd.backends``, so validating a config
 imports no cell, safety or plan module), and a CUDA device where one is asked for.
 """
@@ -11,6 +11,7 @@ import difflib
 
 from flgd.backends import BACKEND_GRIPPER_DRIVERS, backend_names
 from flgd.config.messages import quote
+from flgd.config.reach import check_reach
 from flgd.config.schema import CellConfig
 from flgd.disk_budget import MIN_STORE_BYTES
 
@@ -81,6 +82,7 @@ def check_relations(cfg: CellConfig, problems: list[str]) -> None:
             problems.append(f"robot.{pose_key}.position: z = {pose.position[2]!r} is below the table clearance "
                             f"floor {floor:.4f} m (workspace.z[0] {ws.table_z!r} + safety.min_table_clearance "
                             f"{sf.min_table_clearance!r}); expected z >= {floor:.4f}")
+    check_reach(cfg, problems)
     hx, hy = cfg.robot.home.position[0], cfg.robot.home.position[1]
     if ws.x[0] <= hx <= ws.x[1] and ws.y[0] <= hy <= ws.y[1]:
         problems.append(f"robot.home.position: (x, y) = ({hx!r}, {hy!r}) is over the workspace (x {list(ws.x)!r}, "
