@@ -7,7 +7,11 @@ first line, the one that says what happened.  This filter passes the first
 ``burst`` records of each message (same logger, level and text) in a
 ``window``; the rest are counted, and the next one that passes says how many
 were left out.  Messages that differ in their text (a state change, a
-step number) are never held back by each other.
+step number) are never held back by each other -- except on a logger whose
+messages carry a counter that changes on every failure (the learner's "failed
+at update N"): there ``by_template`` keys on the message's format string, and
+``quiet`` replaces the traceback of environmental errors (a full disk, a
+read-only directory) with the error's one-line text, which says all of it.
 """
 
 from __future__ import annotations
@@ -26,11 +30,14 @@ WINDOW = 60.0  # seconds
 class RepeatLimit(logging.Filter):
     """Pass at most ``burst`` records of one message per ``window`` seconds; report what was dropped."""
 
-    def __init__(self, burst: int = BURST, window: float = WINDOW, clock: Callable[[], float] = time.monotonic):
+    def __init__(self, burst: int = BURST, window: float = WINDOW, clock: Callable[[], float] = time.monotonic,
+                 *, by_template: bool = False, quiet: tuple[type[BaseException], ...] = ()):
         super().__init__()
         self.burst = burst
         self.window = window
         self.clock = clock
+        self.by_template = by_template
+        self.quiet = quiet
         self._lock = threading.Lock()
         self._seen: dict[tuple[str, int, str], list] = {}  # key -> [window start, passed, dropped]
 
@@ -39,8 +46,12 @@ class RepeatLimit(logging.Filter):
             text = record.getMessage()
         except Exception:  # a record whose arguments do not fit its format: the handler will report it
             return True
-        key = (record.name, record.levelno, text)
+        key = (record.name, record.levelno, str(record.msg) if self.by_template else text)
         now = self.clock()
+        exc = record.exc_info[1] if record.exc_info else None
+        if self.quiet and isinstance(exc, self.quiet):
+            text = f"{text}: {type(exc).__name__}: {exc}"
+            record.msg, record.args, record.exc_info, record.exc_text = text, None, None, None
         with self._lock:
             entry = self._seen.get(key)
             if entry is None or now - entry[0] >= self.window:

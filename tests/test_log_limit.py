@@ -60,3 +60,53 @@ def test_messages_of_one_format_with_different_text_are_each_passed():
     for old, new in changes:
         logger.info("%s -> %s", old, new)
     assert lines == [f"{old} -> {new}" for old, new in changes]
+
+
+def test_a_full_disk_under_the_learner_gives_at_most_ten_log_lines_a_minute():
+    """The real learner, every priority write and checkpoint failing as on a full disk, logged through the
+    daemon's filters (``flgd.daemon.run``): 12 updates, each failing twice, are at most 10 lines in all,
+    tracebacks included."""
+    import errno
+
+    from flgd.actions import Action
+    from flgd.daemon.run import LEARNER_LOGGER, limit_learner_log
+    from flgd.learning.learner import Learner
+    from flgd.learning.networks import build_network
+    from flgd.learning.replay import PrioritizedReplay, Transition
+    from flgd.store.errors import StoreError
+    from tests.fakes.learning import block_scene, learner_config
+
+    def full_disk_store(tagged):
+        raise StoreError("cannot write replay priorities: database or disk is full")
+
+    def full_disk_checkpoint(net, updates):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    cfg = learner_config(checkpoint_every=1)
+    replay = PrioritizedReplay.from_config(cfg.learning)
+    for i in range(3):
+        replay.add(Transition(block_scene(i), Action("grasp", 12, 12, i), 1.0, None, True), tag=i)
+    lrn = Learner(cfg, build_network("fast", 16, seed=0), replay, checkpoint_callback=full_disk_checkpoint,
+                  priority_sink=full_disk_store)
+    lines: list[str] = []
+
+    class Journal(logging.Handler):
+        def emit(self, record: logging.LogRecord) -> None:
+            lines.extend(self.format(record).splitlines())
+
+    journal = Journal()
+    journal.addFilter(RepeatLimit())  # what flgd run puts on its handler
+    learner_log = logging.getLogger(LEARNER_LOGGER)
+    limit = limit_learner_log()
+    learner_log.addHandler(journal)
+    try:
+        for _ in range(12):
+            lrn.update()
+    finally:
+        learner_log.removeHandler(journal)
+        learner_log.removeFilter(limit)
+    assert lrn.updates == 12 and "checkpoint at update 12" in lrn.last_error
+    assert 2 <= len(lines) <= 10, "\n".join(lines)
+    assert any("database or disk is full" in line for line in lines)
+    assert any("No space left on device" in line for line in lines)
+    assert not any(line.startswith("Traceback") for line in lines)

@@ -155,6 +155,7 @@ def main(argv: list[str]) -> int:
     handler.setFormatter(logging.Formatter("%(levelname)s %(name)s: %(message)s" if journal else
                                            "%(asctime)s %(levelname)s %(name)s: %(message)s", "%H:%M:%S"))
     handler.addFilter(RepeatLimit())  # no condition that fails on every try can flood the journal
+    limit_learner_log()
     root = logging.getLogger()
     root.handlers[:] = [handler]
     root.setLevel(args.log_level)
@@ -240,6 +241,24 @@ def main(argv: list[str]) -> int:
     for sig, previous_handler in previous.items():  # run in-process (tests): leave no handler behind
         signal.signal(sig, previous_handler)
     return EXIT_OK
+
+
+LEARNER_LOGGER = "flgd.learning.learner"
+LEARNER_BURST = 3  # records of one learner message per minute
+
+
+def limit_learner_log() -> RepeatLimit:
+    """The learner fails once per update when the disk is full, each message with its update number: at most
+    ``LEARNER_BURST`` of each a minute, tracebacks of storage errors as one line (installed once)."""
+    from flgd.store.errors import StoreError
+
+    learner = logging.getLogger(LEARNER_LOGGER)
+    for existing in learner.filters:
+        if isinstance(existing, RepeatLimit):
+            return existing
+    limit = RepeatLimit(burst=LEARNER_BURST, by_template=True, quiet=(OSError, StoreError))
+    learner.addFilter(limit)
+    return limit
 
 
 def _until_ready(handle: Callable[[Request], dict], ready: threading.Event) -> Callable[[Request], dict]:
