@@ -21,6 +21,11 @@ reset, a discarded action, a stop or when the runner is new; each of those
 first sends the arm home (``plan_home``, checked like any plan), since it may
 stand in the camera's view -- a real arm halted mid-motion does.
 
+A grasp succeeded (reward 1) only when the width says an object is between the fingers both at the
+home pose after the lift and at the place pose before they open (``plan_release``): an object dropped
+on the way is a failed grasp in the record, the stored transition and every report, and the record's
+``failure`` says it was dropped.
+
 Outcomes of a cycle (``CycleRecord.outcome``):
   * ``executed``  -- the plan ran; a transition was stored and learned from.
   * ``refused``   -- the safety envelope refused the plan; nothing was sent to
@@ -394,6 +399,10 @@ class CycleRunner:
                     unstable = _unstable(released)
                     if not released.completed and not unstable:
                         raise CellFault(f"could not release after the grasp: {released.failure}")
+                    if held and not unstable:
+                        held, dropped = _held_at_place(released, self.config)
+                        if dropped:
+                            record.failure = dropped
                 if not unstable and not result.completed:
                     home = self._run_checked(plan_home(self.config), "home")
                     if _was_stopped(home):
@@ -454,6 +463,20 @@ def _record_outcome(agent: Any, action: Action, grasp_success: bool | None, move
                     height_after: np.ndarray, kind: str | None) -> None:
     """Tell the agent what its action did, and the heightmap that was judged (for its failure memory)."""
     agent.record_outcome(action, grasp_success, move_changed=move_changed, height_after=height_after, kind=kind)
+
+
+def _held_at_place(released: ExecutionResult, config: CellConfig) -> tuple[bool, str]:
+    """Whether the object measured as held at home was still held at the place pose, before the fingers
+    opened (the width read at ``flgd.plans.PLACE_CHECK_LABEL``), and if not, the failure text saying so.
+
+    Why: the width at home says the object was lifted; only the width at the place says it was picked.  A
+    place plan that reported no width proves nothing held."""
+    width = float(released.widths[-1]) if released.widths else math.nan
+    if grasp_reward(width, config.gripper) > 0:
+        return True, ""
+    shown = f"{width * 1000:.1f} mm" if math.isfinite(width) else "no reading"
+    return False, (f"dropped: the object slipped out of the gripper between the home and the place pose "
+                   f"(width at the place pose {shown})")
 
 
 def _was_stopped(result: ExecutionResult) -> bool:

@@ -9,6 +9,9 @@ Distances (defaults in ``RobotConfig``, all configurable):
     ``grasp_depth`` below the surface (never below the table clearance; the
     descent stops early where the fingers meet ``descent_contact_force``), close,
     lift to ``lift_height``, go home, measure the width (the paper's success test).
+  * place (after a grasp measured as held): carry to ``robot.place``, measure the
+    width again, open, go home.  Only an object still between the fingers at the
+    place pose was picked: one that slipped out on the way is a failed grasp.
   * push (the point is background): close, descend beside the objects to
     ``push_height`` above the table, travel ``push_distance`` (10 cm) along
     theta, rise, go home.  The end point is clamped to the workspace.
@@ -40,6 +43,7 @@ __all__ = [
     "plan_action",
     "plan_grasp",
     "LIFT_LABEL",
+    "PLACE_CHECK_LABEL",
     "plan_push",
     "plan_shift",
     "plan_release",
@@ -84,6 +88,7 @@ class MeasureWidth:
 Step = Union[MoveL, GripperCommand, MeasureWidth]
 
 LIFT_LABEL = "lift"   # a grasp's move up with the gripper closed: what is between the pads then was picked up
+PLACE_CHECK_LABEL = "at place"   # the width read at the place pose before opening: still held there = picked
 
 
 @dataclass(frozen=True)
@@ -203,13 +208,17 @@ def plan_action(action: Action, height_map: np.ndarray, config: CellConfig) -> P
 
 
 def plan_release(held: bool, config: CellConfig) -> Plan:
-    """After a grasp: carry a held object to the place pose and open; otherwise just open."""
+    """After a grasp: carry a held object to the place pose, read the width there and open; otherwise just open.
+
+    The width at the place pose (``PLACE_CHECK_LABEL``) is the grasp's final judgement: an object that
+    slipped out between the home pose and the place was not picked, on any cell."""
     gr, rb = config.gripper, config.robot
     if not held:
         return Plan("release", (GripperCommand(gr.open_width, gr.force, "open"),))
     place, home = rb.place, rb.home
     steps: tuple[Step, ...] = (
         MoveL(ToolPose.top_down(*place.position, place.yaw), rb.speed, rb.acceleration, "place"),
+        MeasureWidth(PLACE_CHECK_LABEL),
         GripperCommand(gr.open_width, gr.force, "open"),
         MoveL(ToolPose.top_down(*home.position, home.yaw), rb.speed, rb.acceleration, "home"),
     )

@@ -143,7 +143,6 @@ class SimCell(Cell):
         # a training log must tell a packed scene from a drop.
         self.scene_kind = "none"
         self._randomiser = Randomiser(config, np.random.default_rng(seeds[0]), self._world.client)
-        self._carry_tried: set[int] = set()   # gripped objects whose grip survived a simulated trial carry
         self._press_allowance = 0.0           # m of intended press of the running plan (a shift's press)
         self._press_yield = 0.0               # m the compliant wrist has given way during that press
         # Perception is told the configured camera; the picture is taken from where the camera truly is.
@@ -230,7 +229,7 @@ class SimCell(Cell):
             # that much extra squeeze is the intended press, not a collision.
             self._press_allowance = self.config.robot.shift_press if planned.primitive == "shift" else 0.0
             self._press_yield = 0.0
-            self._world.lifted = set()
+            self._world.lifted = self._world.held & self._in_gripper()   # carried in (to the place): lost = dropped
             try:
                 for i, step in enumerate(steps):
                     if isinstance(step, MoveL):
@@ -309,7 +308,7 @@ class SimCell(Cell):
         """True when no object is left in the workspace."""
         with self._lock:
             self._check_open()
-            self._world.remove_outside()
+            self._remove_outside()
             return len(self._world.objects) == 0
 
     def close(self) -> None:
@@ -419,8 +418,9 @@ class SimCell(Cell):
 
     # -- motions
     def _in_gripper(self) -> set[int]:
-        """What moves with the gripper: the measured held objects plus whatever is between the pads."""
-        return self._world.held | self._contacts.between_pads()
+        """What moves with the gripper: whatever is between the pads, and what a width measurement found
+        held (a pinched pair) as long as it still touches the pads."""
+        return self._contacts.between_pads() | (self._world.held & self._contacts.held())
 
     def _free_span(self, traj: motion.Trajectory, carried: set[int], from_end: bool) -> int:
         """Number of ticks at the start (or end) of a line that cannot touch anything."""
@@ -457,10 +457,9 @@ class SimCell(Cell):
         if n <= 0:
             return False
         carried = self._in_gripper()
-        # gripped but not yet carried through a trial: its first ticks are simulated so a weak grip can slip
-        on_trial = carried - self._world.held - self._carry_tried
+        # whatever the gripper carries is simulated, so that a weak grip can slip (only a lift may jump, below)
         first = 0
-        if not on_trial and not self._contacts.touching(carried) and not self._world.stability.moving(exclude=carried):
+        if not carried and not self._contacts.touching(carried) and not self._world.stability.moving():
             free_head = self._free_span(traj, carried, from_end=False)
             if free_head >= len(joints):
                 self._jump(joints[-1], traj.duration, carried)
@@ -475,7 +474,7 @@ class SimCell(Cell):
         self._world.set_solver()
         target = self._yielded(traj, first)
         for i in range(first, n):
-            if i >= last and i > first and self._may_jump(carried, on_trial, straight_up, i - first):
+            if i >= last and i > first and self._may_jump(carried, straight_up, i - first):
                 self._jump(joints[-1], (n - i) * traj.tick, carried)
                 return False
             nxt = self._yielded(traj, i + 1)
@@ -522,22 +521,19 @@ class SimCell(Cell):
         """Joint target of tick ``i``, raised by the give of a compliant press (see ``_press_yield``)."""
         return motion.raised_joints(traj, i, self._press_yield, self._tcp_offset)
 
-    def _may_jump(self, carried: set[int], on_trial: set[int], straight_up: bool, simulated_ticks: int) -> bool:
+    def _may_jump(self, carried: set[int], straight_up: bool, simulated_ticks: int) -> bool:
         """Whether the rest of a line (already known to be clear of obstacles) may be a jump: the
-        gripper touches nothing it does not carry, and a freshly gripped object is on a straight
-        lift, has been carried for ``CARRY_TRIAL_TICKS`` and is still between both pads."""
-        if on_trial:
-            if (not straight_up or simulated_ticks < CARRY_TRIAL_TICKS
-                    or not on_trial <= self._contacts.between_pads()):
-                return False
-            self._carry_tried |= on_trial
+        gripper touches nothing it does not carry, and what it carries is on a straight lift, has been
+        carried for ``CARRY_TRIAL_TICKS`` and is still in the gripper (a carry sideways never jumps)."""
+        if carried and (not straight_up or simulated_ticks < CARRY_TRIAL_TICKS
+                        or not carried <= self._in_gripper()):
+            return False
         return not self._contacts.touching(carried) and not self._world.stability.moving(exclude=carried)
 
     def _run_gripper(self, width: float, force: float) -> None:
         opening = width > self._robot.finger_target_width() + 1e-4 or width > self._robot.width() + 1e-3
         if opening and self._world.held:
             self._release_held()
-        self._carry_tried.clear()
         if not self._in_gripper() and not self._contacts.touching(set()) and free_space.clear(
                 self._tcp()[None, :3, 3], free_space.GRIPPER_HALF_SIZE, 0.0,
                 free_space.obstacles(self._client, self._world.objects, set())):
@@ -570,8 +566,9 @@ class SimCell(Cell):
             self._world.step(4)
 
     def _release_held(self) -> None:
-        """Opening the gripper on a held object hands it out of the cell (carried out)."""
-        for body in list(self._world.held):
+        """Opening the gripper on a held object still in it hands it out of the cell (carried out); one that
+        slipped out on the way stays in the scene, where it fell."""
+        for body in list(self._world.held & self._in_gripper()):
             if body in self._world.objects:
                 self._world.remove(body, "grasped_out")
         self._world.held.clear()
@@ -597,14 +594,15 @@ class SimCell(Cell):
         except (motion.Unreachable, _Unstable, _CollisionStop):
             self._robot.teleport(self._home_joints, gr.open_width)
         self._world.held.clear()
-        self._world.remove_outside()
+        self._remove_outside()
 
     # -- the world, as execute uses it
     def _settle_until_still(self, limit: float) -> None:
         self._world.settle_until_still(limit)
 
     def _remove_outside(self) -> None:
-        self._world.remove_outside()
+        """Objects out of the workspace leave the cell, except what the gripper carries (until it opens)."""
+        self._world.remove_outside(keep=self._in_gripper())
 
 
 class _CollisionStop(Exception):

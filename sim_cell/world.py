@@ -151,19 +151,20 @@ class World:
         self.stats[reason] += 1
 
     def remove_lost(self, body: int) -> None:
-        """An object out of the cell: carried out when held, else it left the workspace (and was dropped, when
-        the gripper had lifted it in this plan)."""
-        if body in self.held:
-            self.remove(body, "grasped_out")
-            return
-        if body in self.lifted:
+        """An object out of the cell other than in the gripper: it left the workspace, and was dropped when the
+        gripper had lifted it in this plan or held it (a grip that gave way).  Carried out is counted where the
+        gripper opens on it (the cell's release)."""
+        if body in self.lifted or body in self.held:
             self.stats["dropped"] += 1
         self.remove(body, "left_workspace")
 
-    def remove_outside(self) -> None:
-        """Remove every object whose centre left the workspace or fell off the table."""
+    def remove_outside(self, keep: set[int] | frozenset[int] = frozenset()) -> None:
+        """Remove every object whose centre left the workspace or fell off the table, except ``keep`` (what
+        the gripper carries: it leaves the cell when the gripper opens on it)."""
         ws = self.ws
         for body in list(self.objects):
+            if body in keep:
+                continue
             pos, _ = p.getBasePositionAndOrientation(body, physicsClientId=self.client)
             inside = ws.x[0] <= pos[0] <= ws.x[1] and ws.y[0] <= pos[1] <= ws.y[1] and pos[2] > ws.z[0] - FALLEN_DEPTH
             if not inside:

@@ -15,8 +15,8 @@ from flgd.actions import Action
 from flgd.config import load_config
 from flgd.geometry import ToolPose
 from flgd.perception import pixel_to_base
-from flgd.plans import GripperCommand, MeasureWidth, MoveL, Plan, move_kind, plan_action, plan_grasp, plan_push, \
-    plan_release, plan_shift
+from flgd.plans import PLACE_CHECK_LABEL, GripperCommand, MeasureWidth, MoveL, Plan, move_kind, plan_action, plan_grasp, \
+    plan_push, plan_release, plan_shift
 from flgd.safety import CheckedPlan, PlanRefused, check_plan
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -108,7 +108,8 @@ def test_move_becomes_push_or_shift_by_height_at_its_point() -> None:
 
 def test_release_places_a_held_object_and_only_opens_otherwise() -> None:
     held = plan_release(True, CFG)
-    assert [s.label for s in held.steps] == ["place", "open", "home"]
+    assert [s.label for s in held.steps] == ["place", PLACE_CHECK_LABEL, "open", "home"]
+    assert isinstance(held.steps[1], MeasureWidth)  # still held at the place pose, read before the fingers open
     assert plan_release(False, CFG).steps == (GripperCommand(CFG.gripper.open_width, CFG.gripper.force, "open"),)
     check_plan(held, CFG)
 

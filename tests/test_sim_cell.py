@@ -12,7 +12,7 @@ import pytest
 from flgd.clutter import grasp_reward
 from flgd.geometry import ToolPose
 from flgd.perception import base_to_pixel, frame_heightmaps
-from flgd.plans import LIFT_LABEL, MoveL, Plan, plan_grasp, plan_home, plan_push
+from flgd.plans import LIFT_LABEL, MoveL, Plan, plan_grasp, plan_home, plan_push, plan_release
 from flgd.safety import CheckedPlan, PlanRefused, check_plan
 from sim_cell.cell import SimCell
 from sim_cell.objects import ObjectSpec
@@ -368,12 +368,12 @@ def test_a_block_dropped_in_mid_air_lands_before_the_next_picture(empty_cell):
     wake(empty_cell, body)
     p.resetBasePositionAndOrientation(body, (-0.45, 0.10, 0.25), orn, physicsClientId=c)
     p.resetBaseVelocity(body, [0.0, 0.0, -0.3], [0.0, 0.0, 0.0], physicsClientId=c)   # just let go
-    assert not empty_cell._may_jump(set(), set(), True, 99), "no jump while a block falls"
+    assert not empty_cell._may_jump(set(), True, 99), "no jump while a block falls"
     result = empty_cell.execute(check_plan(plan_home(cfg), cfg))     # nothing of it needs physics
     assert result.completed, result.failure
     s = state(empty_cell, body)
     assert s is not None and s.top < 0.05, f"the block hangs at {s.top:.3f} m"
-    assert empty_cell._may_jump(set(), set(), True, 99), "all still: free spans may be jumped again"
+    assert empty_cell._may_jump(set(), True, 99), "all still: free spans may be jumped again"
 
 
 def test_the_width_is_read_once_the_fingers_have_stopped(empty_cell):
@@ -397,7 +397,10 @@ def test_two_blocks_pinched_one_per_pad_are_held_and_carried_out_not_lost(empty_
     result = empty_cell.execute(check_plan(plan, cfg))
     assert result.completed, result.failure
     assert abs(result.widths[0] - 0.041) < 0.006, result.widths
-    # both hang from the gripper at home, outside the workspace: counted as carried out, not as lost
+    # both hang from the gripper at home, outside the workspace: still in the cell, carried, not lost
+    assert state(empty_cell, a) is not None and state(empty_cell, b) is not None
+    placed = empty_cell.execute(check_plan(plan_release(True, cfg), cfg))
+    assert placed.completed and grasp_reward(placed.widths[-1], cfg.gripper) == 1.0, placed.widths
     assert state(empty_cell, a) is None and state(empty_cell, b) is None
     assert empty_cell.stats["grasped_out"] == 2 and empty_cell.stats["left_workspace"] == 0
 
