@@ -28,6 +28,12 @@ fix.  A refused start is loud, and systemd starts the daemon again every 5 s
 file becoming readable.  A start that refuses changes no record at all.  So does
 one whose files hold another network variant than ``learning.network``: the
 files are sound, the config changed.
+
+A write the operating system refuses (a gate directory made read-only or given
+to another user, a full disk) is tried again the same way; if it still fails,
+``GateDirUnwritable`` says what failed and what to do, and the caller keeps
+what it meant to write (the gatekeeper keeps the learner's hand-over until the
+file can be written).
 """
 
 from __future__ import annotations
@@ -45,7 +51,7 @@ from flgd.config import CellConfig
 from flgd.learning.gate import Tally
 from flgd.store import Store
 
-__all__ = ["GateStorage", "GateError", "GateFileUnreadable", "PolicyRecord", "insert_record", "tally_json",
+__all__ = ["GateStorage", "GateError", "GateFileUnreadable", "GateDirUnwritable", "PolicyRecord", "insert_record", "tally_json",
            "write_event", "GATE_DIR", "UNUSABLE_DIR", "KEEP_UNUSABLE", "READ_RETRY_DELAYS"]
 
 log = logging.getLogger("flgd")
@@ -72,6 +78,31 @@ class GateFileUnreadable(GateError):
         self.path = path
 
 
+class GateDirUnwritable(OSError):
+    """The gate directory refused a policy file on every try; the message says what to do."""
+
+
+def _daemon_user() -> str:
+    uid = os.geteuid()
+    try:
+        import pwd
+        return f"user {pwd.getpwuid(uid).pw_name} (uid {uid})"
+    except (ImportError, KeyError):
+        return f"uid {uid}"
+
+
+def _write_advice(directory: Path, exc: OSError) -> str:
+    """What a person does about a refused write into ``directory`` (the gate directory)."""
+    if isinstance(exc, PermissionError):
+        return (f"The daemon runs as {_daemon_user()} and must be able to write {directory}: give it back to it "
+                f"(as installed: owner flgd, mode 0750).")
+    if exc.errno == errno.EROFS:
+        return f"The filesystem holding {directory} is read-only: remount it read-write."
+    if exc.errno in (errno.ENOSPC, errno.EDQUOT):
+        return f"The disk holding {directory} is full: free space on it."
+    return f"Check the disk that holds it (an {errno.errorcode.get(exc.errno or 0, 'OS')} error: see `dmesg`)."
+
+
 def _os_problem(exc: Any) -> str:
     """A PolicyFileUnreadable's OS error in words, without the loader's advice for files outside the state
     directory (which does not fit a gate file)."""
@@ -82,13 +113,7 @@ def _read_advice(path: Path, exc: OSError | None) -> str:
     """What a person does about a refused read of ``path`` (a gate file)."""
     directory = path.parent
     if isinstance(exc, PermissionError):
-        uid = os.geteuid()
-        try:
-            import pwd
-            who = f"user {pwd.getpwuid(uid).pw_name} (uid {uid})"
-        except (ImportError, KeyError):
-            who = f"uid {uid}"
-        return (f"The daemon runs as {who} and must be able to read {path} and enter {directory}: give them "
+        return (f"The daemon runs as {_daemon_user()} and must be able to read {path} and enter {directory}: give them "
                 f"back to it (as installed: owner flgd, modes 0640 and 0750).")
     if isinstance(exc, FileNotFoundError):
         return (f"The gate directory {directory} is missing although the store records this policy in it: "
@@ -174,13 +199,29 @@ class GateStorage:
         return self.state_dir / record.file
 
     def write_file(self, policy_id: int, network: Any, meta: dict) -> tuple[str, str]:
-        """Write the policy's file (atomically); its path relative to the state directory and its weights' sha256."""
+        """Write the policy's file (atomically); its path relative to the state directory and its weights' sha256.
+
+        A write the OS refuses is tried again (``read_retry_delays``); GateDirUnwritable if every try fails.
+        """
         from flgd.learning.policy_file import read_metadata, save_policy
 
-        self.directory.mkdir(parents=True, exist_ok=True)
         rel = f"{GATE_DIR}/policy-{policy_id:06d}.safetensors"
-        save_policy(self.state_dir / rel, network, meta)
-        return rel, str(read_metadata(self.state_dir / rel)["weights_sha256"])
+        started = time.monotonic()
+        for tries, delay in enumerate((*self.read_retry_delays, None), start=1):
+            try:
+                self.directory.mkdir(parents=True, exist_ok=True)
+                save_policy(self.state_dir / rel, network, meta)
+                return rel, str(read_metadata(self.state_dir / rel)["weights_sha256"])
+            except OSError as exc:
+                if delay is None:
+                    raise GateDirUnwritable(
+                        f"policy #{policy_id}'s file cannot be written into {self.directory}: "
+                        f"{exc.strerror or exc} ({tries} tries over {time.monotonic() - started:.1f} s). "
+                        f"{_write_advice(self.directory, exc)}") from None
+                log.warning("gate: cannot write policy #%d into %s (%s); trying again in %.1f s", policy_id,
+                            self.directory, exc.strerror or exc, delay)
+                self.sleep(delay)
+        raise AssertionError("unreachable")
 
     def next_id(self) -> int:
         """The id the next policy gets."""

@@ -37,8 +37,8 @@ from pathlib import Path
 from typing import Any, Callable
 
 from flgd.config import CellConfig
-from flgd.gate_storage import (GATE_DIR, KEEP_UNUSABLE, READ_RETRY_DELAYS, UNUSABLE_DIR, GateError,
-                               GateFileUnreadable, GateStorage, PolicyRecord, insert_record, tally_json,
+from flgd.gate_storage import (GATE_DIR, KEEP_UNUSABLE, READ_RETRY_DELAYS, UNUSABLE_DIR, GateDirUnwritable,
+                               GateError, GateFileUnreadable, GateStorage, PolicyRecord, insert_record, tally_json,
                                write_event)
 from flgd.learning.agent import WeightsMailbox
 from flgd.learning.gate import GateSettings, Tally, Verdict, challenger_share, challenger_verdict, rollback_verdict
@@ -93,6 +93,7 @@ class Gatekeeper:
         self.files = GateStorage(config, store, state_dir, keep_unusable=KEEP_UNUSABLE,
                                  read_retry_delays=READ_RETRY_DELAYS)
         self._lock = threading.RLock()
+        self._unwritten: tuple[Any, int] | None = None  # a hand-over whose file the gate directory refused
 
     # ------------------------------------------------------------------ tallies
     def _tally(self, policy_id: int, since_step: int) -> Tally:
@@ -351,6 +352,7 @@ class Gatekeeper:
             if self.challenger is not None:
                 self._drop(step, who, "a policy was loaded", self._evidence())
             self.handovers.take()  # weights handed over before the load are of the line it replaces
+            self._unwritten = None
             rec = self._register_champion(network, meta, origin, step, "load", who, {"metadata": {
                 k: v for k, v in meta.items() if isinstance(v, (str, int, float, bool, type(None)))}})
             self._act_with_champion(rec, network)
@@ -368,6 +370,10 @@ class Gatekeeper:
             if self.challenger is not None:
                 return False
             posted = self.handovers.take()
+            if posted is None:  # none newer: the one whose file could not be written, if any, is tried again
+                posted, self._unwritten = self._unwritten, None
+            else:
+                self._unwritten = None  # newer weights supersede it
             if posted is None:
                 return False
             from flgd.learning.policy_file import PolicyFileError
@@ -383,6 +389,11 @@ class Gatekeeper:
                 rel, sha = self.files.write_file(pid, network, {"training_steps": steps, "cell": self.config.name or
                                                            self.config.backend, "source": origin,
                                                            "learner_updates": int(version), "gate_policy": pid})
+            except GateDirUnwritable as exc:  # kept until the directory takes it (after a reset, or newer)
+                self._unwritten = posted
+                log.error("gate: hand-over of learner update %s not taken: %s", version, exc)
+                raise GateDirUnwritable(f"{exc} Then flgctl reset: learner update {version} is kept and becomes "
+                                        "the challenger.") from None
             except PolicyFileError as exc:  # e.g. non-finite weights: never tested, never acting
                 self.store.transaction(lambda db: write_event(
                     db, "refused", step, None, None, "gate", f"hand-over of learner update {version} refused: {exc}",
@@ -448,6 +459,7 @@ class Gatekeeper:
 
     def _restart_learner_from_champion(self, why: str) -> None:
         self.handovers.take()  # of the rejected line too
+        self._unwritten = None
         if self.reset_learner is None:
             return
         try:
@@ -509,7 +521,7 @@ class Gatekeeper:
             cv = self.champion_verdict
             out["champion_verdict"] = None if cv is None else {"kind": cv.kind, "p_better": cv.p_better,
                                                                 "reason": cv.reason}
-            out["handover_waiting"] = self.handovers.waiting
+            out["handover_waiting"] = self.handovers.waiting or self._unwritten is not None
             return out
 
     def history(self, limit: int = 50) -> list[dict]:

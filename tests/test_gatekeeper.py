@@ -291,3 +291,37 @@ def test_the_learners_anchor_is_the_champion_from_the_start_and_follows_a_promot
         if (c.act(2, True) if k % 2 else c.act(1, k % 4 == 0)) is not None:
             break
     assert gate.champion.id == 2 and anchored_to(better)
+
+
+def test_a_gate_directory_that_refuses_a_hand_over_is_retried_keeps_the_weights_and_says_what_to_do(tmp_path,
+                                                                                                    monkeypatch):
+    """As an unreadable gate file is: tried again over about 1.4 s; then an error naming the directory, the OS
+    error and the remedy, and the learner's weights kept until the directory takes them."""
+    import errno
+
+    from flgd.gate_storage import GateDirUnwritable
+    from flgd.learning import policy_file
+
+    c = GateCell(tmp_path, gate_config())
+    pauses: list[float] = []
+    c.gate.files.sleep = pauses.append
+    real_save = policy_file.save_policy
+
+    def refused(path, *args, **kwargs):
+        raise PermissionError(errno.EACCES, "Permission denied", str(path))
+
+    monkeypatch.setattr(policy_file, "save_policy", refused)
+    learned = make_network(31)
+    c.gate.handovers.post(learned.state_dict(), version=321)
+    with pytest.raises(GateDirUnwritable) as err:
+        c.gate.take_handover(c.step)
+    message = str(err.value)
+    assert str(tmp_path / "gate") in message and "Permission denied" in message and "4 tries" in message
+    assert "must be able to write" in message and "flgctl reset" in message and "update 321 is kept" in message
+    assert pauses == [0.1, 0.3, 1.0]
+    assert c.gate.challenger is None and c.gate.status()["handover_waiting"]
+
+    monkeypatch.setattr(policy_file, "save_policy", real_save)  # the directory is writable again
+    assert c.gate.take_handover(c.step)
+    assert c.gate.challenger.learner_updates == 321
+    assert same_weights(c.gate.files.load(c.gate.challenger), learned)
