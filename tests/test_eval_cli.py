@@ -181,6 +181,46 @@ def test_action_limit_and_clearing_a_scene(config, tmp_path):
     assert res.completed and res.action_efficiency == 1.0 and cleared.objects_grasped == 1
 
 
+def test_a_block_dropped_on_the_way_to_the_place_is_a_failed_grasp_in_the_report(config, tmp_path, monkeypatch):
+    """The width at home says held, then the grip gives way (the block weighs 20 kg from the moment the arm
+    leaves home for the place pose): it falls out beyond the workspace.  The report counts a failed grasp
+    and a dropped object, and the run is not completed."""
+    import pybullet as p
+
+    from flgd.evaluation.metrics import summarize
+    from flgd.perception import base_to_pixel
+    from sim_cell.cell import SimCell
+
+    execute = SimCell.execute
+
+    def grip_gives_way(self, plan):
+        if plan.plan.primitive == "place":
+            for body in self._world.held:
+                p.changeDynamics(body, -1, mass=20.0, physicsClientId=self._client)
+        return execute(self, plan)
+
+    monkeypatch.setattr(SimCell, "execute", grip_gives_way)
+    scene = tmp_path / "one-cube.yaml"
+    scene.write_text(ONE_CUBE)
+    spec = scene_from_argument(str(scene))
+    with Evaluator(config, build_network("fast", rotations=16, seed=0), EvalOptions(runs=1, max_actions=1)) as ev:
+        cell = ev._cell_for(spec)
+        cell.load_scene(spec.path)
+        cube = cell.object_states()[0]
+        row, col = base_to_pixel(cube.position[0], cube.position[1], ev.config.workspace)
+        oracle = _GraspTheEmptyCorner()
+        oracle.decide = lambda hm, step: Decision(Action("grasp", int(row), int(col), 0, 16),
+                                                  np.zeros((16, 2) + hm.height.shape, np.float32),
+                                                  np.ones(hm.height.shape, np.uint8),
+                                                  np.ones(hm.height.shape, np.uint8), 0.0, "greedy", 0.0)
+        ev.runner.agent = oracle
+        log = ev.run(spec, 1)
+    assert [a.success for a in log.actions] == [False]
+    assert log.objects_grasped == 0 and log.dropped_lost == 1 and not run_result(log).completed
+    summary = summarize([log])
+    assert summary.grasp_attempts == 1 and summary.grasp_successes == 0 and summary.objects_dropped == 1
+
+
 # ----------------------------------------------------------------------------- modes
 
 @pytest.mark.slow

@@ -1,0 +1,73 @@
+"""The cycle's grasp judgement on the simulated cell: picked means still held at the place pose."""
+
+from __future__ import annotations
+
+import dataclasses
+from types import SimpleNamespace
+
+import pybullet as p
+import pytest
+
+from flgd.actions import Action
+from flgd.cycle import CycleRunner
+from flgd.perception import base_to_pixel
+from flgd.store import Store
+from sim_cell.cell import SimCell
+from tests.fakes.sim import cube_at, make_config, state
+
+
+class _GraspAt:
+    """An agent that grasps at one pixel, closing along base x, and keeps what it was told."""
+
+    def __init__(self, action: Action):
+        self.action = action
+        self.outcomes: list[bool | None] = []
+
+    def decide(self, heightmaps, step):
+        return SimpleNamespace(action=self.action, rule="scripted", epsilon=0.0, q_value=None, policy_id=None)
+
+    def record_outcome(self, action, grasp_success, **outcome):
+        self.outcomes.append(grasp_success)
+
+    def reset_episode(self):
+        pass
+
+
+class _GripGivesWay(SimCell):
+    """The simulated cell, except that a held object weighs 20 kg from the moment the arm leaves home for the
+    place pose: five times what two 40 N pads hold by friction, so it slides out on the way."""
+
+    def execute(self, plan):
+        if plan.plan.primitive == "place":
+            for body in self._world.held:
+                p.changeDynamics(body, -1, mass=20.0, physicsClientId=self._client)
+        return super().execute(plan)
+
+
+@pytest.mark.parametrize("grip_gives_way", [False, True])
+def test_a_block_dropped_on_the_way_to_the_place_is_a_failed_grasp_in_the_record_and_the_store(tmp_path,
+                                                                                              grip_gives_way):
+    cfg = dataclasses.replace(make_config(objects=0, depth_noise=False, domain_randomization=False),
+                              state_dir=str(tmp_path))
+    cell = (_GripGivesWay if grip_gives_way else SimCell)(cfg)
+    store = Store(tmp_path)
+    try:
+        body = cube_at(cell, -0.50, 0.05, size=(0.04, 0.04, 0.04))
+        row, col = base_to_pixel(-0.50, 0.05, cfg.workspace)
+        agent = _GraspAt(Action("grasp", int(row), int(col), 0, 16))
+        record = CycleRunner(cfg, cell, agent, store=store).run_once()
+        assert record.outcome == "executed" and record.kind == "grasp"
+        transition = list(store.iter_transitions())[-1]
+        logged = store.action_log()[-1]
+        if grip_gives_way:
+            assert record.success is False and record.reward == 0.0 and agent.outcomes == [False]
+            assert transition.reward == 0.0 and logged["success"] == 0
+            assert "dropped" in record.failure and logged["failure"] == record.failure
+            assert cell.stats["dropped"] == 1 and cell.stats["grasped_out"] == 0 and state(cell, body) is None
+        else:
+            assert record.success is True and record.reward == 1.0 and agent.outcomes == [True]
+            assert transition.reward == 1.0 and logged["success"] == 1 and record.failure == ""
+            assert cell.stats["grasped_out"] == 1 and cell.stats["dropped"] == 0
+    finally:
+        store.close()
+        cell.close()
