@@ -97,8 +97,7 @@ def status(ctl: Controller) -> dict[str, Any]:
         "backend": ctl.backend,
         "config": ctl.config.source,
         "state_dir": str(ctl.state_dir),
-        "policy": (f"champion #{ctl.gate.champion.id}: {ctl.gate.champion.origin}"
-                   if ctl.gate is not None and ctl.gate.champion is not None else ctl.policy_source),
+        "policy": _acting_policy(ctl),
         "learner_from": ctl.policy_source,
         "step": ctl.runner.step if ctl.runner is not None else None,
         "cycle_in_flight": ctl.cycle_in_flight,
@@ -115,6 +114,17 @@ def status(ctl: Controller) -> dict[str, Any]:
                            else None),
         **{k: v for k, v in summary(ctl).items()},
     }
+
+
+def _acting_policy(ctl: Controller) -> str:
+    """The gate's champion; with no store (and so no gate), what will act after a reset."""
+    if ctl.gate is not None and ctl.gate.champion is not None:
+        return f"champion #{ctl.gate.champion.id}: {ctl.gate.champion.origin}"
+    if ctl.store is None:
+        from flgd.daemon.acting_policy import acting_after_reset
+
+        return acting_after_reset(ctl.state_dir, ctl.policy_arg)
+    return ctl.policy_source
 
 
 # ================================================================== state changes
