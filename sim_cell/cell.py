@@ -14,18 +14,17 @@ Speed -- exactly what is shortened (everything else is stepped at ``sim.time_ste
     bottom) up -- keeps ``FREE_MARGIN`` (2 cm) from every other object's bounding
     box are not simulated: the arm is placed at the end of that span, and a held
     object moves rigidly with the TCP.  So the high part of an approach or of a
-    descent, the part of a lift after the object has cleared its neighbours, and
-    the carry to the place pose are jumps; the contact part of descend, lift, push, shift and
-    retreat is simulated.  A line that starts with the gripper touching an
-    object it does not carry is simulated from its start.  What the gripper
-    carries is what is squeezed between both pads (side contacts), measured or
-    not.  Until the width is measured, a freshly gripped object is simulated:
+    descent and the part of a lift after the object has cleared its neighbours are
+    jumps; the contact part of descend, lift, push, shift and retreat is simulated.
+    A line that starts with the gripper touching an object it does not carry is
+    simulated from its start.  What the gripper carries is what is squeezed between
+    both pads (side contacts), measured or not.  Whatever it carries is simulated:
     only the tail of a straight lift may be a jump, after ``CARRY_TRIAL_TICKS``
-    (0.33 s) of it were simulated with the object still between the pads; the
-    carry home (lateral and wrist accelerations) is simulated in full, since a
-    marginal grip can lose the object there (about 1 in 12 grips in 20-object
-    clutter does).  So the measured width keeps telling held from slipped.
-    Objects measured as held are carried rigidly (the place plan).
+    (0.33 s) of it were simulated with the object still in the gripper; the carry
+    home and the carry to the place pose (lateral and wrist accelerations) are
+    simulated in full, since a marginal grip can lose the object there.  So the
+    widths measured at home and at the place pose tell held from slipped (a grasp
+    and its place cost about 0.9 s of CPU against 0.25 s with rigid carries).
   * Free gripper motions: opening/closing while nothing is held and no object is
     within the gripper's reach sets the fingers directly.
   * Solver iterations: 20 normally, 150 while the fingers squeeze something
@@ -60,15 +59,15 @@ give cannot absorb (the surface height was read too low) still stops the arm
 by the same 6 mm / 100 N rule.  Grasps and pushes get no give.
 
 Bookkeeping: an object measured as held (touching both pads at a MeasureWidth
-step) is carried out of the workspace: when the gripper next opens (at the
-place pose of plan_release, or anywhere if the caller skips the place step) it
-is removed and counted in ``stats["grasped_out"]``.  Any other object whose
+step) stays in the cell, in the gripper, until the gripper opens on it (at the
+place pose of plan_release, or anywhere if the caller skips the place step): then
+it is removed and counted in ``stats["grasped_out"]``.  Any other object whose
 centre leaves the workspace or falls off the table is removed and counted in
 ``stats["left_workspace"]`` (one that falls off the table at once, in mid-fall:
 there is no floor, and a long fall is no unstable physics); of those, the ones that were
-in the gripper when this plan's grasp lift step ended are also counted in
-``stats["dropped"]`` (lifted, then the grip gave way: the evaluation reports them apart
-from objects pushed out).  An unstable simulation (NaNs, objects faster than
+in the gripper when this plan's grasp lift step ended, or were measured as held and
+carried into this plan (a place), are also counted in ``stats["dropped"]`` (lifted,
+then the grip gave way: the evaluation reports them apart from objects pushed out).  An unstable simulation (NaNs, objects faster than
 4 m/s or thrown up, interpenetration > 15 mm at three checks 0.2 s apart or
 > 40 mm at once) resets the scene and fails the plan with a failure text
 starting with "unstable" and naming the plan step (``stats["unstable_resets"]``).
