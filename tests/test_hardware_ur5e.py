@@ -400,3 +400,22 @@ def test_reset_reopens_a_camera_whose_stream_died(ctl, rg2):
     assert len(opened) == 2, "the first camera, and the one reopened by the successful reset"
     assert len(ctl.calls("moveL", n)) == 1
     cell.close()
+
+
+def test_the_unlock_is_sent_5_0_s_plus_the_margin_after_the_protective_stop_not_sooner_and_not_much_later(ctl, rg2):
+    """The controller refuses an unlock sooner than 5.0 s after the stop; the arm waits exactly that plus a
+    0.2 s margin for clock differences (simulated time: the fake controller's clock)."""
+    from flgd.hardware.ur_arm import _UNLOCK_MARGIN, UNLOCK_WAIT_STEP
+
+    assert PROTECTIVE_STOP_UNLOCK_DELAY == 5.0 and _UNLOCK_MARGIN == 0.2
+    cell = make_ur5e(ctl, rg2)
+    ctl.at(2, 0.5, ctl.protective_stop)
+    with pytest.raises(CellFault, match="protective stop"):
+        cell.execute(grasp(cell.config))
+    stopped_at = ctl.protective_at
+    n = len(ctl.log)
+    cell.recover()
+    unlocks = [t for t, _, m, _ in ctl.log[n:] if m == "unlockProtectiveStop"]
+    assert len(unlocks) == 1, "one unlock, not a retry after a refused early one"
+    waited = unlocks[0] - stopped_at
+    assert 5.0 + 0.2 <= waited <= 5.0 + 0.2 + 2 * UNLOCK_WAIT_STEP, waited
