@@ -198,3 +198,25 @@ def test_non_finite_camera_model_is_refused_not_an_empty_heightmap(what):
         depth = depth[None]
     with pytest.raises(ValueError, match=what):
         make_heightmaps(color, depth, k, scale, pose, WorkspaceConfig())
+
+
+@pytest.mark.parametrize("method", ["lowest", "inpaint"])
+def test_a_heightmap_with_most_readings_missing_is_not_filled_and_one_with_half_known_is(method) -> None:
+    """A covered lens or a camera that lost its depth is no scene to fill in: with fewer than half the cells
+    known nothing is filled (and the caller is told); with exactly half known the holes are filled."""
+    from flgd.perception import FILL_MIN_VALID, fill_unknown
+
+    assert FILL_MIN_VALID == 0.5
+    n = 40
+    color = np.full((n, n, 3), 120, np.uint8)
+    height = np.full((n, n), 0.02, np.float32)
+    for known_rows in (n // 2 - 1, n // 2):  # 47.5 % of the cells known, then 50 %
+        unknown = np.zeros((n, n), bool)
+        unknown[known_rows:, :] = True
+        holed = np.where(unknown, 0.0, height).astype(np.float32)
+        out_color, out_height, filled = fill_unknown(color, holed, unknown, method)
+        if known_rows < n // 2:
+            assert not filled and out_height is holed and out_color is color
+            assert np.all(out_height[unknown] == 0.0)
+        else:
+            assert filled and np.allclose(out_height[unknown], 0.02, atol=1e-3)
