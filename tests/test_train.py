@@ -132,6 +132,43 @@ def test_cached_next_argmax_and_several_updates_per_action_in_a_real_run(tmp_pat
     assert used["reused"] + used["computed"] <= 8 * 2  # at most one a' per sampled non-terminal transition
 
 
+def test_the_actor_argmax_recipe_runs_is_carried_compactly_and_resumes_elsewhere(tmp_path):
+    """A few actions of the cheaper recipe (a' from the cell's decisions, never recomputed; 3 updates per
+    action), then ``flgd.training.carry`` to a small directory that ``flgd train --out`` continues."""
+    from flgd.training.carry import carry_run
+
+    config = _config_variant(tmp_path, "sim-actor", learning={"actor_argmax": True, "updates_per_action": 3,
+                                                              "checkpoint_every": 3})
+    out = tmp_path / "run"
+    assert train_main(["--config", config, "--out", str(out), "--threads", "1", "--steps", "4",
+                       "--seed", "3"]) == 0
+    info = json.loads((out / "run.json").read_text())
+    assert info["segments"][0]["learning"]["actor_argmax"] is True
+    assert info["next_argmax"]["reused"] > 0
+
+    carried = carry_run(out, tmp_path / "carried", replay=2)
+    assert (carried.updates, carried.transitions) == (12, 2)
+    assert [p.name for p in (tmp_path / "carried" / "checkpoints").iterdir()] == [carried.checkpoint]
+    assert sorted(p.name for p in (tmp_path / "carried").iterdir()) == sorted(
+        ["actions.csv", "checkpoints", "config.yaml", "curve.png", "flgd.sqlite", "run.json",
+         "trainer-state.safetensors"])
+    with pytest.raises(FileExistsError):
+        carry_run(out, tmp_path / "carried")
+
+    dest = tmp_path / "carried"
+    assert train_main(["--out", str(dest), "--steps", "6"]) == 0
+    rows = read_rows(dest / "actions.csv")
+    assert [int(r["step"]) for r in rows] == list(range(6))
+    assert [int(r["updates"]) for r in rows[4:]] == [15, 18]  # the update count goes on from the checkpoint
+    resumed = json.loads((dest / "run.json").read_text())
+    assert len(resumed["segments"]) == 2 and resumed["segments"][1]["from_updates"] == 12
+    store = Store(dest)
+    try:
+        assert store.transition_count() == 4  # the two carried and the two new
+    finally:
+        store.close()
+
+
 def test_same_seed_same_actions(tmp_path):
     """Synchronous updates and fixed seeds: two runs of one command act identically."""
     logs = []
