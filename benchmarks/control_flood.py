@@ -4,8 +4,10 @@ The flood is a same-user process whose threads open connections to the socket as
 each one open without sending anything (each thread keeps its ``--hold`` newest and closes older ones, so the
 flood's descriptors stay bounded).  For each mode (``idle``: the daemon connected and not acting;
 ``running``: cycling on the simulated cell) the benchmark starts ``flgd run`` on the small simulated config,
-starts the flood, lets it fill every connection slot, then times the real ``flgctl stop`` command line from
-launch to exit.  Each trial is a fresh daemon (a stop ends it); reported per mode: every trial and the median.
+starts the flood, lets it fill every connection slot, times the answer to a ``pause`` sent by flgctl's client
+library from this process (what the daemon controls: in IDLE the answer is a refusal, in RUNNING the pause),
+then times the real ``flgctl stop`` command line from launch to exit (that adds a Python start-up, which a loaded
+machine stretches).  Each trial is a fresh daemon (a stop ends it); reported per mode: every trial and the median.
 
 ``held_connection_flood`` is the flood alone, for tests.
 """
@@ -130,6 +132,11 @@ def trial(mode: str, threads: int, hold: int) -> dict:
                         time.sleep(0.5)
                 with held_connection_flood(sock, threads, hold):
                     time.sleep(1.0)  # the flood holds every slot and fills the urgent lane
+                    from flgd.ctl import call
+
+                    t0 = time.monotonic()
+                    pause = call(sock, "pause", timeout=60)
+                    answer_seconds = time.monotonic() - t0
                     t0 = time.monotonic()
                     stop = _ctl(sock, "stop")
                     seconds = time.monotonic() - t0
@@ -138,7 +145,9 @@ def trial(mode: str, threads: int, hold: int) -> dict:
                 if daemon.poll() is None:
                     daemon.send_signal(signal.SIGKILL)
                     daemon.wait()
-    return {"mode": mode, "stop_seconds": round(seconds, 3), "load_average_1min": round(os.getloadavg()[0], 2),
+    return {"mode": mode, "stop_seconds": round(seconds, 3), "pause_answer_seconds": round(answer_seconds, 3),
+            "pause_answer": "ok" if pause.get("ok") else pause.get("error", {}).get("code"),
+            "load_average_1min": round(os.getloadavg()[0], 2),
             "flgctl_exit": stop.returncode,
             "flgctl_output": (stop.stdout + stop.stderr).strip()[:200], "daemon_exit": code}
 
@@ -166,10 +175,14 @@ def main(argv: list[str] | None = None) -> int:
     for mode in args.modes.split(","):
         trials = [trial(mode, args.threads, args.hold) for _ in range(args.trials)]
         times = [t["stop_seconds"] for t in trials]
+        answers = [t["pause_answer_seconds"] for t in trials]
         results["modes"][mode] = {"median_stop_seconds": round(statistics.median(times), 3),
-                                  "max_stop_seconds": max(times), "trials": trials}
-        print(f"{mode}: flgctl stop {statistics.median(times):.2f} s median of {len(times)} "
-              f"(max {max(times):.2f} s; exits {[t['flgctl_exit'] for t in trials]})", flush=True)
+                                  "max_stop_seconds": max(times),
+                                  "median_pause_answer_seconds": round(statistics.median(answers), 3),
+                                  "max_pause_answer_seconds": max(answers), "trials": trials}
+        print(f"{mode}: flgctl stop {statistics.median(times):.2f} s median of {len(times)} (max {max(times):.2f} s; "
+              f"exits {[t['flgctl_exit'] for t in trials]}); pause answered in {statistics.median(answers):.3f} s "
+              f"median (max {max(answers):.3f} s; {[t['pause_answer'] for t in trials]})", flush=True)
     if args.out:
         Path(args.out).write_text(json.dumps(results, indent=2) + "\n")
     return 0

@@ -416,53 +416,82 @@ def test_ur_rtde_dying_in_its_process_is_a_named_fault_and_the_next_interfaces_s
         factory.close()
 
 
-def test_ur_rtde_hanging_in_its_process_is_stopped_at_the_call_deadline(emulator, monkeypatch):
-    """ur_rtde looping in its own thread (seen after a dropped link) holds its process, never the daemon."""
+def _in_a_subprocess(body: str, timeout: float = 120.0) -> dict:
+    """Run ``body`` (it sets ``result``, a JSON-able dict) in a fresh interpreter of its own session.
+
+    Why: these guarantees are about calls that would otherwise never return; run here, a broken guarantee is a
+    failed test at ``timeout`` (the whole session killed, the stopped ur_rtde process too), never a hung suite.
+    """
+    import json
     import signal
+    import subprocess
+    import sys
+    import textwrap
 
-    from flgd.hardware import rtde_process
-
-    monkeypatch.setattr(rtde_process, "CALL_TIMEOUT", 1.0)
-    factory = rtde_process.IsolatedRTDEFactory()
+    code = ("import json, os, signal, time\nfrom flgd.hardware import rtde_process\n"
+            f"HOST = {HOST!r}\n" + textwrap.dedent(body) + "\nprint(json.dumps(result))\n")
+    proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            cwd=Path(__file__).resolve().parents[1], start_new_session=True)
     try:
-        receive = factory.receive(HOST)
-        child = factory._child.process
-        os.kill(child.pid, signal.SIGSTOP)  # it answers nothing from now on
-        started = time.monotonic()
-        with pytest.raises(rtde_process.RTDEProcessLost, match="receive.isConnected did not return within 1 s"):
-            receive.isConnected()
-        assert time.monotonic() - started < 10.0
-        assert not child.is_alive()  # killed, not left behind
-    finally:
-        factory.close()
+        out, err = proc.communicate(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGKILL)
+        out, err = proc.communicate()
+        pytest.fail(f"did not return within {timeout:g} s (the guarantee is broken: a call hangs):\n{err[-2000:]}")
+    assert proc.returncode == 0, err[-3000:]
+    return json.loads(out.strip().splitlines()[-1])
 
 
-def test_a_signal_handlers_call_during_a_call_on_the_same_thread_is_refused_not_deadlocked(emulator, monkeypatch):
+def test_ur_rtde_hanging_in_its_process_is_stopped_at_the_call_deadline(emulator):
+    """ur_rtde looping in its own thread (seen after a dropped link) holds its process, never the daemon."""
+    result = _in_a_subprocess("""
+        rtde_process.CALL_TIMEOUT = 1.0
+        factory = rtde_process.IsolatedRTDEFactory()
+        try:
+            receive = factory.receive(HOST)
+            child = factory._child.process
+            os.kill(child.pid, signal.SIGSTOP)  # it answers nothing from now on
+            try:
+                receive.isConnected()
+                error = None
+            except rtde_process.RTDEProcessLost as exc:
+                error = str(exc)
+            result = {"error": error, "child_alive": child.is_alive()}
+        finally:
+            factory.close()
+    """)
+    assert result["error"] is not None and "receive.isConnected did not return within 1 s" in result["error"]
+    assert not result["child_alive"]  # killed, not left behind
+
+
+def test_a_signal_handlers_call_during_a_call_on_the_same_thread_is_refused_not_deadlocked(emulator):
     """SIGTERM during a move runs URArm.stop_motion on the thread that waits for ur_rtde's reply; its stopL must
     not wait for the pipe that thread holds (the move's loop sees the stop request and halts on its own)."""
-    import signal
+    result = _in_a_subprocess("""
+        rtde_process.CALL_TIMEOUT = 2.0
+        factory = rtde_process.IsolatedRTDEFactory()
+        seen = []
 
-    from flgd.hardware import rtde_process
+        def handler(signum, frame):
+            try:
+                receive.getActualTCPPose()
+            except BaseException as exc:
+                seen.append(type(exc).__name__)
 
-    monkeypatch.setattr(rtde_process, "CALL_TIMEOUT", 2.0)
-    factory = rtde_process.IsolatedRTDEFactory()
-    seen: list[BaseException] = []
-
-    def handler(signum, frame):
+        signal.signal(signal.SIGALRM, handler)
         try:
-            receive.getActualTCPPose()
-        except BaseException as exc:  # noqa: BLE001 - recorded for the assertion
-            seen.append(exc)
-
-    previous = signal.signal(signal.SIGALRM, handler)
-    try:
-        receive = factory.receive(HOST)
-        os.kill(factory._child.process.pid, signal.SIGSTOP)  # the next call waits its full deadline
-        signal.setitimer(signal.ITIMER_REAL, 0.3)
-        with pytest.raises(rtde_process.RTDEProcessLost):
-            receive.isConnected()
-        assert len(seen) == 1 and isinstance(seen[0], rtde_process.RTDECallInProgress), seen
-    finally:
-        signal.setitimer(signal.ITIMER_REAL, 0)
-        signal.signal(signal.SIGALRM, previous)
-        factory.close()
+            receive = factory.receive(HOST)
+            os.kill(factory._child.process.pid, signal.SIGSTOP)  # the next call waits its full deadline
+            signal.setitimer(signal.ITIMER_REAL, 0.3)
+            try:
+                receive.isConnected()
+                outer = None
+            except rtde_process.RTDEProcessLost as exc:
+                outer = type(exc).__name__
+            result = {"outer": outer, "seen": seen}
+        finally:
+            signal.setitimer(signal.ITIMER_REAL, 0)
+            factory.close()
+    """)
+    assert result["outer"] == "RTDEProcessLost"
+    assert result["seen"] == ["RTDECallInProgress"], result

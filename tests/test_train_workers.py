@@ -19,6 +19,7 @@ import yaml
 from flgd.config import load_config
 from flgd.store import Store
 from flgd.training.actionlog import read_rows
+from flgd.training.ray_reaper import _descendants, _is_ray, _start_time
 from flgd.training.run import main as train_main
 
 pytest.importorskip("ray")
@@ -40,14 +41,16 @@ def _config(tmp_path: Path, updates_per_action: int, sync_every: int = 0) -> str
     return str(path)
 
 
-def _ray_processes_of(pids: set[int]) -> set[int]:
+def _still_running(processes: dict[int, str]) -> set[int]:
+    """Of ``processes`` (pid -> start time), those that still run: same pid and start time, not a zombie."""
     alive = set()
-    for pid in pids:
+    for pid, started in processes.items():
         try:
-            os.kill(pid, 0)
-        except OSError:
+            state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+        except (OSError, IndexError):
             continue
-        alive.add(pid)
+        if state != "Z" and _start_time(pid) == started:
+            alive.add(pid)
     return alive
 
 
@@ -127,17 +130,19 @@ def test_a_killed_driver_leaves_no_ray_process_and_the_same_command_resumes(tmp_
             assert driver.poll() is None, driver.stderr.read().decode()
             time.sleep(0.5)
         assert len(read_rows(out / "actions.csv")) >= 2
-        ray_pids = _descendant_ray_pids(driver.pid)
-        assert ray_pids  # the local cluster runs under the driver
+        under_driver = _descendant_processes(driver.pid)
+        assert any(_is_ray(pid) for pid in under_driver)  # the local cluster runs under the driver
         driver.kill()
         driver.wait(30)
     finally:
         if driver.poll() is None:
             driver.kill()
     gone_by = time.monotonic() + 30
-    while time.monotonic() < gone_by and _ray_processes_of(ray_pids):
+    while time.monotonic() < gone_by and _still_running(under_driver):
         time.sleep(0.5)
-    assert not _ray_processes_of(ray_pids), "Ray processes of the killed driver live on"
+    # every process the driver had started, judged by parentage, not by the reaper's own idea of a Ray process
+    left = _still_running(under_driver)
+    assert not left, f"processes of the killed driver live on: {sorted(left)}"
 
     done = len(read_rows(out / "actions.csv"))
     resumed = subprocess.run(cmd + ["--steps", str(done + 2)], capture_output=True, text=True, cwd=REPO, timeout=300)
@@ -164,10 +169,9 @@ def test_workers_and_address_are_checked_before_anything_starts(tmp_path, capsys
     assert not out.exists()
 
 
-def _descendant_ray_pids(root: int) -> set[int]:
-    from flgd.training.ray_reaper import _descendants, _is_ray
-
-    return {pid for pid in _descendants(root) if _is_ray(pid)}
+def _descendant_processes(root: int) -> dict[int, str]:
+    """Every process under ``root`` (pid -> start time), Ray's or not."""
+    return {pid: _start_time(pid) for pid in _descendants(root)}
 
 
 def test_an_error_in_a_workers_cycle_stops_the_run_after_storing_its_rows(tmp_path):
