@@ -288,6 +288,10 @@ def test_pads_closing_on_an_upright_cylinder_stop_on_its_surface(empty_cell):
     assert result.completed, result.failure
     assert abs(result.widths[0] - 2 * radius) < 0.003, "the pads rest on the cylinder's surface"
     assert grasp_reward(result.widths[0], cfg.gripper) == 1.0
+    held = state(empty_cell, body)   # still between the pads at home: it leaves the cell where they open
+    assert held is not None and held.position[2] > cfg.robot.home.position[2] - 0.1
+    release = empty_cell.execute(check_plan(plan_release(True, cfg), cfg))
+    assert release.completed, release.failure
     assert state(empty_cell, body) is None and empty_cell.stats["grasped_out"] == 1   # carried out
 
 
