@@ -31,6 +31,7 @@ GRIPPER_TCP_OFFSET = (0.0, 0.0, 0.20)
 ARM_FORCE = np.array([330.0, 330.0, 150.0, 56.0, 56.0, 56.0])  # N m, motor limits of the joint servos
 ARM_POSITION_GAIN = 0.35
 FINGER_SPEED = 0.11  # m/s per finger
+FINGER_COUPLING_FORCE = 400.0  # N the linkage holds the fingers symmetric with (10x the grip force)
 
 
 def merged_urdf_text() -> str:
@@ -84,6 +85,13 @@ class SimRobot:
         for link in self.finger_links:
             p.changeDynamics(self.body, link, lateralFriction=1.2, spinningFriction=0.003,
                              frictionAnchor=True, physicsClientId=client)
+        # The RG2 drives both fingers through one linkage, so they open and close symmetrically about the
+        # TCP.  Two independent force-limited fingers squeezing a block are balanced only in force: the
+        # fingers and the block drift together along the closing axis under any sideways carry until one
+        # finger sits on its stop (a carried block ended 15 mm off the TCP, held by one finger).
+        gear = p.createConstraint(self.body, self.finger_links[0], self.body, self.finger_links[1], p.JOINT_GEAR,
+                                  [1, 0, 0], [0, 0, 0], [0, 0, 0], physicsClientId=client)
+        p.changeConstraint(gear, gearRatio=-1.0, maxForce=FINGER_COUPLING_FORCE, erp=0.2, physicsClientId=client)
 
     # ------------------------------------------------------------------ state
     def joints(self) -> np.ndarray:

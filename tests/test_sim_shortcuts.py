@@ -76,7 +76,8 @@ def test_a_block_too_heavy_for_the_grip_slips_out_during_the_lift(empty_cell):
 
 
 def test_a_gripped_block_moves_with_the_gripper_and_is_carried_out(empty_cell):
-    """After the trial lift the carry is a jump: the block must arrive between the fingers."""
+    """The carry is simulated: the block must arrive centred between the fingers (coupled like the RG2's, not
+    two independent fingers that drift to one side together with the block)."""
     cfg = empty_cell.config
     body = cube_at(empty_cell, -0.55, 0.05, size=(0.05, 0.03, 0.03), yaw=-0.4)
     s = state(empty_cell, body)
