@@ -128,18 +128,28 @@ class _GraspTheEmptyCorner:
         self.rotations = rotations
         self.decisions = 0
 
+    pixel = (20, 20)
+
     def decide(self, heightmaps, step):
         self.decisions += 1
         h, w = heightmaps.height.shape
         q = np.zeros((self.rotations, 2, h, w), np.float32)
         ones = np.ones((h, w), np.uint8)
-        return Decision(Action("grasp", 20, 20, 0, self.rotations), q, ones, ones, 0.0, "greedy", 0.0)
+        return Decision(Action("grasp", *self.pixel, 0, self.rotations), q, ones, ones, 0.0, "greedy", 0.0)
 
     def record_outcome(self, action, success, **outcome) -> None:
         pass
 
     def reset_episode(self) -> None:
         pass
+
+
+class _GraspAt(_GraspTheEmptyCorner):
+    """A scripted agent that always grasps at one given pixel (an oracle when an object lies there)."""
+
+    def __init__(self, row: int, col: int, rotations: int = 16) -> None:
+        super().__init__(rotations)
+        self.pixel = (row, col)
 
 
 def test_a_run_stops_at_the_eleventh_consecutive_failure(config, tmp_path):
@@ -168,12 +178,7 @@ def test_action_limit_and_clearing_a_scene(config, tmp_path):
         from flgd.perception import base_to_pixel
 
         row, col = base_to_pixel(cube.position[0], cube.position[1], ev.config.workspace)
-        oracle = _GraspTheEmptyCorner()
-        oracle.decide = lambda hm, step: Decision(Action("grasp", int(row), int(col), 0, 16),
-                                                  np.zeros((16, 2) + hm.height.shape, np.float32),
-                                                  np.ones(hm.height.shape, np.uint8),
-                                                  np.ones(hm.height.shape, np.uint8), 0.0, "greedy", 0.0)
-        ev.runner.agent = oracle
+        ev.runner.agent = _GraspAt(int(row), int(col))
         cleared = ev.run(spec, 2)
     assert cleared.end == "cleared", cleared
     assert [a.success for a in cleared.actions] == [True]
@@ -208,12 +213,7 @@ def test_a_block_dropped_on_the_way_to_the_place_is_a_failed_grasp_in_the_report
         cell.load_scene(spec.path)
         cube = cell.object_states()[0]
         row, col = base_to_pixel(cube.position[0], cube.position[1], ev.config.workspace)
-        oracle = _GraspTheEmptyCorner()
-        oracle.decide = lambda hm, step: Decision(Action("grasp", int(row), int(col), 0, 16),
-                                                  np.zeros((16, 2) + hm.height.shape, np.float32),
-                                                  np.ones(hm.height.shape, np.uint8),
-                                                  np.ones(hm.height.shape, np.uint8), 0.0, "greedy", 0.0)
-        ev.runner.agent = oracle
+        ev.runner.agent = _GraspAt(int(row), int(col))
         log = ev.run(spec, 1)
     assert [a.success for a in log.actions] == [False]
     assert log.objects_grasped == 0 and log.dropped_lost == 1 and not run_result(log).completed
