@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import dataclasses
 import socket
+import threading
+import time
 
 import numpy as np
 import pytest
@@ -46,8 +48,8 @@ def feed(world):
 def daemon_config(world, address: str, **camera):
     """The daemon's side: the same cell, its camera read from the emulator's feed."""
     cfg = world.config
-    return dataclasses.replace(cfg, camera=dataclasses.replace(cfg.camera, emulator=address, frame_timeout=0.5,
-                                                               **camera))
+    return dataclasses.replace(cfg, camera=dataclasses.replace(cfg.camera, **{"emulator": address,
+                                                                              "frame_timeout": 0.5, **camera}))
 
 
 def assert_same_heightmap(direct, through_rs, cfg) -> None:
@@ -143,3 +145,33 @@ def test_camera_emulator_must_be_host_and_port():
     for bad in ("50415", "localhost", "127.0.0.1:0", "127.0.0.1:port"):
         with pytest.raises(ConfigError, match=r"camera\.emulator: got .*expected HOST:PORT"):
             config_from_dict({"camera": {"emulator": bad}})
+
+
+def test_a_capture_never_takes_a_frame_asked_for_before_it_began(world, feed, monkeypatch):
+    """A frame rendered before the world changed and delivered late (a loaded PC) must not answer a capture
+    that began after the change: here every answer lags its render by 0.3 s."""
+    rendered = threading.Event()
+    render = feed._current_frame
+
+    def late_render():
+        frame = render()
+        rendered.set()
+        time.sleep(0.3)
+        return frame
+
+    monkeypatch.setattr(feed, "_current_frame", late_render)
+    cfg = daemon_config(world, feed.address, frame_timeout=3.0)
+    row, col = int((-0.20 - cfg.workspace.y[0]) / 0.002), int((-0.30 - cfg.workspace.x[0]) / 0.002)
+    cam = D415Camera.open(cfg, warmup_frames=0)
+    try:
+        cam.capture()
+        rendered.clear()
+        rendered.wait(2.0)   # a frame of the world without the cube is on its way
+        body = world.cell.add_object(ObjectSpec(shape="cube", size=(0.05,), position=(-0.30, -0.20, 0.025)))
+        try:
+            after = frame_heightmaps(cam.capture(), cfg.workspace, cfg.camera.depth_range)
+        finally:
+            world.cell.remove_object(body, settle=0.0)
+    finally:
+        cam.close()
+    assert after.height[row, col] == pytest.approx(0.05, abs=0.005)

@@ -197,7 +197,14 @@ class _EmulatorSource(_SensorSource):
     The software device has the feed's intrinsics and depth scale, so everything after it (syncer,
     filters, alignment, the depth scale read from the device) is the path a camera's frames take.
     A feed that stops answering leaves the syncer empty: the capture's frame timeout, as for a camera.
+
+    A frame is rendered when the feed answers a request, so one asked for before a capture began can show the
+    world as it was before (an arm still on its way) and arrive after the capture dropped what was queued; on a
+    loaded PC that lag reaches a large part of a second.  A capture therefore takes only frames asked for after
+    it began (checked by frame number), as a live camera's next exposure is.
     """
+
+    KEEP_REQUEST_TIMES = 64  # frame numbers remembered with the moment they were asked for
 
     def __init__(self, address: str, timeout: float, width: int, height: int):
         from flgd.config import parse_emulator_address
@@ -217,6 +224,8 @@ class _EmulatorSource(_SensorSource):
         self._lost = threading.Event()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
+        self._asked_at: dict[int, float] = {}   # software frame number -> when the pump asked the feed for it
+        self._fresh_from = 0.0                  # frames asked for before this moment are stale
         try:
             super().__init__(self._camera.device, width, height, hello.fps, description)
         except CameraFault:
@@ -241,10 +250,30 @@ class _EmulatorSource(_SensorSource):
                     except FeedStalled:
                         if self._stop.is_set():
                             return
+                number = self._camera.next_frame_number
+                self._asked_at[number] = started   # before the feed: the syncer may hand it out at once
+                self._asked_at.pop(number - self.KEEP_REQUEST_TIMES, None)
                 self._camera.feed(frame.depth, frame.color)
                 self._stop.wait(max(0.0, period - (time.monotonic() - started)))
         except (OSError, RuntimeError):
             self._lost.set()  # the feed closed or broke its format: a camera unplugged
+
+    def wait(self, timeout_s: float):
+        """The next frameset asked for after the last :meth:`drop_queued`; older ones are passed over."""
+        deadline = time.monotonic() + timeout_s
+        while True:
+            frames = super().wait(max(0.001, deadline - time.monotonic()))
+            if frames is None:
+                return None
+            asked = self._asked_at.get(frames.get_depth_frame().get_frame_number())
+            if asked is None or asked >= self._fresh_from:
+                return frames
+            if time.monotonic() >= deadline:
+                return None
+
+    def drop_queued(self) -> None:
+        self._fresh_from = time.monotonic()
+        super().drop_queued()
 
     def still_connected(self) -> bool:
         return not self._lost.is_set()

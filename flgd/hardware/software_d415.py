@@ -63,6 +63,11 @@ class SoftwareD415:
         vs.intrinsics = _rs_intrinsics(self._rs, k, *self.size)
         return sensor.add_video_stream(vs).as_video_stream_profile()
 
+    @property
+    def next_frame_number(self) -> int:
+        """The frame number the next :meth:`feed` gives its pair."""
+        return self._n
+
     def feed(self, depth: np.ndarray, color: np.ndarray) -> None:
         """Push one depth + colour pair with a common timestamp, as the camera's firmware would."""
         rs = self._rs
