@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from typing import Any
 
 import pytest
@@ -10,6 +11,10 @@ import torch
 from tests.fakes.daemon import DaemonProcess
 from tests.fakes.rg2 import LoopbackRG2
 from tests.fakes.ur5e import FakeURController
+
+if os.environ.get("PYTEST_XDIST_WORKER"):
+    # `pytest -n 2` on a 2-core PC: one torch thread per test process, not two processes of two threads each
+    torch.set_num_threads(1)
 
 
 @pytest.fixture
