@@ -266,7 +266,7 @@ class _EmulatorSource(_SensorSource):
             if frames is None:
                 return None
             asked = self._asked_at.get(frames.get_depth_frame().get_frame_number())
-            if asked is None or asked >= self._fresh_from:
+            if asked is None or asked >= self._fresh_from:   # None: older than 64 requests, dropped with the queue
                 return frames
             if time.monotonic() >= deadline:
                 return None
