@@ -26,9 +26,10 @@ from flgd.hardware.ur5e_cell import _open_d415  # noqa: E402  (the real cell's c
 from sim_cell.emulator.camera_feed import CameraFeed  # noqa: E402
 from sim_cell.emulator.world import EmulatorWorld  # noqa: E402
 from sim_cell.objects import ObjectSpec  # noqa: E402
-from tests.fakes.realsense import SIM_CONFIG  # noqa: E402
+from tests.fakes.realsense import SIM_CONFIG
+from tests.loopback import worker_host  # noqa: E402
 
-HOST = "127.0.0.3"
+HOST = worker_host(3)
 
 
 @pytest.fixture(scope="module")

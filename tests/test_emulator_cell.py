@@ -19,9 +19,10 @@ from flgd.config import load_config
 from sim_cell.emulator.emulated_cell import EmulatedCell, EmulatorConfigError
 from sim_cell.emulator.faults import FaultError, FaultInjector, FaultSocket, inject
 from tests.fakes.daemon import REPO, DaemonProcess
+from tests.loopback import worker_host
 
 EMULATED = REPO / "cell_config" / "ur5e-emulated.yaml"
-HOST = "127.0.0.3"  # not 127.0.0.1: a developer's own emulator may be running there
+HOST = worker_host(3)
 
 
 def _free_port(host: str) -> int:

@@ -21,8 +21,9 @@ from sim_cell.emulator.world import EmulatorWorld
 from sim_cell.objects import ObjectSpec
 from sim_cell.robot import READY_JOINTS
 from tests.fakes.realsense import SIM_CONFIG
+from tests.loopback import worker_host
 
-HOST = "127.0.0.2"
+HOST = worker_host(2)
 BLOCK = 0.040   # m, the edge of the cube put between the fingers
 GRIP_XY = (-0.50, 0.0)
 

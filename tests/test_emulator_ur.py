@@ -1,7 +1,7 @@
 """The emulated UR5e controller against ur_rtde 1.6.5's own clients and flgd's URArm.
 
 The emulator (sim_cell/emulator: arm, RTDE, dashboard and script ports on a
-SimCell) listens on 127.0.0.2 so that a developer's emulator on 127.0.0.1 is
+SimCell) listens on its own loopback host (tests/loopback.py) so that a developer's emulator on 127.0.0.1 is
 left alone; ur_rtde's RTDEControlInterface, RTDEReceiveInterface,
 RTDEIOInterface and DashboardClient connect to it unmodified.
 """
@@ -34,9 +34,10 @@ from sim_cell.emulator.arm import RobotMode, SafetyMode  # noqa: E402
 from sim_cell.emulator.tcp_service import PortTaken  # noqa: E402
 from sim_cell.emulator.ur_controller import EmulatedURController  # noqa: E402
 from sim_cell.emulator.world import EmulatorWorld  # noqa: E402
+from tests.loopback import worker_host  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
-HOST = "127.0.0.2"
+HOST = worker_host(2)
 
 
 def sim_config():

@@ -231,6 +231,34 @@ def test_stop_motion_from_another_thread_halts_the_move_promptly(ctl, rg2):
     assert cell.execute(push(cell.config)).completed, "after a deliberate clear the next plan runs"
 
 
+def test_a_controller_slower_than_the_wall_clock_is_judged_by_its_own_clock(ctl, rg2):
+    """An emulator on a busy PC runs at a fifth of real time: a 0.6 m move that takes it 3 s of its own time takes
+    15 s of the wall clock, beyond the 11.3 s the move is allowed; it is timed on the controller's clock and
+    completes."""
+    cell = make_ur5e(ctl, rg2)
+    arm = cell.arm
+    ctl.tcp[:3] = (0.40, 0.30, 0.30)
+    ctl.rate = 0.2
+    start_wall = ctl.now
+    arm.move_linear([0.40, -0.30, 0.30, np.pi, 0.0, 0.0], 0.2, 1.2, "long")
+    assert ctl.now - start_wall > 14.0, "the move outlasted its limit on the wall clock"
+    assert cell.fault is None
+
+
+def test_a_controller_whose_clock_stops_is_a_fault_within_a_bounded_wall_time(ctl, rg2):
+    """A state stream that keeps answering but no longer advances (a frozen controller link) cannot hold a move
+    for ever: after five times the move's limit on the wall clock the arm is halted and the fault latched."""
+    cell = make_ur5e(ctl, rg2)
+    arm = cell.arm
+    ctl.tcp[:3] = (0.40, 0.30, 0.30)
+    ctl.rate = 0.0
+    start_wall = ctl.now
+    with pytest.raises(CellFault, match="clock advanced 0.0 s .* stalled"):
+        arm.move_linear([0.40, -0.30, 0.30, np.pi, 0.0, 0.0], 0.2, 1.2, "frozen")
+    assert 5 * 11.3 < ctl.now - start_wall < 5 * 11.4, "five times the 11.3 s limit"
+    assert "stopL" in ctl.names() and cell.fault is not None
+
+
 def test_starting_while_protective_stopped_reports_and_recovers(ctl, rg2):
     ctl.protective_stop()
     cell = make_ur5e(ctl, rg2)

@@ -95,6 +95,7 @@ POSITION_TOLERANCE = 0.002          # m between a finished move and its target
 ORIENTATION_TOLERANCE = 0.02        # rad
 START_GRACE = 0.5                   # s for an accepted move to show up as running
 MOVE_TIMEOUT_MARGIN = 5.0           # s beyond twice the trapezoidal move time
+STALLED_CLOCK_FACTOR = 5.0          # a move's wall-clock limit in multiples of its limit on the controller's clock
 CONFIRM_TIMEOUT = 3.0               # s to see NORMAL safety mode / a running script after recovery
 DASHBOARD_TIMEOUT_MS = 2000
 UNLOCK_WAIT_STEP = 0.05             # s; the protective-stop wait looks for a stop request this often
@@ -402,9 +403,22 @@ class URArm:
         status = self._call(self.control, "getAsyncOperationProgressEx")
         return bool(status.isAsyncOperationRunning())
 
+    def _controller_time(self) -> float:
+        """The controller's own clock (RTDE ``timestamp``, s): a move's time limits are counted on it, so that a
+        controller that runs slower than the wall clock (an emulator on a busy PC) is judged by its own time."""
+        stamp = self._call(self.receive, "getTimestamp")
+        try:
+            value = float(stamp)
+        except (TypeError, ValueError):
+            value = math.nan
+        if not math.isfinite(value):
+            self._halt()
+            self._latch(f"the controller reported an unusable timestamp {stamp!r}")
+        return value
+
     def _wait_for_move(self, target: list[float], what: str, timeout: float,
                        guard: tuple[np.ndarray, float] | None = None) -> bool:
-        start = self._clock()
+        start, controller_start = self._clock(), self._controller_time()
         seen_running = False
         while True:
             if self._stop_requested.is_set():
@@ -421,7 +435,7 @@ class URArm:
             running = self._async_running()
             seen_running = seen_running or running
             dp, dr = pose_error(self.tcp_pose(), target)
-            elapsed = self._clock() - start
+            elapsed = self._controller_time() - controller_start
             if not running:
                 if dp <= POSITION_TOLERANCE and dr <= ORIENTATION_TOLERANCE:
                     return False
@@ -430,6 +444,11 @@ class URArm:
             if elapsed > timeout:
                 self._halt()
                 self._latch(f"{what} did not finish within {timeout:.1f} s")
+            wall = self._clock() - start
+            if wall > STALLED_CLOCK_FACTOR * timeout:
+                self._halt()
+                self._latch(f"{what}: the controller's clock advanced {elapsed:.1f} s in {wall:.1f} s; its state "
+                            f"stream has stalled (network, or an emulator far slower than real time)")
             self._sleep(self._poll)
 
     def _wait_until_still(self, what: str) -> None:

@@ -28,10 +28,16 @@ ROOT = Path(__file__).resolve().parents[2]
 _REAL_FORCE = object()  # FakeURController.force_reply: answer from the force model
 
 class FakeURController:
-    """One simulated UR controller shared by the fake interfaces; time advances only through ``sleep``."""
+    """One simulated UR controller shared by the fake interfaces; time advances only through ``sleep``.
+
+    ``rate`` is the controller's seconds per wall-clock second: 1 for a real controller, below 1 for an emulator
+    that falls behind real time, 0 for a controller whose state stream has frozen.
+    """
 
     def __init__(self, tcp=(0.40, 0.0, 0.30), speed_scale: float = 1.0):
         self.now = 1000.0
+        self.rate = 1.0
+        self.controller_now = 50.0   # RTDE ``timestamp``: seconds since the controller booted
         self.log: list[tuple] = []
         self.tcp = np.array([*tcp, math.pi, 0.0, 0.0])
         self.safety_mode = 1
@@ -115,12 +121,13 @@ class FakeURController:
         if self.real_sleep:
             time.sleep(self.real_sleep)
         self.now += dt
+        self.controller_now += dt * self.rate
         target = self._target  # another thread may stopL meanwhile
         if target is None:
             return
         pos, goal = self.tcp[:3], target[:3]
         total = np.linalg.norm(goal - self._start[:3])
-        step = self._speed * dt
+        step = self._speed * dt * self.rate
         left = goal - pos
         if np.linalg.norm(left) <= step:
             self.tcp = target.copy()
@@ -268,7 +275,7 @@ class FakeRTDEReceive(_FakeInterface):
     def _fresh(self):
         if self.connected:
             self._stale = (self.ctl.safety_mode, self.ctl.robot_mode, self.ctl.protective, self.ctl.estop,
-                           self.ctl.tcp.copy())
+                           self.ctl.tcp.copy(), self.ctl.controller_now)
         return self._stale
 
     def getSafetyMode(self) -> int:
@@ -290,6 +297,10 @@ class FakeRTDEReceive(_FakeInterface):
     def getActualTCPPose(self) -> list[float]:
         self._rec("getActualTCPPose")
         return self._fresh()[4].tolist()
+
+    def getTimestamp(self) -> float:
+        self._rec("getTimestamp")
+        return self._fresh()[5]
 
     def getActualTCPForce(self) -> list[float]:
         self._rec("getActualTCPForce")
