@@ -176,3 +176,16 @@ def test_a_capture_never_takes_a_frame_asked_for_before_it_began(world, feed, mo
     finally:
         cam.close()
     assert after.height[row, col] == pytest.approx(0.05, abs=0.005)
+
+
+def test_between_captures_the_camera_asks_the_feed_for_nothing(world, feed):
+    """A render holds the emulator's physics; frames are asked for only while a capture waits, so an arm moving
+    between two captures is never slowed by renders nobody looks at."""
+    cfg = daemon_config(world, feed.address)
+    with _open_d415(cfg) as cam:
+        cam.capture()
+        served = feed.frames_served
+        time.sleep(0.5)   # 15 frames of a 30 fps stream
+        assert feed.frames_served == served
+        cam.capture()
+        assert feed.frames_served > served

@@ -202,6 +202,9 @@ class _EmulatorSource(_SensorSource):
     world as it was before (an arm still on its way) and arrive after the capture dropped what was queued; on a
     loaded PC that lag reaches a large part of a second.  A capture therefore takes only frames asked for after
     it began (checked by frame number), as a live camera's next exposure is.
+
+    Frames are asked for only while a capture waits: a render holds the emulator's physics for tens of
+    milliseconds, and a stream rendered through every move would slow the emulated arm by a third.
     """
 
     KEEP_REQUEST_TIMES = 64  # frame numbers remembered with the moment they were asked for
@@ -226,6 +229,7 @@ class _EmulatorSource(_SensorSource):
         self._thread: threading.Thread | None = None
         self._asked_at: dict[int, float] = {}   # software frame number -> when the pump asked the feed for it
         self._fresh_from = 0.0                  # frames asked for before this moment are stale
+        self._wanted = threading.Event()        # set while a capture waits for a frame
         try:
             super().__init__(self._camera.device, width, height, hello.fps, description)
         except CameraFault:
@@ -241,6 +245,8 @@ class _EmulatorSource(_SensorSource):
         period = 1.0 / self._camera.fps
         try:
             while not self._stop.is_set():
+                if not self._wanted.wait(0.05):
+                    continue
                 started = time.monotonic()
                 self._client.request()
                 while True:
@@ -261,15 +267,19 @@ class _EmulatorSource(_SensorSource):
     def wait(self, timeout_s: float):
         """The next frameset asked for after the last :meth:`drop_queued`; older ones are passed over."""
         deadline = time.monotonic() + timeout_s
-        while True:
-            frames = super().wait(max(0.001, deadline - time.monotonic()))
-            if frames is None:
-                return None
-            asked = self._asked_at.get(frames.get_depth_frame().get_frame_number())
-            if asked is None or asked >= self._fresh_from:   # None: older than 64 requests, dropped with the queue
-                return frames
-            if time.monotonic() >= deadline:
-                return None
+        self._wanted.set()
+        try:
+            while True:
+                frames = super().wait(max(0.001, deadline - time.monotonic()))
+                if frames is None:
+                    return None
+                asked = self._asked_at.get(frames.get_depth_frame().get_frame_number())
+                if asked is None or asked >= self._fresh_from:   # None: older than 64 requests, dropped with the queue
+                    return frames
+                if time.monotonic() >= deadline:
+                    return None
+        finally:
+            self._wanted.clear()
 
     def drop_queued(self) -> None:
         self._fresh_from = time.monotonic()

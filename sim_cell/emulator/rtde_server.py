@@ -10,7 +10,10 @@ then the payload.  What a client does and what the emulator answers:
   * ``I`` input recipe (comma-separated names) -> recipe id, types;
   * ``S`` start / ``P`` pause -> uint8 1; after start, the controller sends a
     data package ``U`` (uint8 recipe id, the values in recipe order) at the
-    recipe's frequency (at most the controller's 500 Hz, or ``max_frequency``);
+    recipe's frequency (at most the controller's 500 Hz, or ``max_frequency``),
+    skipping the beats on which the world has not stepped since the last package
+    (the emulated state changes only with a physics step; the modes a fault sets
+    between steps go out within ``MAX_SILENCE``);
   * ``U`` from the client: an input recipe's values, written into the
     controller's input registers and IO (tool digital outputs act on the arm).
 
@@ -41,6 +44,7 @@ log = logging.getLogger(__name__)
 RTDE_PORT = 30004
 CONTROLLER_VERSION = (5, 11, 1, 108318)   # PolyScope 5.11.1: an e-Series controller, 500 Hz
 CONTROLLER_FREQUENCY = 500.0
+MAX_SILENCE = 0.02   # s: a package goes out at least this often even when no physics step has happened since
 HEADER = struct.Struct(">HB")
 REGISTER_COUNT = 48
 
@@ -175,6 +179,7 @@ class RTDEServer:
         started = False
         version = 1
         next_send = time.monotonic()
+        last_stamp, last_sent = math.nan, 0.0
         while not self.service.closing:
             wait = max(next_send - time.monotonic(), 0.0) if started else 0.5
             readable, _, _ = select.select([conn], [], [], wait)
@@ -214,7 +219,10 @@ class RTDEServer:
                 else:
                     raise ValueError(f"RTDE: unknown packet type {kind}")
             if started and outputs is not None and time.monotonic() >= next_send:
-                self._send(conn, "U", b"\x01" + self._pack_outputs(outputs))
+                state = self.arm.state()
+                if state.timestamp != last_stamp or time.monotonic() - last_sent >= MAX_SILENCE:
+                    self._send(conn, "U", b"\x01" + self._pack_outputs(outputs, state))
+                    last_stamp, last_sent = state.timestamp, time.monotonic()
                 next_send += period
                 if time.monotonic() - next_send > 0.1:   # fell behind (a busy machine): do not burst
                     next_send = time.monotonic() + period
@@ -268,8 +276,7 @@ class RTDEServer:
         if "tool_digital_output_mask" in fields and "tool_digital_output" in fields:
             self.arm.set_tool_digital_out(int(fields["tool_digital_output_mask"]), int(fields["tool_digital_output"]))
 
-    def _pack_outputs(self, recipe: _Recipe) -> bytes:
-        state = self.arm.state()
+    def _pack_outputs(self, recipe: _Recipe, state: ArmSnapshot) -> bytes:
         regs = self.registers
         with regs.lock:
             values = [self._output_value(name, state, regs) for name in recipe.names]
