@@ -83,7 +83,9 @@ class ExecutionResult:
     ``completed`` is False when a motion could not be carried out (unreachable
     pose, collision stop); the cell is then left safe and the caller decides.
     ``widths`` holds the gripper widths measured at the plan's MeasureWidth steps;
-    ``contact_stops`` the guarded moves that stopped at a contact.
+    ``contact_stops`` the guarded moves that stopped at a contact.  ``duration`` is the
+    time the plan took on the cell's own clock: the robot controller's on a real cell
+    (an emulated one keeps its own), simulated time on a simulated one.
     """
 
     completed: bool

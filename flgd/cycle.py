@@ -101,6 +101,7 @@ class CycleRecord:
     contact_stop_mm: float | None = None  # a guarded move of the action stopped this far short of its pose
     done: bool = False
     duration: float = 0.0
+    cell_time: float | None = None   # the cycle's plans on the cell's own clock (s); None: nothing executed
     timings: dict[str, float] = field(default_factory=dict)
     transition_id: int | None = None
     refill_needed: bool = False      # "empty" on a cell that cannot reset its own scene
@@ -122,12 +123,18 @@ class CycleRecord:
             "mu": self.mu, "eta": self.eta, "rule": self.rule, "epsilon": self.epsilon,
             "q_value": self.q_value, "refused": self.refused, "failure": self.failure,
             "contact_stop_mm": self.contact_stop_mm,
-            "done": int(self.done), "duration": self.duration, "policy": self.policy,
+            "done": int(self.done), "duration": self.duration, "policy": self.policy, "cell_time": self.cell_time,
         }
         for phase, seconds in self.timings.items():
             if phase != "store":
                 out[f"t_{phase}"] = seconds
         return out
+
+
+def _on_cell_clock(record: CycleRecord, result: ExecutionResult) -> ExecutionResult:
+    """Add a plan's time on the cell's own clock (``ExecutionResult.duration``) to the cycle's ``cell_time``."""
+    record.cell_time = (record.cell_time or 0.0) + result.duration
+    return result
 
 
 class _Timer:
@@ -308,7 +315,7 @@ class CycleRunner:
             # The arm may stand anywhere (daemon start, a stop mid-motion, a reset, another cell):
             # send it home, out of the camera's view, before taking the picture a decision rests on.
             with timer.phase("execute"):
-                home = self._run_checked(plan_home(self.config), "home before capture")
+                home = _on_cell_clock(record, self._run_checked(plan_home(self.config), "home before capture"))
             if _was_stopped(home) or self._stop.is_set():
                 record.outcome = "stopped"
                 record.failure = home.failure or STOPPED_ON_REQUEST
@@ -382,7 +389,7 @@ class CycleRunner:
             raise
         try:
             with timer.phase("execute"):
-                result = self.cell.execute(checked)
+                result = _on_cell_clock(record, self.cell.execute(checked))
                 if result.contact_stops:
                     record.contact_stop_mm = round(1000.0 * result.contact_stops[0].short_by, 1)
                 if _was_stopped(result) or self._stop.is_set():
@@ -393,7 +400,7 @@ class CycleRunner:
                     held = grasp_reward(width, self.config.gripper) > 0
                 unstable = _unstable(result)
                 if not unstable and action.primitive == "grasp":
-                    released = self._run_checked(plan_release(held, self.config), "release")
+                    released = _on_cell_clock(record, self._run_checked(plan_release(held, self.config), "release"))
                     if _was_stopped(released):
                         return self._stopped(record, released.failure, finish, timer)
                     unstable = _unstable(released)
@@ -404,7 +411,7 @@ class CycleRunner:
                         if dropped:
                             record.failure = dropped
                 if not unstable and not result.completed:
-                    home = self._run_checked(plan_home(self.config), "home")
+                    home = _on_cell_clock(record, self._run_checked(plan_home(self.config), "home"))
                     if _was_stopped(home):
                         return self._stopped(record, home.failure, finish, timer)
                     unstable = _unstable(home)

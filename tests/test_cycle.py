@@ -71,3 +71,35 @@ def test_a_block_dropped_on_the_way_to_the_place_is_a_failed_grasp_in_the_record
     finally:
         store.close()
         cell.close()
+
+
+class _TimedSimCell(SimCell):
+    """The simulated cell, remembering every plan's duration (simulated time) as it hands it back."""
+
+    def __init__(self, cfg):
+        super().__init__(cfg)
+        self.durations: list[float] = []
+
+    def execute(self, plan):
+        result = super().execute(plan)
+        self.durations.append(result.duration)
+        return result
+
+
+def test_a_cycle_records_the_time_its_plans_took_on_the_cells_own_clock(tmp_path):
+    """Home before the capture, the grasp and the place: the record and the action log hold their summed
+    simulated time, not the few wall-clock seconds the simulator needed for them."""
+    cfg = dataclasses.replace(make_config(objects=0, depth_noise=False, domain_randomization=False),
+                              state_dir=str(tmp_path))
+    cell = _TimedSimCell(cfg)
+    store = Store(tmp_path)
+    try:
+        cube_at(cell, -0.50, 0.05, size=(0.04, 0.04, 0.04))
+        row, col = base_to_pixel(-0.50, 0.05, cfg.workspace)
+        record = CycleRunner(cfg, cell, _GraspAt(Action("grasp", int(row), int(col), 0, 16)), store=store).run_once()
+        assert record.success is True and len(cell.durations) == 3   # home, grasp, place
+        assert record.cell_time == pytest.approx(sum(cell.durations)) and record.cell_time > 5.0
+        assert store.action_log()[-1]["cell_time"] == pytest.approx(record.cell_time)
+    finally:
+        store.close()
+        cell.close()

@@ -245,6 +245,17 @@ def test_a_controller_slower_than_the_wall_clock_is_judged_by_its_own_clock(ctl,
     assert cell.fault is None
 
 
+def test_a_plans_duration_is_its_time_on_the_controllers_clock(ctl, rg2):
+    """A cycle time a user plans with is the arm's, not that of a PC which emulates the arm more slowly."""
+    cell = make_ur5e(ctl, rg2)
+    ctl.rate = 0.5
+    wall, controller = ctl.now, ctl.controller_now
+    result = cell.execute(grasp(cell.config))
+    assert result.completed
+    assert result.duration == pytest.approx(ctl.controller_now - controller)
+    assert result.duration == pytest.approx(0.5 * (ctl.now - wall), rel=0.05)
+
+
 def test_a_controller_whose_clock_stops_is_a_fault_within_a_bounded_wall_time(ctl, rg2):
     """A state stream that keeps answering but no longer advances (a frozen controller link) cannot hold a move
     for ever: after five times the move's limit on the wall clock the arm is halted and the fault latched."""

@@ -252,13 +252,14 @@ def test_a_version_1_store_is_upgraded_in_place_without_losing_anything(tmp_path
     store.close()
     db = sqlite3.connect(tmp_path / "flgd.sqlite")  # make it exactly what version 1 wrote
     db.execute("ALTER TABLE actions DROP COLUMN contact_stop_mm")
+    db.execute("ALTER TABLE actions DROP COLUMN cell_time")
     db.execute("UPDATE meta SET value='1' WHERE key='schema_version'")
     db.commit()
     db.close()
 
     store = Store(tmp_path)
     try:
-        assert store.query("SELECT value FROM meta WHERE key='schema_version'") == [("3",)]
+        assert store.query("SELECT value FROM meta WHERE key='schema_version'") == [("4",)]
         assert store.transition_count() == 1 and store.next_step() == 1
         assert store.query("SELECT step, success, contact_stop_mm FROM actions") == [(0, 1, None)]
         store.commit_cycle(action_row(1, contact_stop_mm=7.5),
@@ -320,6 +321,7 @@ def test_a_version_2_store_gains_the_gate_column_and_tables_in_place(tmp_path):
     db = sqlite3.connect(tmp_path / "flgd.sqlite")  # make it exactly what version 2 wrote
     db.execute("DROP INDEX actions_policy")
     db.execute("ALTER TABLE actions DROP COLUMN policy")
+    db.execute("ALTER TABLE actions DROP COLUMN cell_time")
     db.execute("DROP TABLE policies")
     db.execute("DROP TABLE gate_events")
     db.execute("UPDATE meta SET value='2' WHERE key='schema_version'")
@@ -328,11 +330,32 @@ def test_a_version_2_store_gains_the_gate_column_and_tables_in_place(tmp_path):
 
     store = Store(tmp_path)
     try:
-        assert store.query("SELECT value FROM meta WHERE key='schema_version'") == [("3",)]
+        assert store.query("SELECT value FROM meta WHERE key='schema_version'") == [("4",)]
         assert store.query("SELECT step, success, policy FROM actions") == [(0, 1, None)]
         store.commit_cycle(action_row(1, policy=4), None)
         assert store.query("SELECT policy FROM actions WHERE step=1") == [(4,)]
         assert store.query("SELECT COUNT(*) FROM policies") == [(0,)]
         assert store.integrity_check() == "ok"
+    finally:
+        store.close()
+
+
+def test_a_version_3_store_gains_the_cell_time_column_in_place(tmp_path):
+    store = Store(tmp_path)
+    store.commit_cycle(action_row(0), Transition(random_heightmaps(0), Action("grasp", 0, 0, 0), 1.0, random_heightmaps(1), False))
+    store.close()
+    db = sqlite3.connect(tmp_path / "flgd.sqlite")  # make it exactly what version 3 wrote
+    db.execute("ALTER TABLE actions DROP COLUMN cell_time")
+    db.execute("UPDATE meta SET value='3' WHERE key='schema_version'")
+    db.commit()
+    db.close()
+
+    store = Store(tmp_path)
+    try:
+        assert store.query("SELECT value FROM meta WHERE key='schema_version'") == [("4",)]
+        assert store.query("SELECT step, success, cell_time FROM actions") == [(0, 1, None)]
+        store.commit_cycle(action_row(1, cell_time=8.25), None)
+        assert store.query("SELECT cell_time FROM actions WHERE step=1") == [(8.25,)]
+        assert store.transition_count() == 1 and store.integrity_check() == "ok"
     finally:
         store.close()

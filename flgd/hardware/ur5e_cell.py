@@ -85,14 +85,14 @@ class UR5eCell(Cell):
 
     # ------------------------------------------------------------------ acting
     def execute(self, plan: CheckedPlan) -> ExecutionResult:
-        start = self._clock()
         with self._lock:
             steps = plan.verify(self.config).steps  # PlanRefused: nothing has moved
             self.arm.check()
+            start = self.arm.controller_time()   # durations on the controller's clock (ExecutionResult)
             try:
                 self.arm.begin()  # a latched stop request: nothing is sent
             except MotionStopped:
-                return ExecutionResult(False, [], f"before step 0: {STOPPED_ON_REQUEST}", self._clock() - start)
+                return ExecutionResult(False, [], f"before step 0: {STOPPED_ON_REQUEST}", self._elapsed(start))
             self._check_start_pose()
             sf, gr = self.config.safety, self.config.gripper
             widths: list[float] = []
@@ -117,14 +117,22 @@ class UR5eCell(Cell):
                     else:  # verify() refuses unknown steps; this guards a future step type
                         raise CellFault(f"{where}: the ur5e cell cannot run {type(step).__name__}")
                 except PoseUnreachable as exc:
-                    return ExecutionResult(False, widths, f"{where}: {exc}", self._clock() - start, stops)
+                    return ExecutionResult(False, widths, f"{where}: {exc}", self._elapsed(start), stops)
                 except MotionStopped:
-                    return ExecutionResult(False, widths, f"{where}: {STOPPED_ON_REQUEST}", self._clock() - start,
+                    return ExecutionResult(False, widths, f"{where}: {STOPPED_ON_REQUEST}", self._elapsed(start),
                                            stops)
                 except GripperFault as exc:
                     self.arm.latch(f"gripper: {exc}")
                     raise CellFault(f"{where}: {exc}") from exc
-            return ExecutionResult(True, widths, "", self._clock() - start, stops)
+            return ExecutionResult(True, widths, "", self._elapsed(start), stops)
+
+    def _elapsed(self, start: float) -> float:
+        """Seconds on the controller's clock since ``start``; 0 when it cannot be read (a plan cut short by a
+        lost link ends in a fault, whose cycle time nobody plans with)."""
+        try:
+            return self.arm.controller_time() - start
+        except CellFault:
+            return 0.0
 
     def _check_start_pose(self) -> None:
         """Refuse the plan (a latched fault) unless the arm stands inside the safety envelope now.

@@ -403,7 +403,7 @@ class URArm:
         status = self._call(self.control, "getAsyncOperationProgressEx")
         return bool(status.isAsyncOperationRunning())
 
-    def _controller_time(self) -> float:
+    def controller_time(self) -> float:
         """The controller's own clock (RTDE ``timestamp``, s): a move's time limits are counted on it, so that a
         controller that runs slower than the wall clock (an emulator on a busy PC) is judged by its own time."""
         stamp = self._call(self.receive, "getTimestamp")
@@ -418,7 +418,7 @@ class URArm:
 
     def _wait_for_move(self, target: list[float], what: str, timeout: float,
                        guard: tuple[np.ndarray, float] | None = None) -> bool:
-        start, controller_start = self._clock(), self._controller_time()
+        start, controller_start = self._clock(), self.controller_time()
         seen_running = False
         while True:
             if self._stop_requested.is_set():
@@ -435,7 +435,7 @@ class URArm:
             running = self._async_running()
             seen_running = seen_running or running
             dp, dr = pose_error(self.tcp_pose(), target)
-            elapsed = self._controller_time() - controller_start
+            elapsed = self.controller_time() - controller_start
             if not running:
                 if dp <= POSITION_TOLERANCE and dr <= ORIENTATION_TOLERANCE:
                     return False
