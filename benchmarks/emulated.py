@@ -6,7 +6,9 @@ beside the sim backend on the same scenes and seed; then every fault kind inject
 *policy*: ``flgd run`` with the shipped policy, frozen (``finetune.updates_per_action: 0``), on
 cell_config/ur5e-emulated.yaml (backend ur5e against the emulator) and on the same file with ``backend: sim``,
 until ``--cycles`` actions each; grasp success per grasp, picks per action, the cycle's time split (capture,
-perceive, decide, plan, execute, judge, store) and the controller's own time (all but execute).
+perceive, decide, plan, execute, judge, store), the controller's own time (all but execute), and picks per hour
+both on the wall clock and on the cell's own clock (the emulator's or the simulator's time for the motions, the
+controller's own work on the wall clock), with the real-time factor the emulator's clock achieved.
 *faults*: the daemon on the emulator; each kind raised ``--faults`` times at a random instant of a motion, then
 what a person does (release the e-stop and power the arm on at the pendant, reset the gripper, plug the camera
 in) and ``flgctl reset`` + ``start``: latched, no motion started after the fault before the reset, recovered,
@@ -137,13 +139,28 @@ def _policy_summary(rows: list[dict], cycles: int) -> dict[str, Any]:
     executed = [r for r in rows if r["outcome"] == "executed" and r["duration"]]
     phases = {p: statistics.median(r[p] for r in executed if r[p] is not None) for p in PHASES} if executed else {}
     own = [r["duration"] - (r["t_execute"] or 0.0) for r in executed]
+    wall_total = sum(r["duration"] or 0.0 for r in rows)
+    cell_total = sum(_cycle_on_cell_clock(r) for r in rows)
     return {"cycles": len(rows), "grasps": len(grasps), "picks": picks,
             "grasp_success": picks / len(grasps) if grasps else None,
             "picks_per_action": picks / len(decided) if decided else None,
             "outcomes": {o: sum(1 for r in rows if r["outcome"] == o) for o in {r["outcome"] for r in rows}},
             "median_cycle_s": statistics.median(r["duration"] for r in executed) if executed else None,
             "median_controller_s": statistics.median(own) if own else None,
+            "median_cycle_cell_clock_s": (statistics.median(_cycle_on_cell_clock(r) for r in executed)
+                                          if executed else None),
+            "picks_per_hour_wall": picks * 3600.0 / wall_total if wall_total > 0 else None,
+            "picks_per_hour_cell_clock": picks * 3600.0 / cell_total if cell_total > 0 else None,
             "median_phase_s": phases}
+
+
+def _cycle_on_cell_clock(row: dict) -> float:
+    """A cycle as the arm lives it: the controller's own work (wall clock) plus its plans on the cell's clock
+    (the emulator's or the simulator's; a row without one counts its wall time)."""
+    duration = row["duration"] or 0.0
+    if row.get("cell_time") is None:
+        return duration
+    return duration - (row["t_execute"] or 0.0) + row["cell_time"]
 
 
 def _operator_reset(daemon: _Daemon) -> bool:
@@ -192,11 +209,17 @@ def run_policy(root: Path, cycles: int, time_scale: float, host: str) -> dict[st
 
                     inject(emu.faults, "refill")
                     daemon.call("start")
+                if emu is not None:   # how fast the emulator's clock ran while the daemon cycled on it
+                    from sim_cell.emulator.faults import inject
+
+                    (row / "clock.json").write_text(json.dumps(inject(emu.faults, "status").get("clock")))
             finally:
                 daemon.stop()
                 if emu is not None:
                     emu.stop()
         out["emulated" if backend == "ur5e" else "sim"] = _policy_summary(_rows(row / "state"), cycles)
+        if (row / "clock.json").exists():
+            out["emulated"]["emulator_clock"] = json.loads((row / "clock.json").read_text())
         if (row / "faults.json").exists():  # faults the cell raised on its own (not injected)
             out["emulated" if backend == "ur5e" else "sim"]["faults"] = json.loads((row / "faults.json").read_text())
         print(f"{backend}: {json.dumps(out['emulated' if backend == 'ur5e' else 'sim'])}", flush=True)

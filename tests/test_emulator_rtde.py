@@ -14,7 +14,8 @@ from flgd.config import load_config
 from sim_cell.emulator.arm import EmulatedArm
 from sim_cell.emulator.rtde_server import HEADER, MAX_SILENCE, RTDE_PORT, Registers, RTDEServer
 from sim_cell.emulator.tcp_service import read_exact
-from sim_cell.emulator.world import EmulatorWorld
+from sim_cell.emulator.faults import FaultInjector
+from sim_cell.emulator.world import EmulatorWorld, slow_clock_warning
 from tests.loopback import worker_host
 
 HOST = worker_host(4)
@@ -72,3 +73,24 @@ def test_a_package_goes_out_only_when_the_world_has_stepped_or_the_stream_would_
     world.start()   # 240 steps a second
     running = _stamps_for(conn, 0.5)
     assert len(set(running)) > 60 and running == sorted(running)
+
+
+def test_the_world_reports_how_fast_its_clock_ran_and_a_slow_clock_is_worth_a_warning():
+    cfg = load_config(ROOT / "cell_config" / "sim.yaml")
+    world = EmulatorWorld(dataclasses.replace(cfg, sim=dataclasses.replace(cfg.sim, objects=0, scene="")),
+                          time_scale=1000.0)   # no PC steps physics 1000 times faster than real time
+    injector = FaultInjector()
+    injector.watch(world)
+    try:
+        world.start()
+        time.sleep(1.0)
+        clock = injector.status()["clock"]
+    finally:
+        world.close()
+    assert clock["time_scale"] == 1000.0 and clock["sim_s"] > 0.1 and 0.9 < clock["wall_s"] < 5.0
+    assert clock["real_time_factor"] == pytest.approx(clock["sim_s"] / clock["wall_s"], rel=0.2)
+    assert clock["real_time_factor"] < 500.0
+    # the warning: over most of the window, below half the asked-for speed; never on a clock that keeps up
+    assert "runs at 0.40x real time (asked for 1x)" in slow_clock_warning([(0.0, 0.0), (10.0, 4.0)], 1.0)
+    assert slow_clock_warning([(0.0, 0.0), (10.0, 6.0)], 1.0) is None
+    assert slow_clock_warning([(0.0, 0.0), (3.0, 0.3)], 1.0) is None   # too short a window to judge

@@ -168,12 +168,16 @@ class FaultInjector:
             return sum(t.is_alive() for t in self._armed)
 
     def status(self) -> dict[str, Any]:
-        """The faults raised, those armed, and the arm motions begun since the last fault."""
+        """The faults raised, those armed, the arm motions begun since the last fault, and (when watching a
+        world) how fast its clock ran."""
         with self._lock:
             last = self.raised[-1]["time"] if self.raised else None
             since = None if last is None else sum(1 for t in list(self.motion_starts) if t > last)
-            return {"raised": list(self.raised), "armed": sum(t.is_alive() for t in self._armed),
-                    "motions_since_last_fault": since}
+            report = {"raised": list(self.raised), "armed": sum(t.is_alive() for t in self._armed),
+                      "motions_since_last_fault": since}
+        if self.world is not None:
+            report["clock"] = self.world.clock_report()
+        return report
 
     def command(self, line: str) -> dict[str, Any]:
         """One command line of the control socket: ``KIND [--during-motion]``; the reply object."""

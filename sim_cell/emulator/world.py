@@ -10,13 +10,19 @@ the world at the same time and no second lock can be taken in the wrong order.
 The world runs on its own clock thread (:meth:`start`): physics steps of
 ``config.sim.time_step`` paced to real time divided by ``time_scale`` (2 =
 twice as fast as real time); on a machine too busy to keep up, simulated time
-slows down instead of jumping ahead.  Before each step the registered tick callbacks
+slows down instead of jumping ahead.  Simulated time is the emulated
+controller's clock (its RTDE ``timestamp``): the daemon times moves on it, and
+a cycle's ``cell_time`` is counted on it, so they are the arm's times whatever
+the load.  :meth:`clock_report` says how fast that clock actually ran (the
+real-time factor); a clock that falls below half the asked-for speed is logged
+as a warning once a minute.  Before each step the registered tick callbacks
 run under the lock (the arm's controller, the fingers), so a device never
 steps the world itself.
 """
 
 from __future__ import annotations
 
+import collections
 import logging
 import threading
 import time
@@ -26,13 +32,28 @@ from flgd.config import CellConfig
 from sim_cell.cell import SimCell
 from sim_cell.stability import Unstable
 
-__all__ = ["EmulatorWorld", "TickCallback"]
+__all__ = ["EmulatorWorld", "TickCallback", "slow_clock_warning"]
 
 log = logging.getLogger(__name__)
 
 TickCallback = Callable[[float], None]   # called with the physics time step (s) before each step
 MAX_BURST_STEPS = 2                      # steps taken at once when behind: the RTDE stream gets its turn between
 MAX_LAG_STEPS = 24                       # steps behind real time before the clock gives up catching up
+RATE_WINDOW_S = 10.0                     # wall seconds over which the recent real-time factor is measured
+SLOW_WARNING_EVERY_S = 60.0              # at most one "running slow" warning this often
+
+
+def slow_clock_warning(samples: list[tuple[float, float]], time_scale: float) -> str | None:
+    """What to warn about when (wall, sim) samples spanning most of ``RATE_WINDOW_S`` show the simulated clock at
+    less than half the asked-for speed; None otherwise."""
+    if len(samples) < 2:
+        return None
+    wall, sim = samples[-1][0] - samples[0][0], samples[-1][1] - samples[0][1]
+    if wall < 0.9 * RATE_WINDOW_S or sim / wall >= 0.5 * time_scale:
+        return None
+    return (f"emulator: the simulated clock runs at {sim / wall:.2f}x real time (asked for {time_scale:g}x): the "
+            f"PC is too busy for it; moves and cycle times stay on the emulator's clock, but waits timed on the "
+            f"wall clock (gripper, camera) may run out")
 
 
 class EmulatorWorld:
@@ -50,6 +71,9 @@ class EmulatorWorld:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self.steps = 0
+        self._started: tuple[float, float] | None = None          # (wall, sim) when the clock started
+        self._samples: collections.deque[tuple[float, float]] = collections.deque()   # (wall, sim), last window
+        self._warned_at = float("-inf")
 
     # ------------------------------------------------------------------ devices
     def add_tick(self, callback: TickCallback) -> None:
@@ -89,11 +113,39 @@ class EmulatorWorld:
         self._thread = threading.Thread(target=self._run, name="emulator-physics", daemon=True)
         self._thread.start()
 
+    def clock_report(self) -> dict[str, float | None]:
+        """How fast the simulated clock ran: since the clock started and over the last ``RATE_WINDOW_S``
+        (simulated seconds per wall second; ``time_scale`` is what was asked for)."""
+        now, sim = time.monotonic(), self.sim_time
+        started = self._started
+        samples = list(self._samples)
+        overall = (sim - started[1]) / (now - started[0]) if started and now > started[0] else None
+        recent = ((sim - samples[0][1]) / (now - samples[0][0])
+                  if samples and now - samples[0][0] > 0.5 else overall)
+        return {"time_scale": self.time_scale, "sim_s": sim - started[1] if started else 0.0,
+                "wall_s": now - started[0] if started else 0.0, "real_time_factor": overall,
+                "recent_real_time_factor": recent}
+
+    def _sample_rate(self, now: float) -> None:
+        """Keep the window of (wall, sim) samples; warn when the clock runs at less than half its speed."""
+        if self._samples and now - self._samples[-1][0] < 0.5:
+            return
+        self._samples.append((now, self.sim_time))
+        while now - self._samples[0][0] > RATE_WINDOW_S:
+            self._samples.popleft()
+        warning = slow_clock_warning(list(self._samples), self.time_scale)
+        if warning and now - self._warned_at >= SLOW_WARNING_EVERY_S:
+            self._warned_at = now
+            log.warning("%s", warning)
+
     def _run(self) -> None:
         period = self.dt / self.time_scale
         next_at = time.monotonic()
+        self._started = (next_at, self.sim_time)
+        self._samples.clear()
         while not self._stop.is_set():
             now = time.monotonic()
+            self._sample_rate(now)
             if now < next_at:
                 self._stop.wait(next_at - now)
                 continue
