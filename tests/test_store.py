@@ -359,3 +359,28 @@ def test_a_version_3_store_gains_the_cell_time_column_in_place(tmp_path):
         assert store.transition_count() == 1 and store.integrity_check() == "ok"
     finally:
         store.close()
+
+
+def test_picks_per_hour_count_the_motions_on_the_cells_clock_and_survive_retention(tmp_path):
+    """A simulated arm moves 9 s in 0.2 s of the PC's time: its picks per hour are the arm's (one pick per 9.5 s),
+    not the simulator's; rows the retention deletes keep counting the same way."""
+    import time
+
+    from flgd import disk_budget
+    from flgd.daemon.metrics import compute_stats, status_summary
+
+    old = time.time() - 400 * disk_budget.DAY
+    store = Store(tmp_path)
+    for step in range(4):   # the controller's work 0.5 s + execute 0.2 s of wall clock; the motions 9 s of the cell's
+        store.commit_cycle(action_row(step, duration=0.7, t_execute=0.2, cell_time=9.0,
+                                      time=old if step < 3 else time.time()))
+    before = compute_stats(store)["picks_per_hour"]
+    assert before == pytest.approx(4 * 3600.0 / (4 * 9.5))
+    assert status_summary(store)["picks_per_hour"] == pytest.approx(before)
+    store.close()
+    store = Store(tmp_path, action_log_days=365)   # a start applies the retention
+    try:
+        assert len(store.action_log()) == 1, "the retention deleted the old rows"
+        assert compute_stats(store)["picks_per_hour"] == pytest.approx(before)
+    finally:
+        store.close()

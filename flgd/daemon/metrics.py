@@ -4,8 +4,10 @@ Definitions (VPG's where they exist):
   * cycles: rows of the action log (one per decided action, whatever its outcome).
   * grasp attempts / successes: executed grasps / those that held an object.
   * rolling grasp success: successes over the last 50 and last 200 grasp attempts.
-  * picks per hour: grasp successes per hour of cycle time (the summed wall time
-    of all cycles, so pauses and idle time do not count).
+  * picks per hour: grasp successes per hour of cycle time: the summed cycles, each
+    the controller's own work (wall clock) plus its plans on the cell's clock (the
+    controller's, or simulated time), so pauses and idle time do not count and an
+    emulated or simulated arm is counted at its own speed, not the PC's.
   * action efficiency: grasp successes / executed actions (objects per action).
   * moves by kind: executed pushes and shifts.
   * contact stops: executed grasps whose guarded descent stopped at a contact,
@@ -24,6 +26,7 @@ import threading
 from typing import Any
 
 from flgd.store import DELETED_TOTALS, TIMING_PHASES, Store
+from flgd.store.schema import CYCLE_ON_CELL_CLOCK_SQL
 
 __all__ = ["compute_stats", "status_summary", "TIMING_WINDOW", "format_stats", "FAULT_KINDS", "fault_counts",
            "PHASE_BUCKETS", "PhaseHistograms"]
@@ -127,7 +130,7 @@ def _actions_since_pick(store: Store) -> int:
 
 
 def _cycle_time(store: Store) -> float:
-    kept = store.query("SELECT COALESCE(SUM(duration), 0) FROM actions")[0][0]
+    kept = store.query(f"SELECT COALESCE(SUM({CYCLE_ON_CELL_CLOCK_SQL}), 0) FROM actions")[0][0]
     return kept + _deleted(store)["deleted_cycle_ms"] / 1000.0
 
 

@@ -13,6 +13,7 @@ import sqlite3
 import time
 
 from flgd import disk_budget
+from flgd.store.schema import CYCLE_ON_CELL_CLOCK_SQL
 
 # Counters of what the action-log retention deleted (with ``actions_deleted``, the deleted rows): the
 # totals in flgd/daemon/metrics.py add them, so a counter never goes down when old rows go.
@@ -65,7 +66,8 @@ def retain_action_log(db: sqlite3.Connection, days: float) -> None:
         "COALESCE(SUM(outcome='executed' AND primitive='grasp' AND success=1), 0), "
         "COALESCE(SUM(outcome='executed' AND primitive!='grasp' AND kind='push'), 0), "
         "COALESCE(SUM(outcome='executed' AND primitive!='grasp' AND kind='shift'), 0), "
-        "COALESCE(SUM(duration), 0) FROM actions WHERE step < ? AND time < ?", (bound, cutoff)).fetchone()
+        f"COALESCE(SUM({CYCLE_ON_CELL_CLOCK_SQL}), 0) FROM actions WHERE step < ? AND time < ?",
+        (bound, cutoff)).fetchone()
     cur = db.execute("DELETE FROM actions WHERE step < ? AND time < ?", (bound, cutoff))
     if cur.rowcount > 0:
         names = ("actions_deleted", *DELETED_TOTALS)

@@ -24,6 +24,11 @@ ACTION_COLUMNS = (
     *(f"t_{p}" for p in TIMING_PHASES), "transition_id", "policy", "cell_time",
 )
 
+# A cycle as the arm lives it (s): the controller's own work on the wall clock plus its plans on the cell's clock;
+# a row logged before ``cell_time`` existed counts its wall time.  Picks per hour are counted on it.
+CYCLE_ON_CELL_CLOCK_SQL = ("CASE WHEN cell_time IS NULL THEN COALESCE(duration, 0) "
+                           "ELSE COALESCE(duration, 0) - COALESCE(t_execute, 0) + cell_time END")
+
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS meta(key TEXT PRIMARY KEY, value TEXT NOT NULL);
 CREATE TABLE IF NOT EXISTS states(
