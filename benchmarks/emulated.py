@@ -158,7 +158,7 @@ def _cycle_on_cell_clock(row: dict) -> float:
     """A cycle as the arm lives it: the controller's own work (wall clock) plus its plans on the cell's clock
     (the emulator's or the simulator's; a row without one counts its wall time)."""
     duration = row["duration"] or 0.0
-    if row.get("cell_time") is None:
+    if row.get("cell_time") is None or duration == 0.0:   # as flgd.store.schema.CYCLE_ON_CELL_CLOCK_SQL
         return duration
     return duration - (row["t_execute"] or 0.0) + row["cell_time"]
 

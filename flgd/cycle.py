@@ -224,9 +224,13 @@ class CycleRunner:
         """A fresh capture and its heightmaps, outside any cycle (for snapshots); keeps the cycle's state."""
         return self.perceive(_Timer({}, None))
 
-    def _reset_scene(self, timer: _Timer) -> None:
+    def _reset_scene(self, timer: _Timer, record: CycleRecord) -> None:
+        """A new scene laid out by the cell; its time counts in ``cell_time`` as the PC spent it (a scene reset
+        has no motion on the cell's clock)."""
+        started = time.perf_counter()
         with timer.phase("execute"):
             self.cell.reset_scene()
+        record.cell_time = (record.cell_time or 0.0) + time.perf_counter() - started
         self._new_scene()
 
     def _new_scene(self) -> None:
@@ -337,14 +341,14 @@ class CycleRunner:
             record.outcome = "stuck"
             record.failure = stuck
             if self.cell.can_reset_scene():
-                self._reset_scene(timer)
+                self._reset_scene(timer, record)
                 record.relaid = True
             else:
                 self._new_scene()
             return finish()
         if decision is None:
             if self.cell.can_reset_scene():
-                self._reset_scene(timer)
+                self._reset_scene(timer, record)
             else:
                 record.refill_needed = True
                 self._new_scene()  # after the refill the next cycle starts with a fresh picture
@@ -420,6 +424,7 @@ class CycleRunner:
         except CellFault as exc:
             record.outcome = "fault"
             record.failure = str(exc)
+            record.cell_time = None   # the plan cut short has no time on the cell's clock: count the wall clock's
             self.forget_state()
             if self.store is not None:
                 try:
@@ -431,7 +436,7 @@ class CycleRunner:
         if unstable:
             record.outcome = "discarded"
             record.failure = unstable
-            self._reset_scene(timer)
+            self._reset_scene(timer, record)
             self._commit(finish(), None, timer)
             return finish()
 
@@ -454,7 +459,7 @@ class CycleRunner:
                                       None if record.done else after, record.done)
         self._commit(finish(), transition, timer)
         if record.done:
-            self._reset_scene(timer)
+            self._reset_scene(timer, record)
         else:
             self.current = after
         return finish()

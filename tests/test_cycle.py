@@ -95,6 +95,7 @@ def test_a_cycle_records_the_time_its_plans_took_on_the_cells_own_clock(tmp_path
     store = Store(tmp_path)
     try:
         cube_at(cell, -0.50, 0.05, size=(0.04, 0.04, 0.04))
+        cube_at(cell, -0.35, -0.15, size=(0.04, 0.04, 0.04))   # the table is not cleared: no scene reset follows
         row, col = base_to_pixel(-0.50, 0.05, cfg.workspace)
         record = CycleRunner(cfg, cell, _GraspAt(Action("grasp", int(row), int(col), 0, 16)), store=store).run_once()
         assert record.success is True and len(cell.durations) == 3   # home, grasp, place

@@ -374,13 +374,16 @@ def test_picks_per_hour_count_the_motions_on_the_cells_clock_and_survive_retenti
     for step in range(4):   # the controller's work 0.5 s + execute 0.2 s of wall clock; the motions 9 s of the cell's
         store.commit_cycle(action_row(step, duration=0.7, t_execute=0.2, cell_time=9.0,
                                       time=old if step < 3 else time.time()))
+    # a cycle cut short before its commit: its home move has a time on the cell's clock, the cycle no duration
+    store.commit_cycle(action_row(4, outcome="interrupted", success=None, duration=0.0, t_execute=0.3,
+                                  cell_time=4.0))
     before = compute_stats(store)["picks_per_hour"]
     assert before == pytest.approx(4 * 3600.0 / (4 * 9.5))
     assert status_summary(store)["picks_per_hour"] == pytest.approx(before)
     store.close()
     store = Store(tmp_path, action_log_days=365)   # a start applies the retention
     try:
-        assert len(store.action_log()) == 1, "the retention deleted the old rows"
+        assert len(store.action_log()) == 2, "the retention deleted the old rows"
         assert compute_stats(store)["picks_per_hour"] == pytest.approx(before)
     finally:
         store.close()

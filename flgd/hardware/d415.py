@@ -267,7 +267,7 @@ class _EmulatorSource(_SensorSource):
     def wait(self, timeout_s: float):
         """The next frameset asked for after the last :meth:`drop_queued`; older ones are passed over."""
         deadline = time.monotonic() + timeout_s
-        self._wanted.set()
+        self._wanted.set()   # the stream runs while a capture waits (the syncer pairs a frame once the next comes)
         try:
             while True:
                 frames = super().wait(max(0.001, deadline - time.monotonic()))

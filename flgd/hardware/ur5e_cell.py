@@ -129,10 +129,8 @@ class UR5eCell(Cell):
     def _elapsed(self, start: float) -> float:
         """Seconds on the controller's clock since ``start``; 0 when it cannot be read (a plan cut short by a
         lost link ends in a fault, whose cycle time nobody plans with)."""
-        try:
-            return self.arm.controller_time() - start
-        except CellFault:
-            return 0.0
+        now = self.arm.controller_time_or_none()
+        return 0.0 if now is None else now - start
 
     def _check_start_pose(self) -> None:
         """Refuse the plan (a latched fault) unless the arm stands inside the safety envelope now.

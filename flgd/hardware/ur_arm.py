@@ -406,7 +406,11 @@ class URArm:
     def controller_time(self) -> float:
         """The controller's own clock (RTDE ``timestamp``, s): a move's time limits are counted on it, so that a
         controller that runs slower than the wall clock (an emulator on a busy PC) is judged by its own time."""
-        stamp = self._call(self.receive, "getTimestamp")
+        try:
+            stamp = self._call(self.receive, "getTimestamp")
+        except CellFault as exc:   # a lost link during a move: the move must not go on unwatched
+            self._halt()
+            self._latch(f"cannot read the controller's clock: {exc}")
         try:
             value = float(stamp)
         except (TypeError, ValueError):
@@ -415,6 +419,14 @@ class URArm:
             self._halt()
             self._latch(f"the controller reported an unusable timestamp {stamp!r}")
         return value
+
+    def controller_time_or_none(self) -> float | None:
+        """The controller's clock if it can be read now, else None; latches nothing (for accounting only)."""
+        try:
+            value = float(self._call(self.receive, "getTimestamp"))
+        except (CellFault, TypeError, ValueError):
+            return None
+        return value if math.isfinite(value) else None
 
     def _wait_for_move(self, target: list[float], what: str, timeout: float,
                        guard: tuple[np.ndarray, float] | None = None) -> bool:
@@ -448,7 +460,8 @@ class URArm:
             if wall > STALLED_CLOCK_FACTOR * timeout:
                 self._halt()
                 self._latch(f"{what}: the controller's clock advanced {elapsed:.1f} s in {wall:.1f} s; its state "
-                            f"stream has stalled (network, or an emulator far slower than real time)")
+                            f"stream has stalled or runs at less than 1/{STALLED_CLOCK_FACTOR:g} of real time "
+                            f"(network, or an emulator on a PC too busy for it)")
             self._sleep(self._poll)
 
     def _wait_until_still(self, what: str) -> None:

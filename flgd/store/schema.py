@@ -25,9 +25,10 @@ ACTION_COLUMNS = (
 )
 
 # A cycle as the arm lives it (s): the controller's own work on the wall clock plus its plans on the cell's clock;
-# a row logged before ``cell_time`` existed counts its wall time.  Picks per hour are counted on it.
-CYCLE_ON_CELL_CLOCK_SQL = ("CASE WHEN cell_time IS NULL THEN COALESCE(duration, 0) "
-                           "ELSE COALESCE(duration, 0) - COALESCE(t_execute, 0) + cell_time END")
+# a row without ``cell_time`` (logged before it existed, or a fault) counts its wall time, and a row still without
+# a duration (an intent, or one interrupted) counts nothing.  Picks per hour are counted on it.
+CYCLE_ON_CELL_CLOCK_SQL = ("CASE WHEN cell_time IS NULL OR COALESCE(duration, 0) = 0 THEN COALESCE(duration, 0) "
+                           "ELSE duration - COALESCE(t_execute, 0) + cell_time END")
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS meta(key TEXT PRIMARY KEY, value TEXT NOT NULL);

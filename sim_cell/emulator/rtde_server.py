@@ -12,8 +12,8 @@ then the payload.  What a client does and what the emulator answers:
     data package ``U`` (uint8 recipe id, the values in recipe order) at the
     recipe's frequency (at most the controller's 500 Hz, or ``max_frequency``),
     skipping the beats on which the world has not stepped since the last package
-    (the emulated state changes only with a physics step; the modes a fault sets
-    between steps go out within ``MAX_SILENCE``);
+    (the emulated state changes only with a physics step), but never silent for
+    more than ``MAX_SILENCE`` (the modes a fault sets between steps go out then);
   * ``U`` from the client: an input recipe's values, written into the
     controller's input registers and IO (tool digital outputs act on the arm).
 
@@ -179,7 +179,7 @@ class RTDEServer:
         started = False
         version = 1
         next_send = time.monotonic()
-        last_stamp, last_sent = math.nan, 0.0
+        last_steps, last_sent = -1, 0.0
         while not self.service.closing:
             wait = max(next_send - time.monotonic(), 0.0) if started else 0.5
             readable, _, _ = select.select([conn], [], [], wait)
@@ -219,10 +219,10 @@ class RTDEServer:
                 else:
                     raise ValueError(f"RTDE: unknown packet type {kind}")
             if started and outputs is not None and time.monotonic() >= next_send:
-                state = self.arm.state()
-                if state.timestamp != last_stamp or time.monotonic() - last_sent >= MAX_SILENCE:
-                    self._send(conn, "U", b"\x01" + self._pack_outputs(outputs, state))
-                    last_stamp, last_sent = state.timestamp, time.monotonic()
+                steps = self.arm.world.steps   # counted after a step's ticks (the script's registers too)
+                if steps != last_steps or time.monotonic() - last_sent >= MAX_SILENCE:
+                    self._send(conn, "U", b"\x01" + self._pack_outputs(outputs, self.arm.state()))
+                    last_steps, last_sent = steps, time.monotonic()
                 next_send += period
                 if time.monotonic() - next_send > 0.1:   # fell behind (a busy machine): do not burst
                     next_send = time.monotonic() + period

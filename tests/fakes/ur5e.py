@@ -300,6 +300,8 @@ class FakeRTDEReceive(_FakeInterface):
 
     def getTimestamp(self) -> float:
         self._rec("getTimestamp")
+        if self.ctl.failing("getTimestamp"):
+            raise RuntimeError("RTDE receive: read failed")
         return self._fresh()[5]
 
     def getActualTCPForce(self) -> list[float]:
