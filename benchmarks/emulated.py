@@ -8,7 +8,8 @@ cell_config/ur5e-emulated.yaml (backend ur5e against the emulator) and on the sa
 until ``--cycles`` actions each; grasp success per grasp, picks per action, the cycle's time split (capture,
 perceive, decide, plan, execute, judge, store), the controller's own time (all but execute), and picks per hour
 both on the wall clock and on the cell's own clock (the emulator's or the simulator's time for the motions, the
-controller's own work on the wall clock), with the real-time factor the emulator's clock achieved.
+controller's own work on the wall clock), the motion's and the gripper's parts of a cycle on the cell's clock, and
+the real-time factor the emulator's clock achieved.
 *faults*: the daemon on the emulator; each kind raised ``--faults`` times at a random instant of a motion, then
 what a person does (release the e-stop and power the arm on at the pendant, reset the gripper, plug the camera
 in) and ``flgctl reset`` + ``start``: latched, no motion started after the fault before the reset, recovered,
@@ -141,6 +142,7 @@ def _policy_summary(rows: list[dict], cycles: int) -> dict[str, Any]:
     own = [r["duration"] - (r["t_execute"] or 0.0) for r in executed]
     wall_total = sum(r["duration"] or 0.0 for r in rows)
     cell_total = sum(_cycle_on_cell_clock(r) for r in rows)
+    timed = [r for r in executed if r.get("cell_time") is not None]   # the cell's side: motion and gripper
     return {"cycles": len(rows), "grasps": len(grasps), "picks": picks,
             "grasp_success": picks / len(grasps) if grasps else None,
             "picks_per_action": picks / len(decided) if decided else None,
@@ -149,6 +151,9 @@ def _policy_summary(rows: list[dict], cycles: int) -> dict[str, Any]:
             "median_controller_s": statistics.median(own) if own else None,
             "median_cycle_cell_clock_s": (statistics.median(_cycle_on_cell_clock(r) for r in executed)
                                           if executed else None),
+            "median_motion_s": (statistics.median(r["cell_time"] - (r.get("gripper_time") or 0.0) for r in timed)
+                                if timed else None),
+            "median_gripper_s": statistics.median(r.get("gripper_time") or 0.0 for r in timed) if timed else None,
             "picks_per_hour_wall": picks * 3600.0 / wall_total if wall_total > 0 else None,
             "picks_per_hour_cell_clock": picks * 3600.0 / cell_total if cell_total > 0 else None,
             "median_phase_s": phases}

@@ -85,7 +85,8 @@ class ExecutionResult:
     ``widths`` holds the gripper widths measured at the plan's MeasureWidth steps;
     ``contact_stops`` the guarded moves that stopped at a contact.  ``duration`` is the
     time the plan took on the cell's own clock: the robot controller's on a real cell
-    (an emulated one keeps its own), simulated time on a simulated one.
+    (an emulated one keeps its own), simulated time on a simulated one; ``gripper_time``
+    the part of it spent on the gripper's commands and width readings (the rest is motion).
     """
 
     completed: bool
@@ -93,6 +94,7 @@ class ExecutionResult:
     failure: str = ""
     duration: float = 0.0
     contact_stops: list[ContactStop] = field(default_factory=list)
+    gripper_time: float = 0.0
 
 
 # ExecutionResult.failure of a plan interrupted by Cell.stop_motion() contains this text.

@@ -102,6 +102,7 @@ class CycleRecord:
     done: bool = False
     duration: float = 0.0
     cell_time: float | None = None   # the cycle's plans on the cell's own clock (s); None: nothing executed
+    gripper_time: float | None = None   # the part of ``cell_time`` the gripper's steps took
     timings: dict[str, float] = field(default_factory=dict)
     transition_id: int | None = None
     refill_needed: bool = False      # "empty" on a cell that cannot reset its own scene
@@ -124,6 +125,7 @@ class CycleRecord:
             "q_value": self.q_value, "refused": self.refused, "failure": self.failure,
             "contact_stop_mm": self.contact_stop_mm,
             "done": int(self.done), "duration": self.duration, "policy": self.policy, "cell_time": self.cell_time,
+            "gripper_time": self.gripper_time,
         }
         for phase, seconds in self.timings.items():
             if phase != "store":
@@ -132,8 +134,9 @@ class CycleRecord:
 
 
 def _on_cell_clock(record: CycleRecord, result: ExecutionResult) -> ExecutionResult:
-    """Add a plan's time on the cell's own clock (``ExecutionResult.duration``) to the cycle's ``cell_time``."""
+    """Add a plan's time on the cell's own clock (``ExecutionResult.duration``, its gripper's part) to the cycle's."""
     record.cell_time = (record.cell_time or 0.0) + result.duration
+    record.gripper_time = (record.gripper_time or 0.0) + result.gripper_time
     return result
 
 
@@ -424,7 +427,7 @@ class CycleRunner:
         except CellFault as exc:
             record.outcome = "fault"
             record.failure = str(exc)
-            record.cell_time = None   # the plan cut short has no time on the cell's clock: count the wall clock's
+            record.cell_time = record.gripper_time = None   # no time on the cell's clock: count the wall clock's
             self.forget_state()
             if self.store is not None:
                 try:

@@ -224,6 +224,7 @@ class SimCell(Cell):
                                        duration=0.0)
             widths: list[float] = []
             stops: list[ContactStop] = []
+            gripper = 0.0   # simulated seconds of the gripper's steps
             # A shift presses the closed fingers ``robot.shift_press`` into the object's top on purpose:
             # that much extra squeeze is the intended press, not a collision.
             self._press_allowance = self.config.robot.shift_press if planned.primitive == "shift" else 0.0
@@ -240,23 +241,27 @@ class SimCell(Cell):
                         if step.label == LIFT_LABEL:   # pinched pairs too (``held``), as a measurement counts them
                             self._world.lifted = self._in_gripper() | self._contacts.held()
                     elif isinstance(step, GripperCommand):
+                        started = self._sim_time
                         self._run_gripper(step.width, step.force)
+                        gripper += self._sim_time - started
                     elif isinstance(step, MeasureWidth):
+                        started = self._sim_time
                         self._fingers_at_rest()
                         widths.append(self.gripper_width())
                         self._note_held()
+                        gripper += self._sim_time - started
             except _CollisionStop as exc:
                 self._press_allowance = self._press_yield = 0.0
                 self._go_home()
                 return ExecutionResult(completed=False, widths=widths,
                                        failure=f"collision stop: {exc}; the arm retreated home",
-                                       duration=self._sim_time - t0, contact_stops=stops)
+                                       duration=self._sim_time - t0, contact_stops=stops, gripper_time=gripper)
             except motion.Unreachable as exc:  # re-planning from where a guarded move stopped
                 self._press_allowance = self._press_yield = 0.0
                 self._go_home()
                 return ExecutionResult(completed=False, widths=widths,
                                        failure=f"unreachable after a contact stop: {exc}; the arm retreated home",
-                                       duration=self._sim_time - t0, contact_stops=stops)
+                                       duration=self._sim_time - t0, contact_stops=stops, gripper_time=gripper)
             except _Unstable as exc:
                 self._press_allowance = self._press_yield = 0.0
                 self.stats["unstable_resets"] += 1
@@ -264,7 +269,7 @@ class SimCell(Cell):
                 where = f"{planned.primitive} step {i} ({steps[i].label or type(steps[i]).__name__})"
                 return ExecutionResult(completed=False, widths=widths,
                                        failure=f"unstable simulation ({exc}) during {where}; scene reset",
-                                       duration=self._sim_time - t0, contact_stops=stops)
+                                       duration=self._sim_time - t0, contact_stops=stops, gripper_time=gripper)
             self._press_allowance = self._press_yield = 0.0
             try:
                 # the world goes on between actions: a block dropped or nudged comes to rest before the
@@ -275,10 +280,10 @@ class SimCell(Cell):
                 self.reset_scene()
                 return ExecutionResult(completed=False, widths=widths,
                                        failure=f"unstable simulation ({exc}) after {planned.primitive}; scene reset",
-                                       duration=self._sim_time - t0, contact_stops=stops)
+                                       duration=self._sim_time - t0, contact_stops=stops, gripper_time=gripper)
             self._remove_outside()
             return ExecutionResult(completed=True, widths=widths, duration=self._sim_time - t0,
-                                   contact_stops=stops)
+                                   contact_stops=stops, gripper_time=gripper)
 
     def gripper_width(self) -> float:
         """Distance between the finger pads, from the finger joint positions (m)."""

@@ -8,22 +8,23 @@ from benchmarks.emulated import _policy_summary
 
 
 def _row(step: int, success: int | None, duration: float, t_execute: float, cell_time: float | None,
-         primitive: str = "grasp", outcome: str = "executed") -> dict:
+         primitive: str = "grasp", outcome: str = "executed", gripper_time: float | None = None) -> dict:
     return {"step": step, "outcome": outcome, "primitive": primitive, "success": success, "duration": duration,
-            "t_execute": t_execute, "cell_time": cell_time,
+            "t_execute": t_execute, "cell_time": cell_time, "gripper_time": gripper_time,
             **{p: 0.01 for p in ("t_capture", "t_perceive", "t_decide", "t_plan", "t_judge", "t_store")}}
 
 
 def test_picks_per_hour_on_the_cells_clock_count_the_arms_time_not_the_busy_pcs():
     """The emulator ran at half speed: each 10 s motion took 20 s of the wall clock.  On the cell's clock a cycle
     is the controller's 0.5 s plus the arm's 10 s; a push counts its time but is no pick."""
-    rows = [_row(0, 1, 20.5, 20.0, 10.0), _row(1, 0, 20.5, 20.0, 10.0), _row(2, 1, 20.5, 20.0, 10.0),
-            _row(3, None, 20.5, 20.0, 10.0, primitive="push")]
+    rows = [_row(0, 1, 20.5, 20.0, 10.0, gripper_time=1.0), _row(1, 0, 20.5, 20.0, 10.0, gripper_time=1.5),
+            _row(2, 1, 20.5, 20.0, 10.0, gripper_time=1.0), _row(3, None, 20.5, 20.0, 10.0, primitive="push")]
     s = _policy_summary(rows, 4)
     assert s["picks"] == 2 and s["grasp_success"] == pytest.approx(2 / 3)
     assert s["median_cycle_s"] == pytest.approx(20.5) and s["median_cycle_cell_clock_s"] == pytest.approx(10.5)
     assert s["picks_per_hour_wall"] == pytest.approx(2 * 3600 / 82.0)
     assert s["picks_per_hour_cell_clock"] == pytest.approx(2 * 3600 / 42.0)
+    assert (s["median_motion_s"], s["median_gripper_s"]) == pytest.approx((9.0, 1.0))   # the push: no gripper
 
 
 def test_a_log_written_before_the_cell_clock_counts_its_wall_time():

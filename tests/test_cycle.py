@@ -79,10 +79,12 @@ class _TimedSimCell(SimCell):
     def __init__(self, cfg):
         super().__init__(cfg)
         self.durations: list[float] = []
+        self.gripper_times: list[float] = []
 
     def execute(self, plan):
         result = super().execute(plan)
         self.durations.append(result.duration)
+        self.gripper_times.append(result.gripper_time)
         return result
 
 
@@ -101,6 +103,9 @@ def test_a_cycle_records_the_time_its_plans_took_on_the_cells_own_clock(tmp_path
         assert record.success is True and len(cell.durations) == 3   # home, grasp, place
         assert record.cell_time == pytest.approx(sum(cell.durations)) and record.cell_time > 5.0
         assert store.action_log()[-1]["cell_time"] == pytest.approx(record.cell_time)
+        # open, close, the width read at home, the width at the place and the open there: the gripper's part
+        assert record.gripper_time == pytest.approx(sum(cell.gripper_times)) and 0.2 < record.gripper_time < 4.0
+        assert store.action_log()[-1]["gripper_time"] == pytest.approx(record.gripper_time)
     finally:
         store.close()
         cell.close()

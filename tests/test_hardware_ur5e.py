@@ -263,6 +263,7 @@ def test_a_plans_duration_is_its_time_on_the_controllers_clock(ctl, rg2):
     assert result.completed
     assert result.duration == pytest.approx(ctl.controller_now - controller)
     assert result.duration == pytest.approx(0.5 * (ctl.now - wall), rel=0.05)
+    assert 0.0 < result.gripper_time < 0.5 * result.duration, "the width readings' settling, on the same clock"
 
 
 def test_a_controller_whose_clock_stops_is_a_fault_within_a_bounded_wall_time(ctl, rg2):

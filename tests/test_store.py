@@ -253,6 +253,7 @@ def test_a_version_1_store_is_upgraded_in_place_without_losing_anything(tmp_path
     db = sqlite3.connect(tmp_path / "flgd.sqlite")  # make it exactly what version 1 wrote
     db.execute("ALTER TABLE actions DROP COLUMN contact_stop_mm")
     db.execute("ALTER TABLE actions DROP COLUMN cell_time")
+    db.execute("ALTER TABLE actions DROP COLUMN gripper_time")
     db.execute("UPDATE meta SET value='1' WHERE key='schema_version'")
     db.commit()
     db.close()
@@ -322,6 +323,7 @@ def test_a_version_2_store_gains_the_gate_column_and_tables_in_place(tmp_path):
     db.execute("DROP INDEX actions_policy")
     db.execute("ALTER TABLE actions DROP COLUMN policy")
     db.execute("ALTER TABLE actions DROP COLUMN cell_time")
+    db.execute("ALTER TABLE actions DROP COLUMN gripper_time")
     db.execute("DROP TABLE policies")
     db.execute("DROP TABLE gate_events")
     db.execute("UPDATE meta SET value='2' WHERE key='schema_version'")
@@ -340,12 +342,13 @@ def test_a_version_2_store_gains_the_gate_column_and_tables_in_place(tmp_path):
         store.close()
 
 
-def test_a_version_3_store_gains_the_cell_time_column_in_place(tmp_path):
+def test_a_version_3_store_gains_the_cell_and_gripper_time_columns_in_place(tmp_path):
     store = Store(tmp_path)
     store.commit_cycle(action_row(0), Transition(random_heightmaps(0), Action("grasp", 0, 0, 0), 1.0, random_heightmaps(1), False))
     store.close()
     db = sqlite3.connect(tmp_path / "flgd.sqlite")  # make it exactly what version 3 wrote
     db.execute("ALTER TABLE actions DROP COLUMN cell_time")
+    db.execute("ALTER TABLE actions DROP COLUMN gripper_time")
     db.execute("UPDATE meta SET value='3' WHERE key='schema_version'")
     db.commit()
     db.close()
@@ -353,9 +356,9 @@ def test_a_version_3_store_gains_the_cell_time_column_in_place(tmp_path):
     store = Store(tmp_path)
     try:
         assert store.query("SELECT value FROM meta WHERE key='schema_version'") == [("4",)]
-        assert store.query("SELECT step, success, cell_time FROM actions") == [(0, 1, None)]
-        store.commit_cycle(action_row(1, cell_time=8.25), None)
-        assert store.query("SELECT cell_time FROM actions WHERE step=1") == [(8.25,)]
+        assert store.query("SELECT step, success, cell_time, gripper_time FROM actions") == [(0, 1, None, None)]
+        store.commit_cycle(action_row(1, cell_time=8.25, gripper_time=1.5), None)
+        assert store.query("SELECT cell_time, gripper_time FROM actions WHERE step=1") == [(8.25, 1.5)]
         assert store.transition_count() == 1 and store.integrity_check() == "ok"
     finally:
         store.close()
@@ -387,3 +390,19 @@ def test_picks_per_hour_count_the_motions_on_the_cells_clock_and_survive_retenti
         assert compute_stats(store)["picks_per_hour"] == pytest.approx(before)
     finally:
         store.close()
+
+
+def test_stats_split_the_cycle_on_the_cells_clock_into_motion_and_gripper(tmp_path):
+    from flgd.daemon.metrics import compute_stats, format_stats
+
+    store = Store(tmp_path)
+    try:
+        for step, (cell, gripper) in enumerate([(9.0, 1.0), (10.0, 1.5), (11.0, 2.0)]):
+            store.commit_cycle(action_row(step, duration=0.7, t_execute=0.2, cell_time=cell, gripper_time=gripper))
+        store.commit_cycle(action_row(3, outcome="fault", success=None, duration=5.0))   # no cell time: not in it
+        t = compute_stats(store)["timing_median"]
+        text = format_stats(compute_stats(store))
+    finally:
+        store.close()
+    assert (t["motion"], t["gripper"], t["cycle_on_cell_clock"]) == pytest.approx((8.5, 1.5, 10.5))
+    assert "on the cell's clock: cycle 10.500 s, motion 8.500 s, gripper 1.500 s" in text

@@ -16,7 +16,8 @@ Definitions (VPG's where they exist):
   * plans refused: decisions the safety envelope refused (never sent to the cell).
   * faults: fault events recorded by the daemon.
   * timing: medians over the last ``TIMING_WINDOW`` cycles of each phase, the
-    whole cycle, and the controller's own time (cycle minus execution).
+    whole cycle, and the controller's own time (cycle minus execution); on the
+    cell's clock, the cycle and its motion and gripper parts.
 """
 
 from __future__ import annotations
@@ -85,6 +86,12 @@ def compute_stats(store: Store) -> dict[str, Any]:
     # store time is added here; a live CycleRecord's duration already includes it (benchmarks/overhead.py).
     overhead = [r[-1] + (r[i_store] or 0.0) - (r[i_exec] or 0.0) for r in recent if r[-1] is not None]
     timing["controller"] = statistics.median(overhead) if overhead else None
+    # the cell's side of the same window, on the cell's clock: the arm's motion and the gripper's steps
+    split = q(f"SELECT cell_time, gripper_time, {CYCLE_ON_CELL_CLOCK_SQL} FROM actions "
+              "WHERE cell_time IS NOT NULL AND duration > 0 ORDER BY step DESC LIMIT ?", (TIMING_WINDOW,))
+    timing["motion"] = statistics.median(c - (g or 0.0) for c, g, _ in split) if split else None
+    timing["gripper"] = statistics.median(g or 0.0 for _, g, _ in split) if split else None
+    timing["cycle_on_cell_clock"] = statistics.median(c for _, _, c in split) if split else None
     return {
         "cycles": cycles,
         "outcomes": by_outcome,
@@ -169,6 +176,8 @@ def format_stats(s: dict[str, Any]) -> str:
     ]
     for phase in (*TIMING_PHASES, "cycle", "controller"):
         lines.append(f"  {phase:<10} {_num(t.get(phase), '{:.3f}')} s")
+    lines.append(f"  on the cell's clock: cycle {_num(t.get('cycle_on_cell_clock'), '{:.3f}')} s, motion "
+                 f"{_num(t.get('motion'), '{:.3f}')} s, gripper {_num(t.get('gripper'), '{:.3f}')} s")
     return "\n".join(lines)
 
 

@@ -97,6 +97,7 @@ class UR5eCell(Cell):
             sf, gr = self.config.safety, self.config.gripper
             widths: list[float] = []
             stops: list[ContactStop] = []
+            gripper = 0.0   # controller seconds of the gripper's steps
             for i, step in enumerate(steps):
                 where = f"step {i} ({step.label or type(step).__name__})"
                 try:
@@ -111,20 +112,24 @@ class UR5eCell(Cell):
                             stops.append(ContactStop(step.label, pose_error(self.arm.tcp_pose(), target)[0]))
                     elif isinstance(step, GripperCommand):
                         self.arm.check()
+                        started = self._elapsed(start)
                         self.gripper.move(step.width, min(step.force, gr.force))
+                        gripper += self._elapsed(start) - started
                     elif isinstance(step, MeasureWidth):
+                        started = self._elapsed(start)
                         widths.append(self._settled_width())
+                        gripper += self._elapsed(start) - started
                     else:  # verify() refuses unknown steps; this guards a future step type
                         raise CellFault(f"{where}: the ur5e cell cannot run {type(step).__name__}")
                 except PoseUnreachable as exc:
-                    return ExecutionResult(False, widths, f"{where}: {exc}", self._elapsed(start), stops)
+                    return ExecutionResult(False, widths, f"{where}: {exc}", self._elapsed(start), stops, gripper)
                 except MotionStopped:
                     return ExecutionResult(False, widths, f"{where}: {STOPPED_ON_REQUEST}", self._elapsed(start),
-                                           stops)
+                                           stops, gripper)
                 except GripperFault as exc:
                     self.arm.latch(f"gripper: {exc}")
                     raise CellFault(f"{where}: {exc}") from exc
-            return ExecutionResult(True, widths, "", self._elapsed(start), stops)
+            return ExecutionResult(True, widths, "", self._elapsed(start), stops, gripper)
 
     def _elapsed(self, start: float) -> float:
         """Seconds on the controller's clock since ``start``; 0 when it cannot be read (a plan cut short by a

@@ -21,12 +21,13 @@ Schema (``SCHEMA_VERSION`` 4), file ``<state_dir>/flgd.sqlite``:
 * ``actions(step PRIMARY KEY, time, backend, outcome, primitive, kind, row,
   col, rotation, reward, success, mu, eta, rule, epsilon, q_value, refused,
   failure, contact_stop_mm, done, duration, t_capture, t_perceive, t_decide, t_plan, t_execute,
-  t_judge, t_store, transition_id, policy, cell_time)`` -- one row per cycle, whatever happened;
+  t_judge, t_store, transition_id, policy, cell_time, gripper_time)`` -- one row per cycle, whatever happened;
   ``policy`` is the gate's id of the policy whose greedy decision it was (NULL for an
   epsilon-random action or before the gate); ``duration`` and ``t_*`` are seconds of the
   controller's wall clock, ``cell_time`` the seconds the cycle's plans took on the cell's own
   clock (the UR controller's, or simulated time): the cycle a real arm would take, whatever
-  the load on the PC that emulates or simulates it.
+  the load on the PC that emulates or simulates it; ``gripper_time`` the part of it the
+  gripper's commands and width readings took (the rest is the arm's motion).
   ``t_store`` of a row is written with the next write of a cycle (its intent or
   its commit: a commit cannot time itself).
 * ``events(id, time, kind, message)`` -- state changes, faults, policy loads.
@@ -39,7 +40,7 @@ Schema (``SCHEMA_VERSION`` 4), file ``<state_dir>/flgd.sqlite``:
   (flgd/gatekeeper.py).
 
 A version-1, -2 or -3 store is upgraded in place when it is opened: the missing columns
-(``contact_stop_mm``, ``policy``, ``cell_time``) are added (empty for the old rows) and nothing else changes.
+(``contact_stop_mm``, ``policy``, ``cell_time``, ``gripper_time``) are added (empty for the old rows) and nothing else changes.
 
 Write-ahead action log: a decided action that will move the cell is recorded
 (``record_intent``: its row with outcome ``pending`` -- step, time, action,
