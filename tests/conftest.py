@@ -18,9 +18,31 @@ if os.environ.get("PYTEST_XDIST_WORKER"):
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    """Tests marked ``slow`` run first (each group in file order): with ``--dist worksteal`` the long ones are
-    spread over both processes from the start and the run ends on short tests, not on one long straggler."""
-    items.sort(key=lambda item: item.get_closest_marker("slow") is None)
+    """Order the tests for ``-n N --dist worksteal``: the long (``slow``) tests are dealt out evenly and put at the
+    front of each worker's first share, so every process starts on long tests and the run ends on short ones.
+
+    Why this shape: worksteal first hands each worker a contiguous share of the list (the first worker
+    ``len // N`` tests, and so on), and an idle worker steals from the *end* of another's queue; long tests at the
+    front of each share are therefore never left over for one process at the end."""
+    workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
+    slow = [item for item in items if item.get_closest_marker("slow") is not None]
+    fast = [item for item in items if item.get_closest_marker("slow") is None]
+    if workers < 2:
+        items[:] = slow + fast
+        return
+    sizes, left = [], len(items)
+    for k in range(workers):   # worksteal's first split
+        sizes.append(left // (workers - k))
+        left -= sizes[-1]
+    shares = [slow[k::workers] for k in range(workers)]
+    rest = iter(fast)
+    for k, share in enumerate(shares):
+        while len(share) < sizes[k] or k == workers - 1:
+            item = next(rest, None)
+            if item is None:
+                break
+            share.append(item)
+    items[:] = [item for share in shares for item in share]
 
 
 @pytest.fixture

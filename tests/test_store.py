@@ -246,17 +246,22 @@ def test_full_disk_is_a_clear_store_error(tmp_path):
         store.close()
 
 
-def test_a_version_1_store_is_upgraded_in_place_without_losing_anything(tmp_path):
+def _as_written_by_version(tmp_path, version: int, *statements: str) -> None:
+    """A store with one committed cycle, turned into exactly what schema ``version`` wrote by ``statements``."""
     store = Store(tmp_path)
     store.commit_cycle(action_row(0), Transition(random_heightmaps(0), Action("grasp", 0, 0, 0), 1.0, random_heightmaps(1), False))
     store.close()
-    db = sqlite3.connect(tmp_path / "flgd.sqlite")  # make it exactly what version 1 wrote
-    db.execute("ALTER TABLE actions DROP COLUMN contact_stop_mm")
-    db.execute("ALTER TABLE actions DROP COLUMN cell_time")
-    db.execute("ALTER TABLE actions DROP COLUMN gripper_time")
-    db.execute("UPDATE meta SET value='1' WHERE key='schema_version'")
+    db = sqlite3.connect(tmp_path / "flgd.sqlite")
+    for statement in statements:
+        db.execute(statement)
+    db.execute("UPDATE meta SET value=? WHERE key='schema_version'", (str(version),))
     db.commit()
     db.close()
+
+
+def test_a_version_1_store_is_upgraded_in_place_without_losing_anything(tmp_path):
+    _as_written_by_version(tmp_path, 1, "ALTER TABLE actions DROP COLUMN contact_stop_mm",
+                           "ALTER TABLE actions DROP COLUMN cell_time", "ALTER TABLE actions DROP COLUMN gripper_time")
 
     store = Store(tmp_path)
     try:
@@ -316,19 +321,9 @@ def test_commits_are_fsynced_so_a_power_cut_loses_at_most_the_cycle_in_flight(tm
 
 
 def test_a_version_2_store_gains_the_gate_column_and_tables_in_place(tmp_path):
-    store = Store(tmp_path)
-    store.commit_cycle(action_row(0), Transition(random_heightmaps(0), Action("grasp", 0, 0, 0), 1.0, random_heightmaps(1), False))
-    store.close()
-    db = sqlite3.connect(tmp_path / "flgd.sqlite")  # make it exactly what version 2 wrote
-    db.execute("DROP INDEX actions_policy")
-    db.execute("ALTER TABLE actions DROP COLUMN policy")
-    db.execute("ALTER TABLE actions DROP COLUMN cell_time")
-    db.execute("ALTER TABLE actions DROP COLUMN gripper_time")
-    db.execute("DROP TABLE policies")
-    db.execute("DROP TABLE gate_events")
-    db.execute("UPDATE meta SET value='2' WHERE key='schema_version'")
-    db.commit()
-    db.close()
+    _as_written_by_version(tmp_path, 2, "DROP INDEX actions_policy", "ALTER TABLE actions DROP COLUMN policy",
+                           "ALTER TABLE actions DROP COLUMN cell_time", "ALTER TABLE actions DROP COLUMN gripper_time",
+                           "DROP TABLE policies", "DROP TABLE gate_events")
 
     store = Store(tmp_path)
     try:
@@ -343,15 +338,8 @@ def test_a_version_2_store_gains_the_gate_column_and_tables_in_place(tmp_path):
 
 
 def test_a_version_3_store_gains_the_cell_and_gripper_time_columns_in_place(tmp_path):
-    store = Store(tmp_path)
-    store.commit_cycle(action_row(0), Transition(random_heightmaps(0), Action("grasp", 0, 0, 0), 1.0, random_heightmaps(1), False))
-    store.close()
-    db = sqlite3.connect(tmp_path / "flgd.sqlite")  # make it exactly what version 3 wrote
-    db.execute("ALTER TABLE actions DROP COLUMN cell_time")
-    db.execute("ALTER TABLE actions DROP COLUMN gripper_time")
-    db.execute("UPDATE meta SET value='3' WHERE key='schema_version'")
-    db.commit()
-    db.close()
+    _as_written_by_version(tmp_path, 3, "ALTER TABLE actions DROP COLUMN cell_time",
+                           "ALTER TABLE actions DROP COLUMN gripper_time")
 
     store = Store(tmp_path)
     try:
