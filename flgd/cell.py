@@ -42,7 +42,9 @@ class Frame:
 
     color: HxWx3 uint8 RGB.  depth: HxW uint16 raw units (0 = no reading).
     intrinsics: 3x3 pinhole matrix.  camera_pose: 4x4 camera-to-base transform
-    of the OpenCV optical frame (x right, y down, z forward).
+    of the OpenCV optical frame (x right, y down, z forward).  ``tool_position``: where the
+    cell read the TCP (x, y, z in the base frame) when the frame was taken, None from a cell
+    that cannot tell; the cycle refuses a frame with the tool in view (``flgd.camera_view``).
     """
 
     color: np.ndarray
@@ -51,6 +53,7 @@ class Frame:
     intrinsics: np.ndarray
     camera_pose: np.ndarray
     timestamp: float = 0.0
+    tool_position: tuple[float, float, float] | None = None
 
     def __post_init__(self) -> None:
         if self.color.ndim != 3 or self.color.shape[2] != 3 or self.color.dtype != np.uint8:

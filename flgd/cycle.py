@@ -55,89 +55,32 @@ Outcomes of a cycle (``CycleRecord.outcome``):
 
 from __future__ import annotations
 
+import logging
 import math
 import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any, Callable
 
 import numpy as np
 
 from flgd.actions import Action
+from flgd.camera_view import tool_in_view
 from flgd.cell import STOPPED_ON_REQUEST, Cell, CellFault, ExecutionResult
 from flgd.clutter import grasp_mask, grasp_reward, judge_move
 from flgd.config import CellConfig
+from flgd.cycle_record import (UNSTABLE_MARK, CycleRecord, float_or_none, held_at_place, on_cell_clock,
+                                unstable_failure, was_stopped)
 from flgd.perception import Heightmaps, frame_heightmaps
 from flgd.plans import plan_action, plan_home, plan_release
 from flgd.safety import PlanRefused, check_plan
 
-__all__ = ["CycleRecord", "CycleRunner", "UNSTABLE_MARK"]
+__all__ = ["CycleRecord", "CycleRunner", "ToolInView", "UNSTABLE_MARK"]
+
+log = logging.getLogger("flgd.cycle")
 
 # learning.wait_for_updates: the longest a cycle waits for the learner's scheduled updates, in seconds
 LEARNER_WAIT_LIMIT = 600.0
-# ExecutionResult.failure containing this word means the simulation blew up: never learn from it.
-UNSTABLE_MARK = "unstable"
-
-
-@dataclass
-class CycleRecord:
-    """What one cycle did; ``row()`` is its action-log row."""
-
-    outcome: str
-    step: int | None = None
-    time: float = 0.0
-    backend: str = ""
-    action: Action | None = None
-    kind: str | None = None          # grasp / push / shift as executed
-    reward: float | None = None
-    success: bool | None = None      # grasps only
-    mu: int | None = None
-    eta: int | None = None
-    rule: str = ""
-    epsilon: float | None = None
-    q_value: float | None = None
-    refused: str = ""
-    failure: str = ""
-    contact_stop_mm: float | None = None  # a guarded move of the action stopped this far short of its pose
-    done: bool = False
-    duration: float = 0.0
-    cell_time: float | None = None   # the cycle's plans on the cell's own clock (s); None: nothing executed
-    gripper_time: float | None = None   # the part of ``cell_time`` the gripper's steps took
-    timings: dict[str, float] = field(default_factory=dict)
-    transition_id: int | None = None
-    refill_needed: bool = False      # "empty" on a cell that cannot reset its own scene
-    relaid: bool = False             # "stuck" on a cell that laid out a new scene by itself
-    policy: int | None = None        # the gate's id of the policy credited (None: epsilon-random, no gate)
-
-    @property
-    def primitive(self) -> str | None:
-        return None if self.action is None else self.action.primitive
-
-    def row(self) -> dict[str, Any]:
-        a = self.action
-        out: dict[str, Any] = {
-            "step": self.step, "time": self.time, "backend": self.backend, "outcome": self.outcome,
-            "primitive": None if a is None else a.primitive, "kind": self.kind,
-            "row": None if a is None else a.row, "col": None if a is None else a.col,
-            "rotation": None if a is None else a.rotation, "reward": self.reward,
-            "success": None if self.success is None else int(self.success),
-            "mu": self.mu, "eta": self.eta, "rule": self.rule, "epsilon": self.epsilon,
-            "q_value": self.q_value, "refused": self.refused, "failure": self.failure,
-            "contact_stop_mm": self.contact_stop_mm,
-            "done": int(self.done), "duration": self.duration, "policy": self.policy, "cell_time": self.cell_time,
-            "gripper_time": self.gripper_time,
-        }
-        for phase, seconds in self.timings.items():
-            if phase != "store":
-                out[f"t_{phase}"] = seconds
-        return out
-
-
-def _on_cell_clock(record: CycleRecord, result: ExecutionResult) -> ExecutionResult:
-    """Add a plan's time on the cell's own clock (``ExecutionResult.duration``, its gripper's part) to the cycle's."""
-    record.cell_time = (record.cell_time or 0.0) + result.duration
-    record.gripper_time = (record.gripper_time or 0.0) + result.gripper_time
-    return result
 
 
 class _Timer:
@@ -169,6 +112,21 @@ def _make_transition(state: Heightmaps, action: Action, reward: float, next_stat
     return Transition(state=state, action=action, reward=reward, next_state=next_state, done=done)
 
 
+class ToolInView(CellFault):
+    """A frame was taken with the tool between the camera and the workspace (``flgd.camera_view``): never used."""
+
+
+@dataclass(frozen=True)
+class _Ahead:
+    """The next decision, made on ``state`` while the arm placed the last pick (``decide_while_placing``)."""
+
+    state: Heightmaps
+    decision: Any
+    stuck: str
+    seconds: float   # what deciding took
+    hidden: float    # the part of it the place's motion covered
+
+
 class CycleRunner:
     """Runs cycles on one cell with one agent; optional store, replay and learner.
 
@@ -182,7 +140,7 @@ class CycleRunner:
 
     def __init__(self, config: CellConfig, cell: Cell, agent: Any, *, store: Any = None, replay: Any = None,
                  learner: Any = None, step: int = 0, backend: str | None = None,
-                 on_phase: Callable[[str], None] | None = None):
+                 on_phase: Callable[[str], None] | None = None, decide_while_placing: bool | None = None):
         self.config = config
         self.cell = cell
         self.agent = agent
@@ -198,6 +156,10 @@ class CycleRunner:
         # thread (a snapshot request) never pairs a decision with the wrong heightmaps
         self.last_decided: tuple[Heightmaps, Any, int] | None = None
         self._stop = threading.Event()
+        self.decide_while_placing = (config.robot.decide_while_placing if decide_while_placing is None
+                                     else bool(decide_while_placing))
+        self._ahead: _Ahead | None = None
+        self.frames_refused = 0   # frames taken with the tool in view, never used
 
     # ------------------------------------------------------------------ helpers
     def request_stop(self) -> None:
@@ -212,12 +174,19 @@ class CycleRunner:
     def forget_state(self) -> None:
         """The next cycle starts from a fresh capture (after a reset, a swap of cell or agent)."""
         self.current = None
+        self._ahead = None
         if self.store is not None:
             self.store.forget_last_state()
 
     def perceive(self, timer: _Timer) -> Heightmaps:
+        """Capture and heightmaps; ToolInView (a CellFault) for a frame the cell took with the tool in view."""
         with timer.phase("capture"):
             frame = self.cell.capture()
+        why = "" if frame.tool_position is None else tool_in_view(frame.tool_position, self.config)
+        if why:
+            self.frames_refused += 1
+            raise ToolInView(f"frame refused: {why}; a picture is taken only with the arm out of view (robot.home "
+                             f"in {self.config.source})")
         self.last_frame = frame
         with timer.phase("perceive"):
             cam = self.config.camera
@@ -305,6 +274,74 @@ class CycleRunner:
         if self.learner is not None and self.config.learning.wait_for_updates and hasattr(self.learner, "wait_idle"):
             self.learner.wait_idle(LEARNER_WAIT_LIMIT)
 
+    def _decide(self, state: Heightmaps) -> tuple[Any, str]:
+        """The agent's decision on ``state`` (None when it found nothing), and its reason to give up ('' = none)."""
+        if hasattr(self.agent, "maybe_swap_weights"):
+            self.agent.maybe_swap_weights()
+        stuck = _stuck_reason(self.agent)
+        decision = None if stuck else self.agent.decide(state, self.step)
+        if decision is None and not stuck:
+            stuck = _stuck_reason(self.agent)  # the decision found nothing left to try
+        return decision, stuck
+
+    def _capture_at_home(self, timer: _Timer) -> Heightmaps | None:
+        """The next picture, taken at home with the picked object held (the arm out of view), or None when this
+        cell cannot show where the tool was (``Frame.tool_position``) or showed it in view: then the arm places
+        first and the picture is taken after, as without ``decide_while_placing``."""
+        try:
+            after = self.perceive(timer)
+        except ToolInView as exc:
+            log.warning("decide while placing: %s", exc)
+            return None
+        return after if self.last_frame is not None and self.last_frame.tool_position is not None else None
+
+    def _place_and_decide(self, record: CycleRecord, action: Action, after: Heightmaps) -> tuple[ExecutionResult, Any]:
+        """Place the picked object in a thread of its own while the next decision is made on ``after``.
+
+        The decision rests on the outcome measured at home (held), recorded first; the agent as it was before is
+        returned, so a drop found at the place can take that outcome back.  The arm stays at the place when a
+        decision follows (the next plan starts there) and goes home when the workspace is empty."""
+        done = self._empty(after)
+        plan = plan_release(True, self.config, home=done)
+        if self._stop.is_set():
+            return ExecutionResult(False, [], f"release: {STOPPED_ON_REQUEST}"), None
+        try:
+            checked = check_plan(plan, self.config)
+        except PlanRefused as exc:
+            raise CellFault(f"release plan refused by the safety envelope: {exc}") from exc
+        outcome: dict[str, Any] = {}
+
+        def place() -> None:
+            try:
+                outcome["result"] = self.cell.execute(checked)
+            except BaseException as exc:   # re-raised in the cycle's thread, after the decision
+                outcome["error"] = exc
+
+        mover = threading.Thread(target=place, name="flgd-place", daemon=True)
+        mover.start()
+        provisional, decided = None, None
+        try:
+            if not done:
+                provisional = self.agent.outcome_state()
+                _record_outcome(self.agent, action, True, True, after.height, record.kind)
+                self.wait_for_learner()
+                started = time.perf_counter()
+                decision, stuck = self._decide(after)
+                decided = (decision, stuck, time.perf_counter() - started)
+        finally:
+            mover.join()
+        if "error" in outcome:
+            if provisional is not None:
+                self.agent.restore_outcome_state(provisional)
+            raise outcome["error"]
+        released = on_cell_clock(record, outcome["result"])
+        if decided is not None:
+            decision, stuck, seconds = decided
+            hidden = min(seconds, released.duration)
+            record.cell_time = (record.cell_time or 0.0) + seconds - hidden   # the arm waited at the place
+            self._ahead = _Ahead(after, decision, stuck, seconds, hidden)
+        return released, provisional
+
     # ------------------------------------------------------------------ the cycle
     def run_once(self) -> CycleRecord:
         """One cycle.  Raises CellFault (after logging the action) and store errors."""
@@ -322,24 +359,25 @@ class CycleRunner:
             # The arm may stand anywhere (daemon start, a stop mid-motion, a reset, another cell):
             # send it home, out of the camera's view, before taking the picture a decision rests on.
             with timer.phase("execute"):
-                home = _on_cell_clock(record, self._run_checked(plan_home(self.config), "home before capture"))
-            if _was_stopped(home) or self._stop.is_set():
+                home = on_cell_clock(record, self._run_checked(plan_home(self.config), "home before capture"))
+            if was_stopped(home) or self._stop.is_set():
                 record.outcome = "stopped"
                 record.failure = home.failure or STOPPED_ON_REQUEST
                 return finish()
-            if not home.completed and not _unstable(home):
+            if not home.completed and not unstable_failure(home):
                 raise CellFault(f"could not go home before capturing: {home.failure}")
             self.current = self.perceive(timer)
         state = self.current
 
-        self.wait_for_learner()
-        with timer.phase("decide"):
-            if hasattr(self.agent, "maybe_swap_weights"):
-                self.agent.maybe_swap_weights()
-            stuck = _stuck_reason(self.agent)
-            decision = None if stuck else self.agent.decide(state, self.step)
-            if decision is None and not stuck:
-                stuck = _stuck_reason(self.agent)  # the decision found nothing left to try
+        ahead, self._ahead = self._ahead, None
+        if ahead is not None and ahead.state is state:
+            decision, stuck = ahead.decision, ahead.stuck   # made while the arm placed the last pick
+            timings["decide"] = ahead.seconds
+            record.decide_hidden = ahead.hidden
+        else:
+            self.wait_for_learner()
+            with timer.phase("decide"):
+                decision, stuck = self._decide(state)
         if stuck:
             record.outcome = "stuck"
             record.failure = stuck
@@ -363,8 +401,8 @@ class CycleRunner:
         record.step = self.step
         record.action = action
         record.rule = str(getattr(decision, "rule", "") or "")
-        record.epsilon = _float_or_none(getattr(decision, "epsilon", None))
-        record.q_value = _float_or_none(getattr(decision, "q_value", None))
+        record.epsilon = float_or_none(getattr(decision, "epsilon", None))
+        record.q_value = float_or_none(getattr(decision, "q_value", None))
         record.policy = getattr(decision, "policy_id", None)
         self.step += 1
 
@@ -394,34 +432,49 @@ class CycleRunner:
         except Exception:
             self.step -= 1  # nothing moved and nothing is logged: the next cycle decides this step again
             raise
+        after: Heightmaps | None = None   # the picture the action is judged on
+        provisional = None   # the agent before the outcome measured at home was recorded (decided ahead on it)
         try:
             with timer.phase("execute"):
-                result = _on_cell_clock(record, self.cell.execute(checked))
+                result = on_cell_clock(record, self.cell.execute(checked))
                 if result.contact_stops:
                     record.contact_stop_mm = round(1000.0 * result.contact_stops[0].short_by, 1)
-                if _was_stopped(result) or self._stop.is_set():
+                if was_stopped(result) or self._stop.is_set():
                     return self._stopped(record, result.failure or "after execution", finish, timer)
                 held = False
                 if action.primitive == "grasp" and result.completed:
                     width = float(result.widths[-1]) if result.widths else math.nan
                     held = grasp_reward(width, self.config.gripper) > 0
-                unstable = _unstable(result)
+                unstable = unstable_failure(result)
+            if held and not unstable and self.decide_while_placing and hasattr(self.agent, "outcome_state"):
+                after = self._capture_at_home(timer)
+            with timer.phase("execute"):
                 if not unstable and action.primitive == "grasp":
-                    released = _on_cell_clock(record, self._run_checked(plan_release(held, self.config), "release"))
-                    if _was_stopped(released):
+                    if after is not None:
+                        released, provisional = self._place_and_decide(record, action, after)
+                        if provisional is not None and not released.completed:   # no outcome: take it back
+                            self.agent.restore_outcome_state(provisional)
+                            provisional, self._ahead = None, None
+                    else:
+                        released = on_cell_clock(record, self._run_checked(plan_release(held, self.config),
+                                                                            "release"))
+                    if was_stopped(released):
                         return self._stopped(record, released.failure, finish, timer)
-                    unstable = _unstable(released)
+                    unstable = unstable_failure(released)
                     if not released.completed and not unstable:
                         raise CellFault(f"could not release after the grasp: {released.failure}")
                     if held and not unstable:
-                        held, dropped = _held_at_place(released, self.config)
+                        held, dropped = held_at_place(released, self.config)
                         if dropped:
                             record.failure = dropped
+                            if provisional is not None:   # decided on "held": take it back, as if it had waited
+                                self.agent.restore_outcome_state(provisional)
+                                provisional, self._ahead = None, None
                 if not unstable and not result.completed:
-                    home = _on_cell_clock(record, self._run_checked(plan_home(self.config), "home"))
-                    if _was_stopped(home):
+                    home = on_cell_clock(record, self._run_checked(plan_home(self.config), "home"))
+                    if was_stopped(home):
                         return self._stopped(record, home.failure, finish, timer)
-                    unstable = _unstable(home)
+                    unstable = unstable_failure(home)
                     if not home.completed and not unstable:
                         raise CellFault(f"could not return home after a failed {record.kind}: {home.failure}")
         except CellFault as exc:
@@ -443,7 +496,8 @@ class CycleRunner:
             self._commit(finish(), None, timer)
             return finish()
 
-        after = self.perceive(timer)
+        if after is None:
+            after = self.perceive(timer)
         with timer.phase("judge"):
             if action.primitive == "grasp":
                 record.success = held
@@ -455,8 +509,9 @@ class CycleRunner:
             if not result.completed:
                 record.failure = result.failure
             record.done = self._empty(after)
-            _record_outcome(self.agent, action, record.success if action.primitive == "grasp" else None,
-                            bool(record.reward), after.height, record.kind)
+            if provisional is None:   # else recorded before deciding ahead, and the place confirmed it
+                _record_outcome(self.agent, action, record.success if action.primitive == "grasp" else None,
+                                bool(record.reward), after.height, record.kind)
         record.outcome = "executed"
         transition = _make_transition(state, action, float(record.reward),
                                       None if record.done else after, record.done)
@@ -478,36 +533,3 @@ def _record_outcome(agent: Any, action: Action, grasp_success: bool | None, move
                     height_after: np.ndarray, kind: str | None) -> None:
     """Tell the agent what its action did, and the heightmap that was judged (for its failure memory)."""
     agent.record_outcome(action, grasp_success, move_changed=move_changed, height_after=height_after, kind=kind)
-
-
-def _held_at_place(released: ExecutionResult, config: CellConfig) -> tuple[bool, str]:
-    """Whether the object measured as held at home was still held at the place pose, before the fingers
-    opened (the width read at ``flgd.plans.PLACE_CHECK_LABEL``), and if not, the failure text saying so.
-
-    Why: the width at home says the object was lifted; only the width at the place says it was picked.  A
-    place plan that reported no width proves nothing held."""
-    width = float(released.widths[-1]) if released.widths else math.nan
-    if grasp_reward(width, config.gripper) > 0:
-        return True, ""
-    shown = f"{width * 1000:.1f} mm" if math.isfinite(width) else "no reading"
-    return False, (f"dropped: the object slipped out of the gripper between the home and the place pose "
-                   f"(width at the place pose {shown})")
-
-
-def _was_stopped(result: ExecutionResult) -> bool:
-    return not result.completed and STOPPED_ON_REQUEST in result.failure
-
-
-def _unstable(result: ExecutionResult) -> str:
-    """The failure text if the cell reported an unstable simulation, else ''."""
-    return result.failure if not result.completed and UNSTABLE_MARK in result.failure.lower() else ""
-
-
-def _float_or_none(v: Any) -> float | None:
-    if v is None:
-        return None
-    try:
-        f = float(np.asarray(v))
-    except (TypeError, ValueError):
-        return None
-    return f if math.isfinite(f) else None

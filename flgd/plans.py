@@ -207,21 +207,23 @@ def plan_action(action: Action, height_map: np.ndarray, config: CellConfig) -> P
     return plan_push(x, y, action.angle, config)
 
 
-def plan_release(held: bool, config: CellConfig) -> Plan:
+def plan_release(held: bool, config: CellConfig, home: bool = True) -> Plan:
     """After a grasp: carry a held object to the place pose, read the width there and open; otherwise just open.
 
     The width at the place pose (``PLACE_CHECK_LABEL``) is the grasp's final judgement: an object that
-    slipped out between the home pose and the place was not picked, on any cell."""
+    slipped out between the home pose and the place was not picked, on any cell.  ``home=False`` leaves the
+    arm at the place (out of the camera's view, as home is): the next plan starts from there."""
     gr, rb = config.gripper, config.robot
     if not held:
         return Plan("release", (GripperCommand(gr.open_width, gr.force, "open"),))
-    place, home = rb.place, rb.home
+    place = rb.place
     steps: tuple[Step, ...] = (
         MoveL(ToolPose.top_down(*place.position, place.yaw), rb.speed, rb.acceleration, "place"),
         MeasureWidth(PLACE_CHECK_LABEL),
         GripperCommand(gr.open_width, gr.force, "open"),
-        MoveL(ToolPose.top_down(*home.position, home.yaw), rb.speed, rb.acceleration, "home"),
     )
+    if home:
+        steps += (MoveL(ToolPose.top_down(*rb.home.position, rb.home.yaw), rb.speed, rb.acceleration, "home"),)
     return Plan("place", steps, target=tuple(place.position))
 
 

@@ -187,7 +187,7 @@ class SimCell(Cell):
             raw = simcam.to_raw_depth(depth, cfg.depth_scale, cfg.depth_range)
             return Frame(color=color, depth=raw, depth_scale=cfg.depth_scale,
                          intrinsics=self._camera.intrinsics.copy(), camera_pose=self._camera.pose.copy(),
-                         timestamp=self._sim_time), labels
+                         timestamp=self._sim_time, tool_position=tuple(float(v) for v in self._tcp()[:3, 3])), labels
 
     def remove_object(self, body: int, settle: float = 0.25) -> bool:
         """Take one object out of the scene (as if picked) and let the rest settle.

@@ -18,7 +18,7 @@ import pytest
 from flgd.actions import Action
 from flgd.learning.replay import Transition
 from flgd.perception import Heightmaps
-from flgd.store import HEIGHT_QUANTUM, CheckpointDir, Store, StoreError
+from flgd.store import SCHEMA_VERSION, HEIGHT_QUANTUM, CheckpointDir, Store, StoreError
 
 from tests.fakes.daemon import tmpfs
 from tests.fakes.store_rows import action_row, random_heightmaps
@@ -261,11 +261,12 @@ def _as_written_by_version(tmp_path, version: int, *statements: str) -> None:
 
 def test_a_version_1_store_is_upgraded_in_place_without_losing_anything(tmp_path):
     _as_written_by_version(tmp_path, 1, "ALTER TABLE actions DROP COLUMN contact_stop_mm",
-                           "ALTER TABLE actions DROP COLUMN cell_time", "ALTER TABLE actions DROP COLUMN gripper_time")
+                           "ALTER TABLE actions DROP COLUMN cell_time", "ALTER TABLE actions DROP COLUMN gripper_time",
+                           "ALTER TABLE actions DROP COLUMN decide_hidden")
 
     store = Store(tmp_path)
     try:
-        assert store.query("SELECT value FROM meta WHERE key='schema_version'") == [("4",)]
+        assert store.query("SELECT value FROM meta WHERE key='schema_version'") == [(str(SCHEMA_VERSION),)]
         assert store.transition_count() == 1 and store.next_step() == 1
         assert store.query("SELECT step, success, contact_stop_mm FROM actions") == [(0, 1, None)]
         store.commit_cycle(action_row(1, contact_stop_mm=7.5),
@@ -323,11 +324,11 @@ def test_commits_are_fsynced_so_a_power_cut_loses_at_most_the_cycle_in_flight(tm
 def test_a_version_2_store_gains_the_gate_column_and_tables_in_place(tmp_path):
     _as_written_by_version(tmp_path, 2, "DROP INDEX actions_policy", "ALTER TABLE actions DROP COLUMN policy",
                            "ALTER TABLE actions DROP COLUMN cell_time", "ALTER TABLE actions DROP COLUMN gripper_time",
-                           "DROP TABLE policies", "DROP TABLE gate_events")
+                           "ALTER TABLE actions DROP COLUMN decide_hidden", "DROP TABLE policies", "DROP TABLE gate_events")
 
     store = Store(tmp_path)
     try:
-        assert store.query("SELECT value FROM meta WHERE key='schema_version'") == [("4",)]
+        assert store.query("SELECT value FROM meta WHERE key='schema_version'") == [(str(SCHEMA_VERSION),)]
         assert store.query("SELECT step, success, policy FROM actions") == [(0, 1, None)]
         store.commit_cycle(action_row(1, policy=4), None)
         assert store.query("SELECT policy FROM actions WHERE step=1") == [(4,)]
@@ -339,14 +340,28 @@ def test_a_version_2_store_gains_the_gate_column_and_tables_in_place(tmp_path):
 
 def test_a_version_3_store_gains_the_cell_and_gripper_time_columns_in_place(tmp_path):
     _as_written_by_version(tmp_path, 3, "ALTER TABLE actions DROP COLUMN cell_time",
-                           "ALTER TABLE actions DROP COLUMN gripper_time")
+                           "ALTER TABLE actions DROP COLUMN gripper_time", "ALTER TABLE actions DROP COLUMN decide_hidden")
 
     store = Store(tmp_path)
     try:
-        assert store.query("SELECT value FROM meta WHERE key='schema_version'") == [("4",)]
+        assert store.query("SELECT value FROM meta WHERE key='schema_version'") == [(str(SCHEMA_VERSION),)]
         assert store.query("SELECT step, success, cell_time, gripper_time FROM actions") == [(0, 1, None, None)]
         store.commit_cycle(action_row(1, cell_time=8.25, gripper_time=1.5), None)
         assert store.query("SELECT cell_time, gripper_time FROM actions WHERE step=1") == [(8.25, 1.5)]
+        assert store.transition_count() == 1 and store.integrity_check() == "ok"
+    finally:
+        store.close()
+
+
+def test_a_version_4_store_gains_the_hidden_decision_column_in_place(tmp_path):
+    _as_written_by_version(tmp_path, 4, "ALTER TABLE actions DROP COLUMN decide_hidden")
+
+    store = Store(tmp_path)
+    try:
+        assert store.query("SELECT value FROM meta WHERE key='schema_version'") == [(str(SCHEMA_VERSION),)]
+        assert store.query("SELECT step, success, decide_hidden FROM actions") == [(0, 1, None)]
+        store.commit_cycle(action_row(1, decide_hidden=0.31), None)
+        assert store.query("SELECT decide_hidden FROM actions WHERE step=1") == [(0.31,)]
         assert store.transition_count() == 1 and store.integrity_check() == "ok"
     finally:
         store.close()

@@ -188,7 +188,8 @@ class Evaluator:
         self.results: list[tuple[SceneSpec, list[RunLog]]] = []
         self.episode = EpisodeCell(self.config, None)
         self.runner = CycleRunner(self.config, self.episode, self.agent, replay=self.replay, learner=self.learner,
-                                  store=self.store, step=0, backend="sim")
+                                  store=self.store, step=0, backend="sim",
+                                  decide_while_placing=False)   # the harness every earlier result was measured on
 
     def _start_learning(self, network: Any, training_steps: int) -> None:
         """The daemon's learning stack for a given policy (flgd.learning_stack, its learner settings and curriculum

@@ -16,6 +16,7 @@ until ``recover()`` has reopened the camera, run the arm's recovery sequence
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from typing import Any, Callable
 
@@ -77,7 +78,9 @@ class UR5eCell(Cell):
     def capture(self) -> Frame:
         if self.camera is None:
             raise CellFault("the camera is not open (its last reopen failed): reconnect the D415, then flgctl reset")
-        return self.camera.capture()
+        frame = self.camera.capture()
+        # read after the frame arrived: no motion is sent while a picture is taken, so the arm stood there
+        return dataclasses.replace(frame, tool_position=tuple(self.arm.tcp_pose()[:3]))
 
     def gripper_width(self) -> float:
         with self._lock:

@@ -61,6 +61,7 @@ never above ``max_epsilon``.
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import threading
 from dataclasses import dataclass
@@ -76,7 +77,7 @@ from flgd.perception import Heightmaps
 from flgd.learning.failure_memory import FailureMemory
 from flgd.learning.networks import QMapNetwork, q_maps, twin_grasp_maps
 
-__all__ = ["Decision", "Agent", "WeightsMailbox", "RULES", "epsilon_at", "masked_maps", "greedy_index"]
+__all__ = ["Decision", "Agent", "OutcomeState", "WeightsMailbox", "RULES", "epsilon_at", "masked_maps", "greedy_index"]
 
 RULES: tuple[str, ...] = ("greedy", "epsilon", "anti-repeat", "two-failures", "ladder-move", "curriculum")
 # how far beyond the failed region a rung-2 move may start (m): close enough that its push reaches the region
@@ -165,6 +166,18 @@ def _argmax_allowed(masked: np.ndarray) -> tuple[int, int, int, int] | None:
     if not np.isfinite(masked.reshape(-1)[flat]):
         return None
     return tuple(int(v) for v in np.unravel_index(flat, masked.shape))  # type: ignore[return-value]
+
+
+@dataclass(frozen=True)
+class OutcomeState:
+    """The agent's memory of outcomes in this scene, and its random streams (``Agent.outcome_state``)."""
+
+    failed_grasps: int
+    forced_moves: int
+    previous: Action | None
+    memory: FailureMemory
+    rng: dict
+    assign_rng: dict
 
 
 class Agent:
@@ -365,6 +378,21 @@ class Agent:
             success = bool(grasp_success)
         self.memory.record(action, kind or action.primitive, success,
                            height_after if self.config.exploration.failure_memory else None)
+
+    def outcome_state(self) -> "OutcomeState":
+        """What ``record_outcome`` changes, copied: a provisional outcome can be taken back (``restore_outcome_state``).
+
+        Why: while the arm carries a picked object to the place the next decision is already made, on the outcome
+        measured at home; should the object slip out on the way, that outcome is taken back and the failure
+        recorded instead, so the agent ends as if it had waited."""
+        return OutcomeState(self.failed_grasps, self.forced_moves, self.previous, copy.deepcopy(self.memory),
+                            self.rng.bit_generator.state, self._assign_rng.bit_generator.state)
+
+    def restore_outcome_state(self, state: "OutcomeState") -> None:
+        self.failed_grasps, self.forced_moves, self.previous = state.failed_grasps, state.forced_moves, state.previous
+        self.memory = copy.deepcopy(state.memory)
+        self.rng.bit_generator.state = state.rng
+        self._assign_rng.bit_generator.state = state.assign_rng
 
     def reset_episode(self) -> None:
         """Forget the streak, the previous location and the failure memory (new scene)."""

@@ -10,7 +10,7 @@ to a cycle's controller time, BENCHMARKS.md "Controller overhead"), so a power
 cut loses at most the outcome of the cycle in flight, as a killed process does;
 with NORMAL it could also lose the last few committed cycles.
 
-Schema (``SCHEMA_VERSION`` 4), file ``<state_dir>/flgd.sqlite``:
+Schema (``SCHEMA_VERSION`` 5), file ``<state_dir>/flgd.sqlite``:
 
 * ``states(id, rows, cols, color, height)`` -- one heightmap pair per row,
   zlib-compressed; colour HxWx3 uint8, height as uint16 in units of
@@ -21,13 +21,16 @@ Schema (``SCHEMA_VERSION`` 4), file ``<state_dir>/flgd.sqlite``:
 * ``actions(step PRIMARY KEY, time, backend, outcome, primitive, kind, row,
   col, rotation, reward, success, mu, eta, rule, epsilon, q_value, refused,
   failure, contact_stop_mm, done, duration, t_capture, t_perceive, t_decide, t_plan, t_execute,
-  t_judge, t_store, transition_id, policy, cell_time, gripper_time)`` -- one row per cycle, whatever happened;
+  t_judge, t_store, transition_id, policy, cell_time, gripper_time, decide_hidden)`` -- one row per cycle,
+  whatever happened;
   ``policy`` is the gate's id of the policy whose greedy decision it was (NULL for an
   epsilon-random action or before the gate); ``duration`` and ``t_*`` are seconds of the
   controller's wall clock, ``cell_time`` the seconds the cycle's plans took on the cell's own
   clock (the UR controller's, or simulated time): the cycle a real arm would take, whatever
   the load on the PC that emulates or simulates it; ``gripper_time`` the part of it the
-  gripper's commands and width readings took (the rest is the arm's motion).
+  gripper's commands and width readings took (the rest is the arm's motion); ``decide_hidden``
+  the seconds of the row's decision made while the arm placed the pick before (``t_decide`` is
+  then the whole decision, and its time is in the earlier row's ``t_execute``).
   ``t_store`` of a row is written with the next write of a cycle (its intent or
   its commit: a commit cannot time itself).
 * ``events(id, time, kind, message)`` -- state changes, faults, policy loads.
@@ -39,8 +42,8 @@ Schema (``SCHEMA_VERSION`` 4), file ``<state_dir>/flgd.sqlite``:
   ``<state_dir>/gate``) and every promotion, drop, rollback and manual override
   (flgd/gatekeeper.py).
 
-A version-1, -2 or -3 store is upgraded in place when it is opened: the missing columns
-(``contact_stop_mm``, ``policy``, ``cell_time``, ``gripper_time``) are added (empty for the old rows) and nothing else changes.
+A version-1 to -4 store is upgraded in place when it is opened: the missing columns
+(``contact_stop_mm``, ``policy``, ``cell_time``, ``gripper_time``, ``decide_hidden``) are added (empty for the old rows) and nothing else changes.
 
 Write-ahead action log: a decided action that will move the cell is recorded
 (``record_intent``: its row with outcome ``pending`` -- step, time, action,

@@ -1,8 +1,8 @@
-"""The store's tables (``SCHEMA_VERSION`` 4), and the in-place upgrade of a version-1, -2 or -3 store.
+"""The store's tables (``SCHEMA_VERSION`` 5), and the in-place upgrade of a version-1 to -4 store.
 
 The tables and their columns are described in the package docstring (flgd/store/__init__.py).  An
 upgrade adds the missing action-log columns (``contact_stop_mm``, ``policy``, ``cell_time``,
-``gripper_time``), empty for the old rows,
+``gripper_time``, ``decide_hidden``), empty for the old rows,
 in one transaction, and changes nothing else.
 """
 
@@ -13,7 +13,7 @@ from pathlib import Path
 
 from flgd.store.errors import StoreError
 
-SCHEMA_VERSION = 4
+SCHEMA_VERSION = 5
 DB_NAME = "flgd.sqlite"
 TIMING_PHASES = ("capture", "perceive", "decide", "plan", "execute", "judge", "store")
 
@@ -22,7 +22,7 @@ ACTION_COLUMNS = (
     "success", "mu", "eta", "rule", "epsilon", "q_value", "refused", "failure", "contact_stop_mm", "done",
     "duration",
     *(f"t_{p}" for p in TIMING_PHASES), "transition_id", "policy", "cell_time",
-    "gripper_time",
+    "gripper_time", "decide_hidden",
 )
 
 # A cycle as the arm lives it (s): the controller's own work on the wall clock plus its plans on the cell's clock;
@@ -50,7 +50,7 @@ CREATE TABLE IF NOT EXISTS actions(
     refused TEXT, failure TEXT, contact_stop_mm REAL, done INTEGER, duration REAL,
     t_capture REAL, t_perceive REAL, t_decide REAL, t_plan REAL, t_execute REAL,
     t_judge REAL, t_store REAL, transition_id INTEGER REFERENCES transitions(id), policy INTEGER,
-    cell_time REAL, gripper_time REAL);
+    cell_time REAL, gripper_time REAL, decide_hidden REAL);
 CREATE TABLE IF NOT EXISTS events(id INTEGER PRIMARY KEY, time REAL NOT NULL,
     kind TEXT NOT NULL, message TEXT NOT NULL);
 CREATE TABLE IF NOT EXISTS counters(name TEXT PRIMARY KEY, value INTEGER NOT NULL);
@@ -74,7 +74,7 @@ def create_or_upgrade(db: sqlite3.Connection, path: Path) -> None:
     if row is None:
         db.execute("INSERT INTO meta(key, value) VALUES('schema_version', ?)",
                    (str(SCHEMA_VERSION),))
-    elif row[0] in ("1", "2", "3"):
+    elif row[0] in ("1", "2", "3", "4"):
         _upgrade(db)
     elif row[0] != str(SCHEMA_VERSION):
         raise StoreError(f"store {path}: schema version {row[0]} is not the supported "
@@ -84,13 +84,14 @@ def create_or_upgrade(db: sqlite3.Connection, path: Path) -> None:
 
 def _upgrade(db: sqlite3.Connection) -> None:
     """Version 1 -> 2: the action log gains ``contact_stop_mm``; 2 -> 3: it gains ``policy`` (the gate's
-    policy that acted; the gate's tables are created by the schema script); 3 -> 4: it gains ``cell_time`` and ``gripper_time``.
+    policy that acted; the gate's tables are created by the schema script); 3 -> 4: it gains ``cell_time`` and ``gripper_time``;
+    4 -> 5: ``decide_hidden``.
     One transaction, nothing else touched."""
     db.execute("BEGIN IMMEDIATE")
     try:
         columns = {r[1] for r in db.execute("PRAGMA table_info(actions)")}
         for name, kind in (("contact_stop_mm", "REAL"), ("policy", "INTEGER"), ("cell_time", "REAL"),
-                           ("gripper_time", "REAL")):
+                           ("gripper_time", "REAL"), ("decide_hidden", "REAL")):
             if name not in columns:
                 db.execute(f"ALTER TABLE actions ADD COLUMN {name} {kind}")
         db.execute("UPDATE meta SET value=? WHERE key='schema_version'", (str(SCHEMA_VERSION),))

@@ -70,7 +70,8 @@ class TrainingCell:
                                   np.random.default_rng(curriculum_seed))
             cell.scene_kind = f"random {curriculum.object_count(step)}"
         self.runner = CycleRunner(config, cell, agent, store=store, replay=replay, learner=learner, step=step,
-                                  backend=config.backend, on_phase=self._on_phase)
+                                  backend=config.backend, on_phase=self._on_phase,
+                                  decide_while_placing=False)   # each decision after the updates its action owes
 
     @property
     def cell(self) -> Any:

@@ -1,0 +1,202 @@
+"""The cycle decides while the arm places a pick: the picture is taken at home, never with the tool in view."""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from types import SimpleNamespace
+
+import numpy as np
+import pybullet as p
+import pytest
+
+from flgd.actions import Action
+from flgd.camera_view import tool_in_view
+from flgd.cell import CellFault
+from flgd.cycle import CycleRunner, ToolInView
+from flgd.geometry import ToolPose
+from flgd.perception import base_to_pixel
+from flgd.plans import MoveL, Plan
+from flgd.safety import check_plan
+from flgd.store import Store
+from sim_cell.cell import SimCell
+from tests.fakes.sim import cube_at, make_config
+
+
+class _Scripted:
+    """Grasps at the given pixels in turn; can take a provisional outcome back, as the real agent can."""
+
+    def __init__(self, actions: list[Action]):
+        self.actions = actions
+        self.outcomes: list[bool | None] = []
+        self.decisions: list[tuple[float, object]] = []   # (when, heightmaps decided on)
+        self.taken = 0
+
+    def decide(self, heightmaps, step):
+        self.decisions.append((time.perf_counter(), heightmaps))
+        action = self.actions[min(self.taken, len(self.actions) - 1)]
+        self.taken += 1
+        return SimpleNamespace(action=action, rule="scripted", epsilon=0.0, q_value=None, policy_id=None)
+
+    def record_outcome(self, action, grasp_success, **outcome):
+        self.outcomes.append(grasp_success)
+
+    def outcome_state(self):
+        return list(self.outcomes), self.taken
+
+    def restore_outcome_state(self, saved):
+        self.outcomes, self.taken = list(saved[0]), saved[1]
+
+    def reset_episode(self):
+        pass
+
+
+class _Watched(SimCell):
+    """The simulated cell, keeping when each plan ran, what it was and where the tool stood as it began."""
+
+    grip_gives_way = False
+
+    def __init__(self, cfg):
+        super().__init__(cfg)
+        self.plans: list[tuple[str, tuple[str, ...], float, float, np.ndarray]] = []
+
+    def execute(self, plan):
+        if self.grip_gives_way and plan.plan.primitive == "place":
+            for body in self._world.held:   # 20 kg: five times what the pads hold by friction
+                p.changeDynamics(body, -1, mass=20.0, physicsClientId=self._client)
+        start, where = time.perf_counter(), self._tcp()[:3, 3].copy()
+        result = super().execute(plan)
+        self.plans.append((plan.plan.primitive, tuple(s.label for s in plan.plan.steps), start, time.perf_counter(),
+                           where))
+        return result
+
+
+def _cell_and_agent(tmp_path, cls=_Watched):
+    cfg = dataclasses.replace(make_config(objects=0, depth_noise=False, domain_randomization=False),
+                              state_dir=str(tmp_path))
+    cell = cls(cfg)
+    cube_at(cell, -0.50, 0.05, size=(0.04, 0.04, 0.04))
+    cube_at(cell, -0.40, -0.12, size=(0.04, 0.04, 0.04))
+    cube_at(cell, -0.62, -0.12, size=(0.04, 0.04, 0.04))   # the table is not cleared by two picks
+    pixels = [base_to_pixel(x, y, cfg.workspace) for x, y in ((-0.50, 0.05), (-0.40, -0.12))]
+    return cfg, cell, _Scripted([Action("grasp", int(r), int(c), 0, 16) for r, c in pixels])
+
+
+def test_the_next_decision_is_made_while_the_arm_places_on_a_picture_taken_at_home(tmp_path):
+    cfg, cell, agent = _cell_and_agent(tmp_path)
+    store = Store(tmp_path)
+    try:
+        runner = CycleRunner(cfg, cell, agent, store=store)
+        first = runner.run_once()
+        assert first.success is True and agent.outcomes == [True]
+        place = [plan for plan in cell.plans if plan[0] == "place"]
+        assert len(place) == 1 and "home" not in place[0][1]   # the arm stays at the place
+        decided_at, decided_on = agent.decisions[1]
+        assert place[0][2] < decided_at < place[0][3]   # the second decision was made while the arm placed
+        assert tool_in_view(runner.last_frame.tool_position, cfg) == ""
+        assert np.allclose(runner.last_frame.tool_position, cfg.robot.home.position, atol=0.01)
+        assert decided_on is runner.current   # ... on the picture the first pick's transition ends in
+
+        second = runner.run_once()
+        place = [plan for plan in cell.plans if plan[0] == "place"]
+        # the decision made ahead was used; the only one made since is the third, again while the arm placed
+        assert len(agent.decisions) == 3 and place[1][2] < agent.decisions[2][0] < place[1][3]
+        grasp_plans = [plan for plan in cell.plans if plan[0] == "grasp"]
+        assert np.allclose(grasp_plans[1][4], cfg.robot.place.position, atol=0.01)   # started from the place
+        assert second.success is True and second.decide_hidden is not None and second.decide_hidden > 0.0
+        logged = store.action_log()
+        assert logged[-1]["decide_hidden"] == pytest.approx(second.decide_hidden)
+        assert [row["success"] for row in logged] == [1, 1]
+    finally:
+        store.close()
+        cell.close()
+
+
+def test_without_decide_while_placing_the_arm_goes_home_and_the_picture_is_taken_after_the_place(tmp_path):
+    cfg, cell, agent = _cell_and_agent(tmp_path)
+    cfg = dataclasses.replace(cfg, robot=dataclasses.replace(cfg.robot, decide_while_placing=False))
+    try:
+        runner = CycleRunner(cfg, cell, agent)
+        assert runner.run_once().success is True
+        place = [plan for plan in cell.plans if plan[0] == "place"]
+        assert place[0][1][-1] == "home" and agent.decisions[1:] == []
+    finally:
+        cell.close()
+
+
+def test_a_frame_taken_with_the_tool_over_the_workspace_is_refused(tmp_path):
+    cfg, cell, agent = _cell_and_agent(tmp_path)
+    try:
+        over = MoveL(ToolPose.top_down(-0.50, 0.0, 0.30, 0.0), 0.25, 0.8, "over the table")
+        assert cell.execute(check_plan(Plan("jog", (over,)), cfg)).completed
+        runner = CycleRunner(cfg, cell, agent)
+        with pytest.raises(ToolInView, match="stands between the camera and the workspace") as raised:
+            runner.perceive_now()
+        assert isinstance(raised.value, CellFault) and runner.frames_refused == 1 and runner.last_frame is None
+    finally:
+        cell.close()
+
+
+def test_a_picture_at_home_that_shows_the_tool_is_not_decided_on_the_arm_places_first(tmp_path):
+    """A cell that reports its tool in view at the home capture: the cycle does not decide on that picture; it
+    places, goes home and takes the picture after, as it does without the overlap."""
+    cfg, cell, agent = _cell_and_agent(tmp_path)
+    try:
+        runner = CycleRunner(cfg, cell, agent)
+        runner.current = runner.perceive_now()
+        honest = cell.capture
+
+        def capture_once_with_the_tool_in_view():
+            cell.capture = honest   # only the capture at home with the object held shows the tool
+            return dataclasses.replace(honest(), tool_position=(-0.50, 0.0, 0.30))
+
+        cell.capture = capture_once_with_the_tool_in_view
+        record = runner.run_once()
+        assert record.success is True and runner.frames_refused == 1
+        place = [plan for plan in cell.plans if plan[0] == "place"]
+        assert place[-1][1][-1] == "home" and len(agent.decisions) == 1   # nothing decided ahead
+        assert tool_in_view(runner.last_frame.tool_position, cfg) == ""   # the picture kept was taken after
+    finally:
+        cell.close()
+
+
+def test_a_pick_dropped_on_the_way_to_the_place_takes_back_the_decision_made_on_it(tmp_path):
+    cfg, cell, agent = _cell_and_agent(tmp_path)
+    cell.grip_gives_way = True
+    try:
+        runner = CycleRunner(cfg, cell, agent)
+        record = runner.run_once()
+        assert record.success is False and "dropped" in record.failure
+        assert agent.outcomes == [False]   # the provisional "held" was taken back, the failure recorded
+        assert agent.taken == 1 and len(agent.decisions) == 2   # the decision made on "held" is discarded ...
+        second = runner.run_once()
+        grasp_plans = [plan for plan in cell.plans if plan[0] == "grasp"]
+        # ... and the next cycle decides again, before its grasp, the action the agent would have chosen anyway
+        assert agent.decisions[2][0] < grasp_plans[1][2] and second.action == agent.actions[1]
+    finally:
+        cell.close()
+
+
+def test_the_agent_takes_back_a_provisional_outcome_and_the_draws_made_after_it():
+    from flgd.learning.agent import Agent
+    from flgd.learning.networks import FastQNet
+
+    cfg = make_config(objects=0)
+    height = np.zeros((224, 224), dtype=np.float32)
+    height[100:120, 100:120] = 0.04
+    failed, grasp = Action("grasp", 110, 110, 0, 16), Action("grasp", 105, 112, 3, 16)
+    agents = [Agent(cfg, FastQNet(), seed=3) for _ in range(2)]
+    for agent in agents:
+        agent.record_outcome(failed, False, height_after=height)
+    agent, twin = agents
+    saved = agent.outcome_state()
+    agent.record_outcome(grasp, True, height_after=height)
+    agent.rng.random(), agent._assign_rng.random()
+    assert agent.failed_grasps == 0
+    agent.restore_outcome_state(saved)
+    agent.record_outcome(grasp, False, height_after=height)
+    twin.record_outcome(grasp, False, height_after=height)
+    assert (agent.failed_grasps, agent.forced_moves, agent.previous) == (2, 0, grasp) == \
+        (twin.failed_grasps, twin.forced_moves, twin.previous)
+    assert agent.rng.random() == twin.rng.random() and agent._assign_rng.random() == twin._assign_rng.random()
+    assert np.array_equal(agent.memory.suppressed(), twin.memory.suppressed())
