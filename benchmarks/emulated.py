@@ -1,14 +1,16 @@
 """``flgd bench emulated``: the production backend (ur_rtde, RG2 XML-RPC, pyrealsense2) on ``flgd emulate``,
 beside the sim backend on the same scenes and seed; then every fault kind injected during motion.
 
-    flgd bench emulated --root runs/emulated --cycles 200 --faults 10 [--parts policy faults calibrate] [--out FILE]
+    flgd bench emulated --root runs/emulated --cycles 200 --faults 10 [--parts policy faults calibrate] [--serial]
+        [--out FILE]
 
 *policy*: ``flgd run`` with the shipped policy, frozen (``finetune.updates_per_action: 0``), on
 cell_config/ur5e-emulated.yaml (backend ur5e against the emulator) and on the same file with ``backend: sim``,
 until ``--cycles`` actions each; grasp success per grasp, picks per action, the cycle's time split (capture,
 perceive, decide, plan, execute, judge, store), the controller's own time (all but execute), and picks per hour
 both on the wall clock and on the cell's own clock (the emulator's or the simulator's time for the motions, the
-controller's own work on the wall clock), the motion's and the gripper's parts of a cycle on the cell's clock, and
+controller's own work on the wall clock), the motion's, the gripper's and the waiting (the arm still while the
+controller works) parts of a cycle on the cell's clock, the share of decision time hidden behind the place, and
 the real-time factor the emulator's clock achieved.
 *faults*: the daemon on the emulator; each kind raised ``--faults`` times at a random instant of a motion, then
 what a person does (release the e-stop and power the arm on at the pendant, reset the gripper, plug the camera
@@ -46,13 +48,15 @@ MARKER_OFFSET = ("-0.08", "0", "-0.02")   # m in the tool frame: beside the wris
 PHASES = ("t_capture", "t_perceive", "t_decide", "t_plan", "t_execute", "t_judge", "t_store")
 
 
-def _write_config(root: Path, backend: str, host: str) -> Path:
+def _write_config(root: Path, backend: str, host: str, serial: bool = False) -> Path:
     from flgd.config import load_config
 
     data = yaml.safe_load(EMULATED.read_text())
     shipped = load_config(EMULATED)
     data.update(backend=backend, state_dir=str(root / "state"), policy=str(shipped.policy))
     data["robot"]["host"] = host
+    if serial:
+        data["robot"]["decide_while_placing"] = False
     data["camera"]["emulator"] = f"{host}:{data['camera']['emulator'].rsplit(':', 1)[1]}"
     data["learning"]["init_trunk"] = str(shipped.learning.init_trunk)
     data["finetune"].update(prior_sample=str(shipped.finetune.prior_sample), updates_per_action=0)
@@ -154,9 +158,18 @@ def _policy_summary(rows: list[dict], cycles: int) -> dict[str, Any]:
             "median_motion_s": (statistics.median(r["cell_time"] - (r.get("gripper_time") or 0.0) for r in timed)
                                 if timed else None),
             "median_gripper_s": statistics.median(r.get("gripper_time") or 0.0 for r in timed) if timed else None,
+            "median_waiting_s": (statistics.median(_cycle_on_cell_clock(r) - r["cell_time"] for r in timed)
+                                 if timed else None),
+            "decide_hidden_share": _hidden_share(executed),
             "picks_per_hour_wall": picks * 3600.0 / wall_total if wall_total > 0 else None,
             "picks_per_hour_cell_clock": picks * 3600.0 / cell_total if cell_total > 0 else None,
             "median_phase_s": phases}
+
+
+def _hidden_share(rows: list[dict]) -> float | None:
+    """Of the decision time, the part made while the arm placed the previous pick (``robot.decide_while_placing``)."""
+    deciding = sum(r["t_decide"] or 0.0 for r in rows)
+    return sum(r.get("decide_hidden") or 0.0 for r in rows) / deciding if deciding > 0 else None
 
 
 def _cycle_on_cell_clock(row: dict) -> float:
@@ -186,11 +199,11 @@ def _restarted(daemon: _Daemon, config: Path, root: Path) -> _Daemon:
     return fresh
 
 
-def run_policy(root: Path, cycles: int, time_scale: float, host: str) -> dict[str, Any]:
+def run_policy(root: Path, cycles: int, time_scale: float, host: str, serial: bool = False) -> dict[str, Any]:
     out: dict[str, Any] = {}
     for backend in ("sim", "ur5e"):
         row = root / ("sim" if backend == "sim" else "emulated")
-        config = _write_config(row, backend, host)
+        config = _write_config(row, backend, host, serial)
         done = len(_rows(row / "state")) if (row / "state" / "flgd.sqlite").exists() else 0
         if done < cycles:
             emu = _emulator(config, row, time_scale) if backend == "ur5e" else None
@@ -375,12 +388,14 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--time-scale", type=float, default=1.0, help="the emulator's physics against real time")
     p.add_argument("--out", type=Path, default=None, help="summary JSON (default ROOT/summary.json)")
     p.add_argument("--host", default="127.0.0.1", help="the loopback address the emulator serves on")
+    p.add_argument("--serial", action="store_true", help="robot.decide_while_placing off: the arm goes home after "
+                                                         "each place and waits there for the next decision")
     args = p.parse_args(argv)
     root = args.root.resolve()
     out = args.out or root / "summary.json"
     summary: dict[str, Any] = json.loads(out.read_text()) if out.exists() else {}
     if "policy" in args.parts:
-        summary["policy"] = run_policy(root / "policy", args.cycles, args.time_scale, args.host)
+        summary["policy"] = run_policy(root / "policy", args.cycles, args.time_scale, args.host, args.serial)
     if "faults" in args.parts:
         previous = root / "faults" / "faults.json"
         resume = json.loads(previous.read_text()) if previous.exists() else {}

@@ -91,6 +91,11 @@ class _Timer:
     def phase(self, name: str) -> "_Phase":
         return _Phase(self, name)
 
+    def discount(self, name: str, seconds: float) -> None:
+        """Take ``seconds`` out of phase ``name``: time inside it that the cell stood waiting for the controller
+        (it stays in the cycle's duration, as the controller's own time)."""
+        self.timings[name] = self.timings.get(name, 0.0) - seconds
+
 
 class _Phase:
     def __init__(self, timer: _Timer, name: str):
@@ -295,7 +300,8 @@ class CycleRunner:
             return None
         return after if self.last_frame is not None and self.last_frame.tool_position is not None else None
 
-    def _place_and_decide(self, record: CycleRecord, action: Action, after: Heightmaps) -> tuple[ExecutionResult, Any]:
+    def _place_and_decide(self, record: CycleRecord, action: Action, after: Heightmaps,
+                          timer: _Timer) -> tuple[ExecutionResult, Any]:
         """Place the picked object in a thread of its own while the next decision is made on ``after``.
 
         The decision rests on the outcome measured at home (held), recorded first; the agent as it was before is
@@ -322,12 +328,13 @@ class CycleRunner:
         provisional, decided = None, None
         try:
             if not done:
+                busy_from = time.perf_counter()
                 provisional = self.agent.outcome_state()
                 _record_outcome(self.agent, action, True, True, after.height, record.kind)
                 self.wait_for_learner()
                 started = time.perf_counter()
                 decision, stuck = self._decide(after)
-                decided = (decision, stuck, time.perf_counter() - started)
+                decided = (decision, stuck, time.perf_counter() - started, time.perf_counter() - busy_from)
         finally:
             mover.join()
         if "error" in outcome:
@@ -336,9 +343,11 @@ class CycleRunner:
             raise outcome["error"]
         released = on_cell_clock(record, outcome["result"])
         if decided is not None:
-            decision, stuck, seconds = decided
-            hidden = min(seconds, released.duration)
-            record.cell_time = (record.cell_time or 0.0) + seconds - hidden   # the arm waited at the place
+            decision, stuck, seconds, busy = decided
+            before = busy - seconds   # the outcome and the learner's wait came first, the decision last
+            hidden = min(seconds, max(0.0, released.duration - before))
+            # the arm waited at the place for what the motion did not cover: the controller's time, not the cell's
+            timer.discount("execute", max(0.0, busy - released.duration))
             self._ahead = _Ahead(after, decision, stuck, seconds, hidden)
         return released, provisional
 
@@ -451,7 +460,7 @@ class CycleRunner:
             with timer.phase("execute"):
                 if not unstable and action.primitive == "grasp":
                     if after is not None:
-                        released, provisional = self._place_and_decide(record, action, after)
+                        released, provisional = self._place_and_decide(record, action, after, timer)
                         if provisional is not None and not released.completed:   # no outcome: take it back
                             self.agent.restore_outcome_state(provisional)
                             provisional, self._ahead = None, None

@@ -25,6 +25,14 @@ def test_picks_per_hour_on_the_cells_clock_count_the_arms_time_not_the_busy_pcs(
     assert s["picks_per_hour_wall"] == pytest.approx(2 * 3600 / 82.0)
     assert s["picks_per_hour_cell_clock"] == pytest.approx(2 * 3600 / 42.0)
     assert (s["median_motion_s"], s["median_gripper_s"]) == pytest.approx((9.0, 1.0))   # the push: no gripper
+    assert s["median_waiting_s"] == pytest.approx(0.5)
+
+
+def test_the_share_of_decision_time_hidden_behind_the_place_is_reported():
+    rows = [_row(0, 1, 10.5, 10.0, 10.0), _row(1, 1, 10.5, 10.0, 10.0), _row(2, 1, 10.5, 10.0, 10.0)]
+    for row, hidden in zip(rows, (None, 0.01, 0.005)):   # each decision 0.01 s: none, all and half of it hidden
+        row["decide_hidden"] = hidden
+    assert _policy_summary(rows, 3)["decide_hidden_share"] == pytest.approx(0.5)
 
 
 def test_a_log_written_before_the_cell_clock_counts_its_wall_time():

@@ -49,6 +49,9 @@ def test_a_scrape_of_a_running_daemon_agrees_with_flgctl(daemon_factory):
     assert _value(m, "flgd_grasp_successes_total") == stats["grasp_successes"]
     assert _value(m, "flgd_grasp_success_ratio", window="50") == stats["grasp_success_last_50"]
     assert _value(m, "flgd_picks_per_hour") == stats["picks_per_hour"]
+    for part in ("motion", "gripper", "waiting"):
+        assert _value(m, "flgd_cycle_split_seconds", part=part) == stats["timing_median"][part]
+    assert _value(m, "flgd_decide_hidden_ratio") == stats["decide_hidden_share"]
     for kind in ("push", "shift"):
         assert _value(m, "flgd_moves_total", kind=kind) == stats["moves"][kind]
     assert _value(m, "flgd_plans_refused_total") == stats["plans_refused"]

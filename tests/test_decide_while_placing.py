@@ -112,6 +112,38 @@ def test_the_next_decision_is_made_while_the_arm_places_on_a_picture_taken_at_ho
         cell.close()
 
 
+class _QuickPlace(_Watched):
+    """A place that takes 0.1 s on the cell's clock, whatever the simulator took."""
+
+    def execute(self, plan):
+        result = super().execute(plan)
+        return dataclasses.replace(result, duration=0.1) if plan.plan.primitive == "place" else result
+
+
+class _SlowSecondThought(_Scripted):
+    """Every decision after the first takes 0.6 s."""
+
+    def decide(self, heightmaps, step):
+        if self.decisions:
+            time.sleep(0.6)
+        return super().decide(heightmaps, step)
+
+
+def test_a_decision_longer_than_the_place_counts_its_uncovered_part_as_the_controllers_time(tmp_path):
+    cfg, cell, scripted = _cell_and_agent(tmp_path, cls=_QuickPlace)
+    agent = _SlowSecondThought(scripted.actions)
+    try:
+        runner = CycleRunner(cfg, cell, agent)
+        first = runner.run_once()
+        # 0.5 s of the 0.6 s decision stood the arm still at the place: out of execute, into the controller's time
+        unphased = first.duration - sum(first.timings.values())
+        assert 0.45 < unphased < 0.7
+        second = runner.run_once()
+        assert second.timings["decide"] > 0.6 and 0.05 < second.decide_hidden <= 0.1
+    finally:
+        cell.close()
+
+
 def test_without_decide_while_placing_the_arm_goes_home_and_the_picture_is_taken_after_the_place(tmp_path):
     cfg, cell, agent = _cell_and_agent(tmp_path)
     cfg = dataclasses.replace(cfg, robot=dataclasses.replace(cfg.robot, decide_while_placing=False))

@@ -395,17 +395,23 @@ def test_picks_per_hour_count_the_motions_on_the_cells_clock_and_survive_retenti
         store.close()
 
 
-def test_stats_split_the_cycle_on_the_cells_clock_into_motion_and_gripper(tmp_path):
+def test_stats_split_the_cycle_on_the_cells_clock_into_motion_gripper_and_waiting(tmp_path):
     from flgd.daemon.metrics import compute_stats, format_stats
 
     store = Store(tmp_path)
     try:
-        for step, (cell, gripper) in enumerate([(9.0, 1.0), (10.0, 1.5), (11.0, 2.0)]):
-            store.commit_cycle(action_row(step, duration=0.7, t_execute=0.2, cell_time=cell, gripper_time=gripper))
+        # decisions of 0.3 s: the first made with the arm still, the others 0.2 s and 0.3 s behind the place
+        for step, (cell, gripper, hidden) in enumerate([(9.0, 1.0, None), (10.0, 1.5, 0.2), (11.0, 2.0, 0.3)]):
+            store.commit_cycle(action_row(step, duration=0.7, t_execute=0.2, cell_time=cell, gripper_time=gripper,
+                                          t_decide=0.3, decide_hidden=hidden))
         store.commit_cycle(action_row(3, outcome="fault", success=None, duration=5.0))   # no cell time: not in it
-        t = compute_stats(store)["timing_median"]
-        text = format_stats(compute_stats(store))
+        stats = compute_stats(store)
+        t = stats["timing_median"]
+        text = format_stats(stats)
     finally:
         store.close()
-    assert (t["motion"], t["gripper"], t["cycle_on_cell_clock"]) == pytest.approx((8.5, 1.5, 10.5))
-    assert "on the cell's clock: cycle 10.500 s, motion 8.500 s, gripper 1.500 s" in text
+    assert (t["motion"], t["gripper"], t["waiting"], t["cycle_on_cell_clock"]) == pytest.approx((8.5, 1.5, 0.5, 10.5))
+    assert stats["decide_hidden_share"] == pytest.approx(0.5 / 0.9)
+    assert ("on the cell's clock: cycle 10.500 s, motion 8.500 s, gripper 1.500 s, waiting for the controller "
+            "0.500 s") in text
+    assert "decide time hidden behind the arm's motion: 55.6%" in text

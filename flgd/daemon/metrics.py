@@ -17,7 +17,10 @@ Definitions (VPG's where they exist):
   * faults: fault events recorded by the daemon.
   * timing: medians over the last ``TIMING_WINDOW`` cycles of each phase, the
     whole cycle, and the controller's own time (cycle minus execution); on the
-    cell's clock, the cycle and its motion and gripper parts.
+    cell's clock, the cycle and its motion, gripper and waiting parts (the arm
+    standing still for the controller).
+  * decide hidden share: of the decision time in the same window, the part
+    made while the arm placed the previous pick (``robot.decide_while_placing``).
 """
 
 from __future__ import annotations
@@ -92,6 +95,12 @@ def compute_stats(store: Store) -> dict[str, Any]:
     timing["motion"] = statistics.median(c - (g or 0.0) for c, g, _ in split) if split else None
     timing["gripper"] = statistics.median(g or 0.0 for _, g, _ in split) if split else None
     timing["cycle_on_cell_clock"] = statistics.median(c for _, _, c in split) if split else None
+    # the arm standing still while the controller captured, perceived, decided, planned and stored
+    timing["waiting"] = statistics.median(cycle - c for c, _, cycle in split) if split else None
+    decided = q("SELECT t_decide, decide_hidden FROM actions WHERE t_decide IS NOT NULL ORDER BY step DESC LIMIT ?",
+                (TIMING_WINDOW,))
+    deciding = sum(d for d, _ in decided)
+    hidden_share = sum(h or 0.0 for _, h in decided) / deciding if deciding > 0 else None
     return {
         "cycles": cycles,
         "outcomes": by_outcome,
@@ -112,6 +121,7 @@ def compute_stats(store: Store) -> dict[str, Any]:
         "actions_since_pick": since_pick,
         "cycle_time_total": cycle_time,
         "timing_median": timing,
+        "decide_hidden_share": hidden_share,
         "timing_window": min(len(recent), TIMING_WINDOW),
     }
 
@@ -177,7 +187,9 @@ def format_stats(s: dict[str, Any]) -> str:
     for phase in (*TIMING_PHASES, "cycle", "controller"):
         lines.append(f"  {phase:<10} {_num(t.get(phase), '{:.3f}')} s")
     lines.append(f"  on the cell's clock: cycle {_num(t.get('cycle_on_cell_clock'), '{:.3f}')} s, motion "
-                 f"{_num(t.get('motion'), '{:.3f}')} s, gripper {_num(t.get('gripper'), '{:.3f}')} s")
+                 f"{_num(t.get('motion'), '{:.3f}')} s, gripper {_num(t.get('gripper'), '{:.3f}')} s, waiting "
+                 f"for the controller {_num(t.get('waiting'), '{:.3f}')} s")
+    lines.append(f"  decide time hidden behind the arm's motion: {_pct(s.get('decide_hidden_share'))}")
     return "\n".join(lines)
 
 

@@ -169,6 +169,18 @@ def cell_metric_families(controller: Any, state_name: Callable[[], str],
                                  "successful grasp, or nothing left to try)", stats["stuck_events"])
     yield GaugeMetricFamily("flgd_actions_since_pick", "actions decided since the last successful grasp",
                             value=float(stats["actions_since_pick"]))
+    fam = GaugeMetricFamily("flgd_cycle_split_seconds", "median over the recent cycles of a cycle's parts on the "
+                            "cell's clock: motion, gripper, and waiting (the arm still while the controller works)",
+                            labels=["part"])
+    for part in ("motion", "gripper", "waiting"):
+        value = stats["timing_median"].get(part)
+        if value is not None:
+            fam.add_metric([part], value)
+    yield fam
+    hidden = _gauge("flgd_decide_hidden_ratio", "share of the recent decision time spent while the arm placed the "
+                                                "previous pick", stats["decide_hidden_share"])
+    if hidden is not None:
+        yield hidden
     fam = HistogramMetricFamily("flgd_cycle_phase_seconds", "duration of each phase of a cycle, and of the "
                                                             "whole cycle (phase=\"cycle\")", labels=["phase"])
     for phase, (counts, total, n) in phases.items():
