@@ -25,7 +25,7 @@ import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_CONFIG = REPO / "cell_config" / "sim.yaml"
-STEP_METHODS = ("_run_line", "_run_gripper", "_fingers_at_rest")
+STEP_METHODS = ("run_line", "run_gripper", "fingers_at_rest")   # of sim_cell.arm_driver.ArmDriver
 
 
 def held_geometry(tcp: np.ndarray, position: Any, orientation: Any, points: np.ndarray) -> dict[str, Any]:
@@ -57,11 +57,11 @@ class DropWatch:
         self._depth = 0
         self._plan = ""
 
-    def wrap(self, cell_class: type, world_class: type) -> dict[str, Any]:
+    def wrap(self, cell_class: type, arm_class: type, world_class: type) -> dict[str, Any]:
         """Install the observers; returns the originals (``restore`` puts them back)."""
         from flgd.plans import LIFT_LABEL
 
-        originals = {name: getattr(cell_class, name) for name in ("execute", *STEP_METHODS)}
+        originals = {"execute": cell_class.execute, **{name: getattr(arm_class, name) for name in STEP_METHODS}}
         originals["remove_lost"] = world_class.remove_lost
         watch = self
 
@@ -74,16 +74,16 @@ class DropWatch:
                 watch._following = {b: r for b, r in watch._following.items() if r["left_at"] is None}
 
         def stepped(name: str) -> Any:
-            def method(cell: Any, *args: Any, **kw: Any) -> Any:
+            def method(arm: Any, *args: Any, **kw: Any) -> Any:
                 watch._depth += 1
                 try:
-                    return originals[name](cell, *args, **kw)
+                    return originals[name](arm, *args, **kw)
                 finally:
                     watch._depth -= 1
                     if watch._depth == 0:
                         label = watch._labels[watch._step] if watch._step < len(watch._labels) else "retreat"
                         watch._step += 1
-                        watch._after_step(cell, label, label == LIFT_LABEL)
+                        watch._after_step(arm, label, label == LIFT_LABEL)
             return method
 
         def remove_lost(world: Any, body: int) -> None:
@@ -95,44 +95,45 @@ class DropWatch:
 
         cell_class.execute = execute
         for name in STEP_METHODS:
-            setattr(cell_class, name, stepped(name))
+            setattr(arm_class, name, stepped(name))
         world_class.remove_lost = remove_lost
         return originals
 
     @staticmethod
-    def restore(cell_class: type, world_class: type, originals: dict[str, Any]) -> None:
+    def restore(cell_class: type, arm_class: type, world_class: type, originals: dict[str, Any]) -> None:
         world_class.remove_lost = originals.pop("remove_lost")
+        cell_class.execute = originals.pop("execute")
         for name, method in originals.items():
-            setattr(cell_class, name, method)
+            setattr(arm_class, name, method)
 
-    def _after_step(self, cell: Any, label: str, lift: bool) -> None:
+    def _after_step(self, arm: Any, label: str, lift: bool) -> None:
         import pybullet as p
 
-        world = cell._world
+        world = arm._world
         if lift:
             for record in self._following.values():   # a body lifted again: its earlier record ends here
                 record.setdefault("left_at", "lifted again")
             self._following = {}
-            tcp = cell._tcp()
-            lifted = cell._in_gripper() | cell._contacts.held()   # what execute marks as lifted next
+            tcp = arm.tcp()
+            lifted = arm.in_gripper() | arm.contacts.held()   # what execute marks as lifted next
             for body in sorted(lifted):
-                position, orientation = p.getBasePositionAndOrientation(body, physicsClientId=cell._client)
+                position, orientation = p.getBasePositionAndOrientation(body, physicsClientId=arm._client)
                 obj = world.objects[body]
                 record = {"shape": obj.spec.shape or obj.spec.label, "size_mm": [round(v * 1000, 1)
                                                                                  for v in obj.spec.size],
-                          "lifted_with": len(lifted), "width_mm": round(cell._robot.width() * 1000, 1),
-                          **held_geometry(tcp, position, orientation, obj.world_points(cell._client)),
+                          "lifted_with": len(lifted), "width_mm": round(arm._robot.width() * 1000, 1),
+                          **held_geometry(tcp, position, orientation, obj.world_points(arm._client)),
                           "left_at": None, "lost": False, "dropped": False}
                 self._following[body] = record
                 self.records.append(record)
             return
-        inside = cell._in_gripper()
+        inside = arm.in_gripper()
         for body, record in list(self._following.items()):
             if body in inside:
                 record["left_at"] = None   # touching one pad for a moment is not leaving: it came back
             elif record["left_at"] is None:
                 record["left_at"] = f"{self._plan}:{label}"
-                tcp = cell._tcp()[:3, 3]
+                tcp = arm.tcp()[:3, 3]
                 record["tcp_when_left_mm"] = [round(float(v) * 1000) for v in tcp]
 
 
@@ -175,6 +176,7 @@ def main(argv: list[str]) -> int:
     from flgd.evaluation.evaluator import EvalOptions, EvaluationError, Evaluator
     from flgd.evaluation.scene_sets import clutter_scene
     from flgd.learning.policy_file import PolicyFileError, load_policy
+    from sim_cell.arm_driver import ArmDriver
     from sim_cell.cell import SimCell
     from sim_cell.world import World
 
@@ -186,7 +188,7 @@ def main(argv: list[str]) -> int:
         print(f"flgd bench drops: {exc}", file=sys.stderr)
         return 1
     watch = DropWatch()
-    originals = watch.wrap(SimCell, World)
+    originals = watch.wrap(SimCell, ArmDriver, World)
     runs = []
     try:
         for seed in args.seeds:
@@ -199,7 +201,7 @@ def main(argv: list[str]) -> int:
         print(f"flgd bench drops: {exc}", file=sys.stderr)
         return 1
     finally:
-        DropWatch.restore(SimCell, World, originals)
+        DropWatch.restore(SimCell, ArmDriver, World, originals)
     result = {"command": "flgd bench drops " + " ".join(argv), "machine": f"{platform.node()} "
               f"({platform.machine()}, {os.cpu_count()} cpus)", "runs": runs,
               "summary": summary(watch.records), "records": watch.records}

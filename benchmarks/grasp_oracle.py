@@ -105,19 +105,19 @@ def trial(cell: SimCell, cfg: CellConfig, shape: str, mode: str, rng: np.random.
     row, col = base_to_pixel(gx, gy, ws)
     plan = plan_action(Action("grasp", row, col, int(round(angle / (2 * math.pi / 16))) % 16), hm.height, cfg)
     lowest = [math.inf]
-    run_line = cell._run_line
+    run_line = cell._arm.run_line
 
     def watched_line(traj, stop_force=0.0):
         stopped = run_line(traj, stop_force)
         lowest[0] = min(lowest[0], float(cell._tcp()[2, 3]))
         return stopped
 
-    cell._run_line = watched_line
+    cell._arm.run_line = watched_line
     try:
         before = dict(cell.stats)
         result = cell.execute(check_plan(plan, cfg))
     finally:
-        del cell._run_line
+        del cell._arm.run_line
     width = result.widths[-1] if result.widths else math.nan
     held = grasp_reward(width, cfg.gripper) > 0
     cell.execute(check_plan(plan_release(held, cfg), cfg))

@@ -1,62 +1,21 @@
 """SimCell: the PyBullet robot cell (UR5e + RG2 + D415) behind flgd's cell interface.
 
 Each instance owns one headless physics client, so several cells can live in
-one process.  A plan runs like on the real arm: every MoveL becomes a straight
-TCP line through closed-form IK and joint position control at the step's
-speed and acceleration, gripper commands drive force-limited fingers, and
-MeasureWidth reads the finger joints.
+one process.  A plan runs like on the real arm (``sim_cell.arm_driver``: straight
+TCP lines through IK and joint position control, force-limited fingers, the
+shortcuts that keep a plan cheap, the protective stop, guarded moves and the
+compliant shift press); this module is the cell around it: the camera, the
+scenes, and one plan's step loop with its outcome.
 
-Speed -- exactly what is shortened (everything else is stepped at ``sim.time_step``):
-  * Free spans of a MoveL.  Every line is solved with IK tick by tick before the
-    arm moves (an unreachable free move fails like any other).  The leading and
-    trailing ticks whose swept box -- TCP path inflated by the gripper's
-    half-size (7.5 cm) and by what it holds, from the TCP (or the held object's
-    bottom) up -- keeps ``FREE_MARGIN`` (2 cm) from every other object's bounding
-    box are not simulated: the arm is placed at the end of that span, and a held
-    object moves rigidly with the TCP.  So the high part of an approach or of a
-    descent and the part of a lift after the object has cleared its neighbours are
-    jumps; the contact part of descend, lift, push, shift and retreat is simulated.
-    A line that starts with the gripper touching an object it does not carry is
-    simulated from its start.  What the gripper carries is what is squeezed between
-    both pads (side contacts), measured or not.  Whatever it carries is simulated:
-    only the tail of a straight lift may be a jump, after ``CARRY_TRIAL_TICKS``
-    (0.33 s) of it were simulated with the object still in the gripper; the carry
-    home and the carry to the place pose (lateral and wrist accelerations) are
-    simulated in full, since a marginal grip can lose the object there.  So the
-    widths measured at home and at the place pose tell held from slipped (a grasp
-    and its place cost about 0.9 s of CPU against 0.25 s with rigid carries).
-  * Free gripper motions: opening/closing while nothing is held and no object is
-    within the gripper's reach sets the fingers directly.
-  * Solver iterations: 20 normally, 150 while the fingers squeeze something
-    (fewer let the pads sink into a held block and falsify the width: with 60,
-    25 of 60 light cylinders gripped near their centre read 3-18 mm less than
-    their diameter, and a pad sunk > 15 mm counted as unstable physics).
-  * Sleeping: an object still for 0.2 s (|v|^2 + |w|^2 < 2.5e-5) that the gripper
-    does not touch is put to sleep, and the solver skips it until an awake body
-    touches it (pybullet's islands) or the cell wakes it because an object it
-    rested on or against was removed or carried away by a jump.  The costly
-    150-iteration squeeze then pays only for the gripper and what touches it.
-  * IK: a line's ticks are solved in one batch (``kinematics.inverse_many``).
-  Skipped spans still advance ``sim_time`` by their real duration.
+Protective stop: the arm retreats home and the plan fails with a "collision
+stop" failure.  A guarded move (a grasp's descent) that met resistance holds
+there and the rest of the plan is re-planned from the pose it stopped at.
 
-Protective stop: a line that presses the gripper down on an object (> 100 N, or
-an object squeezed > 6 mm into the table or another object -- pybullet's soft
-contacts let a block sink where a real one would stop the arm) stops; the arm
-retreats home and the plan fails with a "collision stop" failure.
-
-Guarded moves (``MoveL.stop_on_contact`` > 0, a grasp's descent): the line is
-checked every two physics steps and ends where the gripper meets that force (or
-squeezes an object ``YIELD_DEPTH`` into its support); the arm holds there and
-the rest of the plan is re-planned from the pose it stopped at.
-
-Shift press: a shift presses the closed fingers ``robot.shift_press`` into the
-object's top on purpose, so that friction drags it (paper III-A).  Rigid
-position control would squeeze the block through the 6 mm rule every time;
-instead the press is compliant, like the real fingertips and wrist: once an
-object is squeezed more than ``YIELD_DEPTH`` (3 mm), the rest of the plan's
-targets rise by the excess, up to ``shift_press`` in total.  A press that the
-give cannot absorb (the surface height was read too low) still stops the arm
-by the same 6 mm / 100 N rule.  Grasps and pushes get no give.
+Sleeping: an object still for 0.2 s (|v|^2 + |w|^2 < 2.5e-5) that the gripper
+does not touch is put to sleep, and the solver skips it until an awake body
+touches it (pybullet's islands) or the cell wakes it because an object it
+rested on or against was removed or carried away by a jump.  The costly
+150-iteration squeeze then pays only for the gripper and what touches it.
 
 Bookkeeping: an object measured as held (touching both pads at a MeasureWidth
 step) stays in the cell, in the gripper, until the gripper opens on it (at the
@@ -74,10 +33,6 @@ starting with "unstable" and naming the plan step (``stats["unstable_resets"]``)
 A single deep check is not enough: a closing finger wedging a prism or half-disk
 into the table dips it 15-30 mm for a moment, which the solver resolves (in 20-block
 clutter that alone aborted about half of all evaluation runs).
-In their own modules: world, stability, scene_maker, randomisation, gripper_contacts, free_space.
-What stays here is one plan's execution -- the step loop, the arm's lines, the fingers and the carry --
-which share per-plan state (press allowance and give, carry trials, what was lifted) under one lock;
-split, each part would reach into the others' state, so the module stays whole at ~600 lines.
 """
 
 from __future__ import annotations
@@ -93,22 +48,16 @@ from flgd.geometry import ToolPose, pose_matrix
 from flgd.plans import LIFT_LABEL, GripperCommand, MeasureWidth, MoveL
 from flgd.safety import CheckedPlan
 from sim_cell import camera as simcam
-from sim_cell import free_space, kinematics, motion, objects, scene_maker, scenes
-from sim_cell.gripper_contacts import GripperContacts
+from sim_cell import kinematics, motion, objects, scene_maker, scenes
+from sim_cell.arm_driver import ArmDriver, CollisionStop
 from sim_cell.randomisation import Randomiser
-from sim_cell.robot import FINGER_SPEED, GRIPPER_TCP_OFFSET, READY_JOINTS
+from sim_cell.robot import GRIPPER_TCP_OFFSET, READY_JOINTS
 from sim_cell.scene_maker import PRESET_DIR, preset_scenes
 from sim_cell.stability import Unstable as _Unstable
 from sim_cell.world import ObjectState, World
 
 __all__ = ["SimCell", "ObjectState", "PRESET_DIR", "preset_scenes"]
 
-CONTROL_SUBSTEPS = 8        # physics steps per IK tick (30 Hz line samples at 240 Hz physics)
-CARRY_TRIAL_TICKS = 10      # control ticks (0.33 s) a freshly gripped object is simulated before a jump
-GRIPPER_TIMEOUT = 0.8       # s for a finger motion to come to rest
-PRESS_DEPTH = 0.006           # m an object may be squeezed into the table/another object
-YIELD_DEPTH = 0.003           # m of squeeze at which an intended press starts to give way
-PROTECTIVE_STOP_FORCE = 100.0  # N of vertical push on the gripper that stops the arm (UR: 150 N at the TCP)
 MAX_SETTLE_AFTER_PLAN = 1.0  # s the world runs on after a plan while something still moves
 
 
@@ -123,18 +72,16 @@ class SimCell(Cell):
         if np.max(np.abs(off - np.asarray(GRIPPER_TCP_OFFSET))) > 1e-3:
             raise ValueError(f"{config.source}: robot.tcp_offset: got {list(config.robot.tcp_offset)!r}, "
                              f"expected {list(GRIPPER_TCP_OFFSET)!r} for the simulated RG2 (urdf/rg2.urdf)")
-        self._tcp_offset = off
         self._dt = config.sim.time_step
         home = config.robot.home
         home_pose = ToolPose.top_down(*home.position, home.yaw)
-        self._home_tcp = pose_matrix(home_pose.position, home_pose.matrix)
-        q = kinematics.nearest_solution(kinematics.inverse(motion.tcp_to_flange(self._home_tcp, off)), READY_JOINTS)
+        home_tcp = pose_matrix(home_pose.position, home_pose.matrix)
+        q = kinematics.nearest_solution(kinematics.inverse(motion.tcp_to_flange(home_tcp, off)), READY_JOINTS)
         if q is None:
             raise ValueError(f"{config.source}: robot.home: {list(home.position)!r} is out of the UR5e's reach")
-        self._home_joints = q
         self._world = World(config, q)
         self._robot = self._world.robot
-        self._contacts = GripperContacts(self._world.client, self._robot, self._world.objects, self._world.table)
+        self._arm = ArmDriver(config, self._world, off, home_tcp, q)
         seeds = np.random.SeedSequence(config.sim.seed).spawn(2)
         self._noise_rng = np.random.default_rng(seeds[1])
         self._object_count = config.sim.objects
@@ -142,8 +89,6 @@ class SimCell(Cell):
         # a training log must tell a packed scene from a drop.
         self.scene_kind = "none"
         self._randomiser = Randomiser(config, np.random.default_rng(seeds[0]), self._world.client)
-        self._press_allowance = 0.0           # m of intended press of the running plan (a shift's press)
-        self._press_yield = 0.0               # m the compliant wrist has given way during that press
         # Perception is told the configured camera; the picture is taken from where the camera truly is.
         self._camera = simcam.CameraModel.from_config(config.camera)
         self._true_camera = simcam.CameraModel.from_config(config.camera, config.sim.camera_pose_error)
@@ -218,7 +163,7 @@ class SimCell(Cell):
             self._check_open()
             t0 = self._sim_time
             try:
-                lines = self._plan_lines(steps)
+                lines = self._arm.plan_lines(steps)
             except motion.Unreachable as exc:
                 return ExecutionResult(completed=False, failure=f"unreachable: {exc}; the arm did not move",
                                        duration=0.0)
@@ -227,50 +172,49 @@ class SimCell(Cell):
             gripper = 0.0   # simulated seconds of the gripper's steps
             # A shift presses the closed fingers ``robot.shift_press`` into the object's top on purpose:
             # that much extra squeeze is the intended press, not a collision.
-            self._press_allowance = self.config.robot.shift_press if planned.primitive == "shift" else 0.0
-            self._press_yield = 0.0
-            self._world.lifted = self._world.held & self._in_gripper()   # carried in (to the place): lost = dropped
+            self._arm.begin_plan(self.config.robot.shift_press if planned.primitive == "shift" else 0.0)
+            self._world.lifted = self._world.held & self._arm.in_gripper()   # carried in (to the place): lost = dropped
             try:
                 for i, step in enumerate(steps):
                     if isinstance(step, MoveL):
-                        if self._run_line(lines[i], step.stop_on_contact):
+                        if self._arm.run_line(lines[i], step.stop_on_contact):
                             short = float(np.linalg.norm(self._tcp()[:3, 3] - np.asarray(step.pose.position)))
                             stops.append(ContactStop(step.label, short))
                             # a guarded move met resistance: the rest of the plan starts where it stopped
-                            lines.update(self._plan_lines(steps, first=i + 1))
+                            lines.update(self._arm.plan_lines(steps, first=i + 1))
                         if step.label == LIFT_LABEL:   # pinched pairs too (``held``), as a measurement counts them
-                            self._world.lifted = self._in_gripper() | self._contacts.held()
+                            self._world.lifted = self._arm.in_gripper() | self._arm.contacts.held()
                     elif isinstance(step, GripperCommand):
                         started = self._sim_time
-                        self._run_gripper(step.width, step.force)
+                        self._arm.run_gripper(step.width, step.force)
                         gripper += self._sim_time - started
                     elif isinstance(step, MeasureWidth):
                         started = self._sim_time
-                        self._fingers_at_rest()
+                        self._arm.fingers_at_rest()
                         widths.append(self.gripper_width())
-                        self._note_held()
+                        self._arm.note_held()
                         gripper += self._sim_time - started
-            except _CollisionStop as exc:
-                self._press_allowance = self._press_yield = 0.0
-                self._go_home()
+            except CollisionStop as exc:
+                self._arm.end_plan()
+                self._arm.go_home()
                 return ExecutionResult(completed=False, widths=widths,
                                        failure=f"collision stop: {exc}; the arm retreated home",
                                        duration=self._sim_time - t0, contact_stops=stops, gripper_time=gripper)
             except motion.Unreachable as exc:  # re-planning from where a guarded move stopped
-                self._press_allowance = self._press_yield = 0.0
-                self._go_home()
+                self._arm.end_plan()
+                self._arm.go_home()
                 return ExecutionResult(completed=False, widths=widths,
                                        failure=f"unreachable after a contact stop: {exc}; the arm retreated home",
                                        duration=self._sim_time - t0, contact_stops=stops, gripper_time=gripper)
             except _Unstable as exc:
-                self._press_allowance = self._press_yield = 0.0
+                self._arm.end_plan()
                 self.stats["unstable_resets"] += 1
                 self.reset_scene()
                 where = f"{planned.primitive} step {i} ({steps[i].label or type(steps[i]).__name__})"
                 return ExecutionResult(completed=False, widths=widths,
                                        failure=f"unstable simulation ({exc}) during {where}; scene reset",
                                        duration=self._sim_time - t0, contact_stops=stops, gripper_time=gripper)
-            self._press_allowance = self._press_yield = 0.0
+            self._arm.end_plan()
             try:
                 # the world goes on between actions: a block dropped or nudged comes to rest before the
                 # next picture instead of hanging frozen where the last simulated tick left it
@@ -281,7 +225,7 @@ class SimCell(Cell):
                 return ExecutionResult(completed=False, widths=widths,
                                        failure=f"unstable simulation ({exc}) after {planned.primitive}; scene reset",
                                        duration=self._sim_time - t0, contact_stops=stops, gripper_time=gripper)
-            self._remove_outside()
+            self._arm.remove_outside()
             return ExecutionResult(completed=True, widths=widths, duration=self._sim_time - t0,
                                    contact_stops=stops, gripper_time=gripper)
 
@@ -306,13 +250,13 @@ class SimCell(Cell):
         """Bring the arm home with the gripper open (a held object is carried out)."""
         with self._lock:
             self._check_open()
-            self._go_home()
+            self._arm.go_home()
 
     def workspace_empty_hint(self) -> bool:
         """True when no object is left in the workspace."""
         with self._lock:
             self._check_open()
-            self._remove_outside()
+            self._arm.remove_outside()
             return len(self._world.objects) == 0
 
     def close(self) -> None:
@@ -413,201 +357,8 @@ class SimCell(Cell):
             raise CellFault("the simulated cell is closed")
 
     def _tcp(self) -> np.ndarray:
-        return self._robot.tcp_pose(self._tcp_offset)
-
-    def _plan_lines(self, steps, first: int = 0) -> dict[int, motion.Trajectory]:
-        """IK for every MoveL of the plan (from step ``first``) before anything moves."""
-        return motion.plan_lines(steps, self._robot.joints(), self._tcp(), CONTROL_SUBSTEPS * self._dt,
-                                 self._tcp_offset, first)
-
-    # -- motions
-    def _in_gripper(self) -> set[int]:
-        """What moves with the gripper: whatever is between the pads, and what a width measurement found
-        held (a pinched pair) as long as it still touches the pads."""
-        return self._contacts.between_pads() | (self._world.held & self._contacts.held())
-
-    def _free_span(self, traj: motion.Trajectory, carried: set[int], from_end: bool) -> int:
-        """Number of ticks at the start (or end) of a line that cannot touch anything."""
-        half, below = free_space.carry_extent(self._client, self._tcp()[:3, 3], carried)
-        boxes = free_space.obstacles(self._client, self._world.objects, carried)
-        return free_space.free_span(traj.tcp[:, :3, 3], half, below, boxes, from_end)
-
-    def _jump(self, q: np.ndarray, seconds: float, carried: set[int]) -> None:
-        """Put the arm at ``q`` without physics; carried objects move rigidly with the TCP."""
-        c = self._client
-        before = self._tcp()
-        moving = []
-        for body in carried & set(self._world.objects):   # (one may have fallen off the table meanwhile)
-            self._world.stability.wake_near(body)   # whatever rested on or against it loses that support
-            pos, orn = p.getBasePositionAndOrientation(body, physicsClientId=c)
-            t = np.eye(4)
-            t[:3, :3] = np.asarray(p.getMatrixFromQuaternion(orn)).reshape(3, 3)
-            t[:3, 3] = pos
-            moving.append((body, np.linalg.inv(before) @ t))
-        self._robot.teleport(q)
-        after = self._tcp()
-        for body, rel in moving:
-            t = after @ rel
-            p.resetBasePositionAndOrientation(body, t[:3, 3].tolist(), objects.quaternion_from_matrix(t[:3, :3]),
-                                              physicsClientId=c)
-            p.resetBaseVelocity(body, [0, 0, 0], [0, 0, 0], physicsClientId=c)
-            self._world.stability.wake(body)
-        self._world.sim_time += seconds
-
-    def _run_line(self, traj: motion.Trajectory, stop_force: float = 0.0) -> bool:
-        """Follow ``traj``; True when a guarded line (``stop_force`` N > 0) stopped at a contact."""
-        joints = traj.joints
-        n = len(joints) - 1
-        if n <= 0:
-            return False
-        carried = self._in_gripper()
-        # whatever the gripper carries is simulated, so that a weak grip can slip (only a lift may jump, below)
-        first = 0
-        if not carried and not self._contacts.touching(carried) and not self._world.stability.moving():
-            free_head = self._free_span(traj, carried, from_end=False)
-            if free_head >= len(joints):
-                self._jump(joints[-1], traj.duration, carried)
-                return False
-            first = max(free_head - 1, 0)
-            if first > 0:
-                self._jump(joints[first], first * traj.tick, carried)
-        last = n - max(self._free_span(traj, carried, from_end=True) - 1, 0)
-        straight_up = bool(np.allclose(traj.tcp[0, :3, :3], traj.tcp[-1, :3, :3], atol=1e-6)
-                           and np.linalg.norm(traj.tcp[-1, :2, 3] - traj.tcp[0, :2, 3]) < 1e-3
-                           and traj.tcp[-1, 2, 3] > traj.tcp[0, 2, 3])
-        self._world.set_solver()
-        target = self._yielded(traj, first)
-        for i in range(first, n):
-            if i >= last and i > first and self._may_jump(carried, straight_up, i - first):
-                self._jump(joints[-1], (n - i) * traj.tick, carried)
-                return False
-            nxt = self._yielded(traj, i + 1)
-            vel = (nxt - target) / traj.tick
-            for sub in range(CONTROL_SUBSTEPS):
-                a = (sub + 1) / CONTROL_SUBSTEPS
-                self._robot.command_arm(target * (1 - a) + nxt * a, vel)
-                self._world.step(1)
-                if stop_force > 0.0 and sub % 2 == 1 and self._met_resistance(stop_force):
-                    self._hold_still()
-                    return True
-            target = nxt
-            force, depth = self._contacts.pressing()
-            give = self._press_allowance - self._press_yield
-            if force > PROTECTIVE_STOP_FORCE or depth > PRESS_DEPTH + give:
-                self._robot.command_arm(self._robot.joints())
-                raise _CollisionStop(f"the gripper pressed down with {force:.0f} N, squeezing an object "
-                                     f"{depth * 1000:.0f} mm into what it rests on")
-            if give > 0.0 and depth > YIELD_DEPTH:
-                # an intended press (a shift) is compliant: the wrist gives way up to the planned press
-                self._press_yield += min(depth - YIELD_DEPTH, give)
-        end = self._yielded(traj, n)
-        self._robot.command_arm(end)
-        # let the servos close the last tracking error
-        for _ in range(10):
-            if np.max(np.abs(self._robot.joints() - end)) < 2e-4:
-                break
-            self._world.step(2)
-        return False
-
-    def _met_resistance(self, stop_force: float) -> bool:
-        """A guarded move's contact test: the gripper pushed up by ``stop_force`` N, or an object it
-        touches squeezed ``YIELD_DEPTH`` into its support (pybullet's soft contacts give before the
-        force builds up)."""
-        force, depth = self._contacts.pressing()
-        return force > stop_force or depth > YIELD_DEPTH
-
-    def _hold_still(self) -> None:
-        """Stop the arm where it is, as a controller's stopL does, and let it settle."""
-        self._robot.command_arm(self._robot.joints())
-        self._world.step(8)
-
-    def _yielded(self, traj: motion.Trajectory, i: int) -> np.ndarray:
-        """Joint target of tick ``i``, raised by the give of a compliant press (see ``_press_yield``)."""
-        return motion.raised_joints(traj, i, self._press_yield, self._tcp_offset)
-
-    def _may_jump(self, carried: set[int], straight_up: bool, simulated_ticks: int) -> bool:
-        """Whether the rest of a line (already known to be clear of obstacles) may be a jump: the
-        gripper touches nothing it does not carry, and what it carries is on a straight lift, has been
-        carried for ``CARRY_TRIAL_TICKS`` and is still in the gripper (a carry sideways never jumps)."""
-        if carried and (not straight_up or simulated_ticks < CARRY_TRIAL_TICKS
-                        or not carried <= self._in_gripper()):
-            return False
-        return not self._contacts.touching(carried) and not self._world.stability.moving(exclude=carried)
-
-    def _run_gripper(self, width: float, force: float) -> None:
-        opening = width > self._robot.finger_target_width() + 1e-4 or width > self._robot.width() + 1e-3
-        if opening and self._world.held:
-            self._release_held()
-        if not self._in_gripper() and not self._contacts.touching(set()) and free_space.clear(
-                self._tcp()[None, :3, 3], free_space.GRIPPER_HALF_SIZE, 0.0,
-                free_space.obstacles(self._client, self._world.objects, set())):
-            # nothing within reach of the fingers: set them without stepping the physics
-            travel = abs(width - self._robot.width()) / 2.0
-            self._robot.set_fingers(width, force)
-            self._world.sim_time += travel / FINGER_SPEED
-            return
-        self._robot.command_gripper(width, force)
-        closing = width < self._robot.width() - 1e-3
-        steps = int(GRIPPER_TIMEOUT / self._dt)
-        for k in range(0, steps, 4):
-            # the costly solver only once a closing pad touches something (free travel needs none)
-            self._world.set_solver(squeeze=closing and self._contacts.pads_touch())
-            self._world.step(4)
-            if k >= 12 and self._robot.finger_speed() < 2e-3:
-                break
-
-    def _fingers_at_rest(self) -> None:
-        """Step until the fingers have stopped (as the real cell reads a settled width), at most 1 s.
-
-        Why: a block slipping out as the arm arrives home is still between the
-        pads for a moment; the fingers go on closing after it.
-        """
-        still = 0
-        for _ in range(int(1.0 / self._dt) // 4):
-            still = still + 1 if self._robot.finger_speed() < 2e-3 else 0
-            if still >= 2:
-                return
-            self._world.step(4)
-
-    def _release_held(self) -> None:
-        """Opening the gripper on a held object still in it hands it out of the cell (carried out); one that
-        slipped out on the way stays in the scene, where it fell."""
-        for body in list(self._world.held & self._in_gripper()):
-            if body in self._world.objects:
-                self._world.remove(body, "grasped_out")
-        self._world.held.clear()
-
-    def _note_held(self) -> None:
-        """What the width measurement found in the gripper is held (see ``GripperContacts.held``)."""
-        self._world.held = self._contacts.held()
-
-    def _go_home(self) -> None:
-        gr = self.config.gripper
-        try:
-            self._run_gripper(gr.open_width, gr.force)
-            pose = self._tcp()
-            up = pose.copy()
-            up[2, 3] = max(pose[2, 3], self.config.workspace.z[0] + self.config.robot.lift_height)
-            tick = CONTROL_SUBSTEPS * self._dt
-            rb = self.config.robot
-            first = motion.plan_line(self._robot.joints(), pose, up, rb.speed, rb.acceleration, tick, self._tcp_offset)
-            second = motion.plan_line(first.joints[-1], up, self._home_tcp, rb.speed,
-                                      rb.acceleration, tick, self._tcp_offset)
-            self._run_line(first)
-            self._run_line(second)
-        except (motion.Unreachable, _Unstable, _CollisionStop):
-            self._robot.teleport(self._home_joints, gr.open_width)
-        self._world.held.clear()
-        self._remove_outside()
+        return self._arm.tcp()
 
     # -- the world, as execute uses it
     def _settle_until_still(self, limit: float) -> None:
         self._world.settle_until_still(limit)
-
-    def _remove_outside(self) -> None:
-        """Objects out of the workspace leave the cell, except what the gripper carries (until it opens)."""
-        self._world.remove_outside(keep=self._in_gripper())
-
-
-class _CollisionStop(Exception):
-    """The arm stopped on contact, like the UR's protective stop."""

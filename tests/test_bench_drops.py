@@ -11,6 +11,7 @@ import pytest
 from benchmarks.drops import DropWatch, held_geometry, summary
 from flgd.plans import GripperCommand, Plan, plan_grasp, plan_home
 from flgd.safety import check_plan
+from sim_cell.arm_driver import ArmDriver
 from sim_cell.cell import SimCell
 from sim_cell.world import World
 from tests.fakes.sim import cube_at, make_config, state
@@ -19,11 +20,11 @@ from tests.fakes.sim import cube_at, make_config, state
 @pytest.fixture
 def watched_cell():
     watch = DropWatch()
-    originals = watch.wrap(SimCell, World)
+    originals = watch.wrap(SimCell, ArmDriver, World)
     cell = SimCell(make_config(objects=0, depth_noise=False, domain_randomization=False))
     yield cell, watch
     cell.close()
-    DropWatch.restore(SimCell, World, originals)
+    DropWatch.restore(SimCell, ArmDriver, World, originals)
 
 
 def _grasp(cell: SimCell, body: int, yaw: float) -> Plan:

@@ -24,7 +24,7 @@ def arm():
 def _touching(arm: EmulatedArm, monkeypatch, depths: list[dict[int, float]]) -> None:
     """What the gripper touches, tick after tick: {object: its deepest penetration}."""
     readings = iter(depths)
-    monkeypatch.setattr(arm.world.cell._contacts, "pressing_by_object", lambda: (5.0, next(readings)))
+    monkeypatch.setattr(arm.world.cell._arm.contacts, "pressing_by_object", lambda: (5.0, next(readings)))
 
 
 def test_touching_an_object_that_already_sinks_into_the_pile_is_no_press(arm, monkeypatch):

@@ -258,14 +258,14 @@ def test_a_plan_that_cannot_go_on_from_a_contact_stop_fails_and_retreats_home(em
     cfg = empty_cell.config
     target = cube_at(empty_cell, -0.50, 0.0, size=(0.03, 0.03, 0.05))
     cube_at(empty_cell, -0.50 + 0.055, 0.0, size=(0.03, 0.08, 0.03))
-    plan_lines = empty_cell._plan_lines
+    plan_lines = empty_cell._arm.plan_lines
 
     def refuse_the_rest(steps, first=0):
         if first > 0:
             raise motion.Unreachable("no inverse-kinematics solution (injected)")
         return plan_lines(steps, first)
 
-    monkeypatch.setattr(empty_cell, "_plan_lines", refuse_the_rest)
+    monkeypatch.setattr(empty_cell._arm, "plan_lines", refuse_the_rest)
     s = state(empty_cell, target)
     plan = plan_grasp(s.position[0], s.position[1], s.top - cfg.workspace.table_z, 0.0, cfg)
     result = empty_cell.execute(check_plan(plan, cfg))
@@ -372,12 +372,12 @@ def test_a_block_dropped_in_mid_air_lands_before_the_next_picture(empty_cell):
     wake(empty_cell, body)
     p.resetBasePositionAndOrientation(body, (-0.45, 0.10, 0.25), orn, physicsClientId=c)
     p.resetBaseVelocity(body, [0.0, 0.0, -0.3], [0.0, 0.0, 0.0], physicsClientId=c)   # just let go
-    assert not empty_cell._may_jump(set(), True, 99), "no jump while a block falls"
+    assert not empty_cell._arm.may_jump(set(), True, 99), "no jump while a block falls"
     result = empty_cell.execute(check_plan(plan_home(cfg), cfg))     # nothing of it needs physics
     assert result.completed, result.failure
     s = state(empty_cell, body)
     assert s is not None and s.top < 0.05, f"the block hangs at {s.top:.3f} m"
-    assert empty_cell._may_jump(set(), True, 99), "all still: free spans may be jumped again"
+    assert empty_cell._arm.may_jump(set(), True, 99), "all still: free spans may be jumped again"
 
 
 def test_the_width_is_read_once_the_fingers_have_stopped(empty_cell):
@@ -387,7 +387,7 @@ def test_the_width_is_read_once_the_fingers_have_stopped(empty_cell):
     robot.command_gripper(0.0, 40.0)
     empty_cell._world.step(4)
     assert robot.finger_speed() > 2e-3 and robot.width() > 0.03  # mid-stroke
-    empty_cell._fingers_at_rest()
+    empty_cell._arm.fingers_at_rest()
     assert robot.finger_speed() < 2e-3
     assert robot.width() < 0.005  # closed: an empty grasp reads as empty
 

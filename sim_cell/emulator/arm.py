@@ -377,7 +377,7 @@ class EmulatedArm:
 
         Objects in a pile can rest a few mm into each other in pybullet; counting that as the gripper's press
         would stop the arm the instant it touches such an object, before any force builds up."""
-        force, depths = self.world.cell._contacts.pressing_by_object()
+        force, depths = self.world.cell._arm.contacts.pressing_by_object()
         self._touch_depth = {body: self._touch_depth.get(body, depth) for body, depth in depths.items()}
         self._press_force = force
         self._squeeze = max([depth - self._touch_depth[body] for body, depth in depths.items()] or [0.0])
