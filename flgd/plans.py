@@ -37,6 +37,7 @@ __all__ = [
     "MoveL",
     "GripperCommand",
     "MeasureWidth",
+    "RAISE_LABEL",
     "Step",
     "Plan",
     "move_kind",
@@ -88,6 +89,7 @@ class MeasureWidth:
 Step = Union[MoveL, GripperCommand, MeasureWidth]
 
 LIFT_LABEL = "lift"   # a grasp's move up with the gripper closed: what is between the pads then was picked up
+RAISE_LABEL = "raise"   # the rest of the way up to robot.lift_height, above the neighbours, at free-space speed
 PLACE_CHECK_LABEL = "at place"   # the width read at the place pose before opening: still held there = picked
 
 
@@ -140,14 +142,21 @@ def plan_grasp(x: float, y: float, surface_height: float, angle: float, config: 
     yaw = wrap_symmetric_yaw(angle)
     z = table + max(surface_height - rb.grasp_depth, config.safety.min_table_clearance)
     above = z + rb.approach_height
+    lifted = table + rb.lift_height
     home = config.robot.home
+    # the lift is slow while the fingers are among the neighbours (up to the approach height), free-space fast above
+    lift: tuple[Step, ...] = (
+        (MoveL(ToolPose.top_down(x, y, above, yaw), rb.approach_speed, rb.acceleration, LIFT_LABEL),
+         MoveL(ToolPose.top_down(x, y, lifted, yaw), rb.speed, rb.acceleration, RAISE_LABEL))
+        if above < lifted - 0.01 else
+        (MoveL(ToolPose.top_down(x, y, lifted, yaw), rb.approach_speed, rb.acceleration, LIFT_LABEL),))
     steps: tuple[Step, ...] = (
         GripperCommand(gr.open_width, gr.force, "open"),
         MoveL(ToolPose.top_down(x, y, above, yaw), rb.speed, rb.acceleration, "approach"),
         MoveL(ToolPose.top_down(x, y, z, yaw), rb.approach_speed, rb.acceleration, "descend",
               stop_on_contact=rb.descent_contact_force),
         GripperCommand(gr.closed_width, gr.force, "close"),
-        MoveL(ToolPose.top_down(x, y, table + rb.lift_height, yaw), rb.approach_speed, rb.acceleration, LIFT_LABEL),
+        *lift,
         MoveL(ToolPose.top_down(*home.position, home.yaw), rb.speed, rb.acceleration, "home"),
         MeasureWidth("held"),
     )
