@@ -2,7 +2,7 @@
 beside the sim backend on the same scenes and seed; then every fault kind injected during motion.
 
     flgd bench emulated --root runs/emulated --cycles 200 --faults 10 [--parts policy faults calibrate] [--serial]
-        [--out FILE]
+        [--free-speed M_S --acceleration M_S2] [--out FILE]
 
 *policy*: ``flgd run`` with the shipped policy, frozen (``finetune.updates_per_action: 0``), on
 cell_config/ur5e-emulated.yaml (backend ur5e against the emulator) and on the same file with ``backend: sim``,
@@ -48,15 +48,17 @@ MARKER_OFFSET = ("-0.08", "0", "-0.02")   # m in the tool frame: beside the wris
 PHASES = ("t_capture", "t_perceive", "t_decide", "t_plan", "t_execute", "t_judge", "t_store")
 
 
-def _write_config(root: Path, backend: str, host: str, serial: bool = False) -> Path:
+def _write_config(root: Path, backend: str, host: str, robot: dict[str, Any] | None = None) -> Path:
     from flgd.config import load_config
 
     data = yaml.safe_load(EMULATED.read_text())
     shipped = load_config(EMULATED)
     data.update(backend=backend, state_dir=str(root / "state"), policy=str(shipped.policy))
     data["robot"]["host"] = host
-    if serial:
-        data["robot"]["decide_while_placing"] = False
+    data["robot"].update(robot or {})
+    for key, cap in (("speed", "max_speed"), ("acceleration", "max_acceleration")):   # the envelope lets them
+        if key in (robot or {}):
+            data["safety"][cap] = max(float(data["safety"][cap]), float(robot[key]))
     data["camera"]["emulator"] = f"{host}:{data['camera']['emulator'].rsplit(':', 1)[1]}"
     data["learning"]["init_trunk"] = str(shipped.learning.init_trunk)
     data["finetune"].update(prior_sample=str(shipped.finetune.prior_sample), updates_per_action=0)
@@ -199,11 +201,12 @@ def _restarted(daemon: _Daemon, config: Path, root: Path) -> _Daemon:
     return fresh
 
 
-def run_policy(root: Path, cycles: int, time_scale: float, host: str, serial: bool = False) -> dict[str, Any]:
+def run_policy(root: Path, cycles: int, time_scale: float, host: str,
+               robot: dict[str, Any] | None = None) -> dict[str, Any]:
     out: dict[str, Any] = {}
     for backend in ("sim", "ur5e"):
         row = root / ("sim" if backend == "sim" else "emulated")
-        config = _write_config(row, backend, host, serial)
+        config = _write_config(row, backend, host, robot)
         done = len(_rows(row / "state")) if (row / "state" / "flgd.sqlite").exists() else 0
         if done < cycles:
             emu = _emulator(config, row, time_scale) if backend == "ur5e" else None
@@ -388,6 +391,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--time-scale", type=float, default=1.0, help="the emulator's physics against real time")
     p.add_argument("--out", type=Path, default=None, help="summary JSON (default ROOT/summary.json)")
     p.add_argument("--host", default="127.0.0.1", help="the loopback address the emulator serves on")
+    p.add_argument("--free-speed", type=float, default=None, help="robot.speed (m/s) of both cells' free moves; "
+                                                                  "safety.max_speed raised to it where lower")
+    p.add_argument("--acceleration", type=float, default=None, help="robot.acceleration (m/s^2); "
+                                                                    "safety.max_acceleration raised to it where lower")
     p.add_argument("--serial", action="store_true", help="robot.decide_while_placing off: the arm goes home after "
                                                          "each place and waits there for the next decision")
     args = p.parse_args(argv)
@@ -395,7 +402,12 @@ def main(argv: list[str] | None = None) -> int:
     out = args.out or root / "summary.json"
     summary: dict[str, Any] = json.loads(out.read_text()) if out.exists() else {}
     if "policy" in args.parts:
-        summary["policy"] = run_policy(root / "policy", args.cycles, args.time_scale, args.host, args.serial)
+        robot: dict[str, Any] = {"decide_while_placing": False} if args.serial else {}
+        if args.free_speed is not None:
+            robot["speed"] = args.free_speed
+        if args.acceleration is not None:
+            robot["acceleration"] = args.acceleration
+        summary["policy"] = run_policy(root / "policy", args.cycles, args.time_scale, args.host, robot)
     if "faults" in args.parts:
         previous = root / "faults" / "faults.json"
         resume = json.loads(previous.read_text()) if previous.exists() else {}

@@ -39,3 +39,13 @@ def test_a_log_written_before_the_cell_clock_counts_its_wall_time():
     rows = [_row(0, 1, 12.0, 11.0, None), _row(1, 1, 12.0, 11.0, 9.0)]
     s = _policy_summary(rows, 2)
     assert s["picks_per_hour_cell_clock"] == pytest.approx(2 * 3600 / (12.0 + 10.0))
+
+
+def test_free_space_speed_and_acceleration_are_written_with_the_safety_caps_they_need(tmp_path):
+    from benchmarks.emulated import _write_config
+    from flgd.config import load_config
+
+    cfg = load_config(_write_config(tmp_path, "ur5e", "127.0.0.1", {"speed": 1.0, "acceleration": 2.5}))
+    assert (cfg.robot.speed, cfg.robot.acceleration) == (1.0, 2.5)
+    assert (cfg.safety.max_speed, cfg.safety.max_acceleration) == (1.0, 2.5)
+    assert cfg.robot.approach_speed == 0.08 and cfg.robot.decide_while_placing
