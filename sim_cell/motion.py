@@ -6,6 +6,8 @@ solved with the closed-form IK, and the joint vectors are handed to the
 simulated joint position controllers.  The whole line is solved before the arm
 moves, so an unreachable pose or a configuration flip on the way stops the
 plan before any motion, the way the UR controller refuses a moveL it cannot do.
+A line that would drive a joint faster than the UR5e's rated 180 deg/s at the
+commanded speed is slowed until none does (``Trajectory.speed_scale``).
 """
 
 from __future__ import annotations
@@ -20,12 +22,14 @@ from flgd.plans import MoveL
 from sim_cell import kinematics
 
 __all__ = ["Trajectory", "Unreachable", "trapezoid_duration", "trapezoid_fraction", "plan_line", "plan_lines",
-           "raised_joints", "tcp_to_flange", "flange_to_tcp"]
+           "raised_joints", "tcp_to_flange", "flange_to_tcp", "line_profile", "joint_speed_scale", "JOINT_SPEED_LIMIT"]
 
 # Tool rotation rate used to time moves that mostly turn the wrist (UR's default tool speed is
 # given per translation only; a real moveL still takes time to turn).
 ANGULAR_SPEED = 1.5      # rad/s
 ANGULAR_ACCELERATION = 4.0  # rad/s^2
+# The UR5e's rated joint speed, every joint (datasheet: 180 deg/s); a line that would drive a joint faster is slowed.
+JOINT_SPEED_LIMIT = math.pi   # rad/s
 # Largest joint step allowed between two control ticks; more means a flip through a singularity.
 MAX_JOINT_STEP = 0.25    # rad
 # IK residual above which a pose counts as unreachable.
@@ -44,6 +48,7 @@ class Trajectory:
     joints: np.ndarray
     tcp: np.ndarray
     tick: float
+    speed_scale: float = 1.0   # < 1: slowed from the commanded speed to keep every joint within JOINT_SPEED_LIMIT
 
     @property
     def duration(self) -> float:
@@ -91,24 +96,51 @@ def flange_to_tcp(flange: np.ndarray, tcp_offset: np.ndarray) -> np.ndarray:
     return out
 
 
+def line_profile(distance: float, angle: float, speed: float, acceleration: float,
+                 scale: float = 1.0) -> tuple[float, float, float]:
+    """(length, top speed, acceleration) of the trapezoid that times a line: the translation's or, for a line that
+    mostly turns the wrist, the rotation's; ``scale`` (<= 1) slows both speeds (``joint_speed_scale``)."""
+    t_lin = trapezoid_duration(distance, speed * scale, acceleration)
+    t_rot = trapezoid_duration(angle, ANGULAR_SPEED * scale, ANGULAR_ACCELERATION)
+    if t_lin >= t_rot:
+        return distance, speed * scale, acceleration
+    return angle, ANGULAR_SPEED * scale, ANGULAR_ACCELERATION
+
+
+def joint_speed_scale(traj: Trajectory, q_start: np.ndarray) -> float:
+    """The factor (<= 1) a line's speeds must be scaled by so that no joint exceeds ``JOINT_SPEED_LIMIT``."""
+    path = np.vstack([np.asarray(q_start, dtype=float)[None], traj.joints])
+    peak = float(np.max(np.abs(np.diff(path, axis=0)))) / traj.tick if len(path) > 1 else 0.0
+    return 1.0 if peak <= JOINT_SPEED_LIMIT else JOINT_SPEED_LIMIT / peak
+
+
 def plan_line(q_start: np.ndarray, start: np.ndarray, goal: np.ndarray, speed: float, acceleration: float,
               tick: float, tcp_offset: np.ndarray) -> Trajectory:
-    """Joint trajectory moving the TCP from pose ``start`` to ``goal`` (4x4) along a straight line.
+    """Joint trajectory moving the TCP from pose ``start`` to ``goal`` (4x4) along a straight line, slowed where
+    a joint would exceed ``JOINT_SPEED_LIMIT`` at the commanded speed.
 
     Raises Unreachable with the reason when some sample has no exact IK solution
     or the arm would have to flip configuration between two ticks.
     """
+    scale = 1.0
+    for _ in range(4):
+        traj = _solve_line(q_start, start, goal, speed, acceleration, tick, tcp_offset, scale)
+        slower = joint_speed_scale(traj, q_start)
+        if slower >= 0.999:
+            return traj
+        scale *= slower * 0.98
+    return traj
+
+
+def _solve_line(q_start: np.ndarray, start: np.ndarray, goal: np.ndarray, speed: float, acceleration: float,
+                tick: float, tcp_offset: np.ndarray, scale: float) -> Trajectory:
     p0, p1 = start[:3, 3], goal[:3, 3]
     r0, r1 = start[:3, :3], goal[:3, :3]
     rel = matrix_to_rotvec(r0.T @ r1)
     distance = float(np.linalg.norm(p1 - p0))
     angle = float(np.linalg.norm(rel))
-    t_lin = trapezoid_duration(distance, speed, acceleration)
-    t_rot = trapezoid_duration(angle, ANGULAR_SPEED, ANGULAR_ACCELERATION)
-    if t_lin >= t_rot:
-        total, prof = t_lin, (distance, speed, acceleration)
-    else:
-        total, prof = t_rot, (angle, ANGULAR_SPEED, ANGULAR_ACCELERATION)
+    prof = line_profile(distance, angle, speed, acceleration, scale)
+    total = trapezoid_duration(*prof)
     ticks = max(int(math.ceil(total / tick)), 1)
     frac = np.array([trapezoid_fraction(i * tick, *prof) for i in range(ticks)] + [1.0])
     poses = np.zeros((ticks + 1, 4, 4))
@@ -146,7 +178,7 @@ def plan_line(q_start: np.ndarray, start: np.ndarray, goal: np.ndarray, speed: f
         if steps[i] > MAX_JOINT_STEP:
             raise Unreachable(f"the straight line passes a singularity near {where} "
                               f"(joint jump {steps[i]:.2f} rad in one tick)")
-    return Trajectory(joints=joints, tcp=poses, tick=tick)
+    return Trajectory(joints=joints, tcp=poses, tick=tick, speed_scale=scale)
 
 
 def plan_lines(steps, q: np.ndarray, pose: np.ndarray, tick: float, tcp_offset: np.ndarray,

@@ -8,7 +8,8 @@ What a UR controller owns and what the emulator's servers read and command:
   * robot mode, safety mode and status bits, and the runtime (program) state,
     with UR's numbers (the RTDE guide's tables);
   * moveL: a straight TCP line at the commanded speed and acceleration
-    (trapezoidal, the rotation along with it), followed on the physics clock of
+    (trapezoidal, the rotation along with it), slowed where a joint would
+    exceed the UR5e's rated 180 deg/s (``motion.JOINT_SPEED_LIMIT``), followed on the physics clock of
     ``EmulatorWorld`` by closed-form IK and the joint servos; ``stop_linear``
     decelerates along the line; a target out of reach is refused before
     anything moves (``pose_within_limits``);
@@ -108,17 +109,14 @@ class ArmSnapshot:
 class _Line:
     """One moveL in progress: a straight line run along an online trapezoidal profile (or a stop ramp)."""
 
-    def __init__(self, start: np.ndarray, goal: np.ndarray, speed: float, acceleration: float):
+    def __init__(self, start: np.ndarray, goal: np.ndarray, speed: float, acceleration: float,
+                 speed_scale: float = 1.0):
         self.start, self.goal = start, goal
         self.rel = matrix_to_rotvec(start[:3, :3].T @ goal[:3, :3])
         distance = float(np.linalg.norm(goal[:3, 3] - start[:3, 3]))
         angle = float(np.linalg.norm(self.rel))
-        t_lin = motion.trapezoid_duration(distance, speed, acceleration)
-        t_rot = motion.trapezoid_duration(angle, motion.ANGULAR_SPEED, motion.ANGULAR_ACCELERATION)
-        if t_lin >= t_rot:
-            self.length, self.vmax, self.acc = distance, speed, acceleration
-        else:
-            self.length, self.vmax, self.acc = angle, motion.ANGULAR_SPEED, motion.ANGULAR_ACCELERATION
+        self.length, self.vmax, self.acc = motion.line_profile(distance, angle, speed, acceleration, speed_scale)
+        self.speed_scale = speed_scale   # < 1: slowed so that no joint exceeds its rated speed
         self.s = 0.0
         self.v = 0.0
         self.stop_acc: float | None = None   # set by stopL: decelerate at this rate to rest
@@ -326,7 +324,23 @@ class EmulatedArm:
             if not self.pose_within_limits(values):
                 raise Refused(f"moveL refused: {np.round(values, 4).tolist()} is out of reach")
             start = self._tcp_matrix(self._target_q)
-            self.line = _Line(start, pose_to_matrix(values), float(speed), float(acceleration))
+            goal = pose_to_matrix(values)
+            self.line = _Line(start, goal, float(speed), float(acceleration),
+                              self._joint_speed_scale(start, goal, float(speed), float(acceleration)))
+            if self.line.speed_scale < 1.0:
+                log.info("moveL slowed to %.0f %% of its speed: a joint would exceed %.0f deg/s",
+                         100.0 * self.line.speed_scale, math.degrees(motion.JOINT_SPEED_LIMIT))
+
+    def _joint_speed_scale(self, start: np.ndarray, goal: np.ndarray, speed: float, acceleration: float) -> float:
+        """How much a line must be slowed so that no joint exceeds the UR5e's rated speed (the controller's
+        speed scaling); 1 for a rotated TCP, whose lines only the goal's reach is checked for."""
+        if float(np.linalg.norm(self.tcp[3:])) > 1e-9:
+            return 1.0
+        try:
+            return motion.plan_line(self._target_q, start, goal, speed, acceleration, REACH_CHECK_TICK,
+                                    np.asarray(self.tcp[:3])).speed_scale
+        except motion.Unreachable:
+            return 1.0
 
     def stop_linear(self, deceleration: float) -> None:
         """stopL: decelerate the running line to rest at ``deceleration`` m/s^2 (nothing when still)."""
