@@ -2,7 +2,7 @@
 beside the sim backend on the same scenes and seed; then every fault kind injected during motion.
 
     flgd bench emulated --root runs/emulated --cycles 200 --faults 10 [--parts policy faults calibrate] [--serial]
-        [--free-speed M_S --acceleration M_S2] [--out FILE]
+        [--free-speed M_S] [--acceleration M_S2] [--raise-speed M_S] [--out FILE]
 
 *policy*: ``flgd run`` with the shipped policy, frozen (``finetune.updates_per_action: 0``), on
 cell_config/ur5e-emulated.yaml (backend ur5e against the emulator) and on the same file with ``backend: sim``,
@@ -56,7 +56,7 @@ def _write_config(root: Path, backend: str, host: str, robot: dict[str, Any] | N
     data.update(backend=backend, state_dir=str(root / "state"), policy=str(shipped.policy))
     data["robot"]["host"] = host
     data["robot"].update(robot or {})
-    for key, cap in (("speed", "max_speed"), ("acceleration", "max_acceleration")):   # the envelope lets them
+    for key, cap in (("speed", "max_speed"), ("raise_speed", "max_speed"), ("acceleration", "max_acceleration")):
         if key in (robot or {}):
             data["safety"][cap] = max(float(data["safety"][cap]), float(robot[key]))
     data["camera"]["emulator"] = f"{host}:{data['camera']['emulator'].rsplit(':', 1)[1]}"
@@ -395,6 +395,8 @@ def main(argv: list[str] | None = None) -> int:
                                                                   "safety.max_speed raised to it where lower")
     p.add_argument("--acceleration", type=float, default=None, help="robot.acceleration (m/s^2); "
                                                                     "safety.max_acceleration raised to it where lower")
+    p.add_argument("--raise-speed", type=float, default=None, help="robot.raise_speed (m/s): a grasp's lift above "
+                                                                   "the approach height; safety.max_speed raised to it")
     p.add_argument("--serial", action="store_true", help="robot.decide_while_placing off: the arm goes home after "
                                                          "each place and waits there for the next decision")
     args = p.parse_args(argv)
@@ -407,6 +409,8 @@ def main(argv: list[str] | None = None) -> int:
             robot["speed"] = args.free_speed
         if args.acceleration is not None:
             robot["acceleration"] = args.acceleration
+        if args.raise_speed is not None:
+            robot["raise_speed"] = args.raise_speed
         summary["policy"] = run_policy(root / "policy", args.cycles, args.time_scale, args.host, robot)
     if "faults" in args.parts:
         previous = root / "faults" / "faults.json"

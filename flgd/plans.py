@@ -89,7 +89,7 @@ class MeasureWidth:
 Step = Union[MoveL, GripperCommand, MeasureWidth]
 
 LIFT_LABEL = "lift"   # a grasp's move up with the gripper closed: what is between the pads then was picked up
-RAISE_LABEL = "raise"   # the rest of the way up to robot.lift_height, above the neighbours, at free-space speed
+RAISE_LABEL = "raise"   # the rest of the way up to robot.lift_height, above the neighbours, at robot.raise_speed
 PLACE_CHECK_LABEL = "at place"   # the width read at the place pose before opening: still held there = picked
 
 
@@ -144,11 +144,11 @@ def plan_grasp(x: float, y: float, surface_height: float, angle: float, config: 
     above = z + rb.approach_height
     lifted = table + rb.lift_height
     home = config.robot.home
-    # the lift is slow while the fingers are among the neighbours (up to the approach height), free-space fast above
+    # with robot.raise_speed the lift is slow only among the neighbours (up to the approach height), faster above
     lift: tuple[Step, ...] = (
         (MoveL(ToolPose.top_down(x, y, above, yaw), rb.approach_speed, rb.acceleration, LIFT_LABEL),
-         MoveL(ToolPose.top_down(x, y, lifted, yaw), rb.speed, rb.acceleration, RAISE_LABEL))
-        if above < lifted - 0.01 else
+         MoveL(ToolPose.top_down(x, y, lifted, yaw), rb.raise_speed, rb.acceleration, RAISE_LABEL))
+        if rb.raise_speed > 0.0 and above < lifted - 0.01 else
         (MoveL(ToolPose.top_down(x, y, lifted, yaw), rb.approach_speed, rb.acceleration, LIFT_LABEL),))
     steps: tuple[Step, ...] = (
         GripperCommand(gr.open_width, gr.force, "open"),

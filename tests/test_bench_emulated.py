@@ -45,7 +45,8 @@ def test_free_space_speed_and_acceleration_are_written_with_the_safety_caps_they
     from benchmarks.emulated import _write_config
     from flgd.config import load_config
 
-    cfg = load_config(_write_config(tmp_path, "ur5e", "127.0.0.1", {"speed": 1.0, "acceleration": 2.5}))
-    assert (cfg.robot.speed, cfg.robot.acceleration) == (1.0, 2.5)
-    assert (cfg.safety.max_speed, cfg.safety.max_acceleration) == (1.0, 2.5)
+    cfg = load_config(_write_config(tmp_path, "ur5e", "127.0.0.1", {"speed": 1.0, "acceleration": 2.5,
+                                                                     "raise_speed": 1.2}))
+    assert (cfg.robot.speed, cfg.robot.acceleration, cfg.robot.raise_speed) == (1.0, 2.5, 1.2)
+    assert (cfg.safety.max_speed, cfg.safety.max_acceleration) == (1.2, 2.5)
     assert cfg.robot.approach_speed == 0.08 and cfg.robot.decide_while_placing

@@ -71,6 +71,8 @@ BROKEN = {
     "bool for number": (with_change("rewards.tau1", True), ["rewards.tau1", "True", "integer"]),
     "bad enum": (with_change("gripper.driver", "robotiq"), ["gripper.driver", "'robotiq'", "'rg2_xmlrpc'"]),
     "speed above the safety cap": (with_change("robot.speed", 2.0), ["robot.speed", "safety.max_speed"]),
+    "raise speed above the safety cap": (with_change("robot.raise_speed", 2.0), ["robot.raise_speed",
+                                                                                 "safety.max_speed"]),
     "workspace outside the envelope": (with_change("safety.envelope_x", [-0.6, -0.2]),
                                        ["workspace.x", "safety.envelope_x"]),
     "home outside the envelope": (with_change("robot.home", {"position": [0.5, 0.0, 0.3], "yaw": 0.0}),

@@ -45,8 +45,19 @@ def assert_inside_envelope(plan: Plan, cfg) -> None:
             assert isinstance(step, MeasureWidth)
 
 
+def test_with_a_raise_speed_a_grasp_lifts_slowly_only_up_to_the_approach_height() -> None:
+    cfg = dataclasses.replace(CFG, robot=dataclasses.replace(CFG.robot, raise_speed=0.4))
+    plan = plan_grasp(-0.5, 0.05, 0.05, 0.0, cfg)
+    assert [s.label for s in plan.steps] == ["open", "approach", "descend", "close", "lift", "raise", "home", "held"]
+    lift, raise_ = plan.steps[4], plan.steps[5]
+    assert lift.pose.position == pytest.approx(plan.steps[1].pose.position) and lift.speed == cfg.robot.approach_speed
+    assert raise_.pose.position[2] == pytest.approx(cfg.workspace.table_z + cfg.robot.lift_height)
+    assert raise_.speed == 0.4
+    check_plan(plan, cfg)
+
+
 def test_a_grasp_whose_approach_height_reaches_the_lift_height_lifts_slowly_all_the_way() -> None:
-    cfg = dataclasses.replace(CFG, robot=dataclasses.replace(CFG.robot, approach_height=0.24))
+    cfg = dataclasses.replace(CFG, robot=dataclasses.replace(CFG.robot, approach_height=0.24, raise_speed=0.4))
     plan = plan_grasp(-0.5, 0.05, 0.05, 0.0, cfg)
     assert [s.label for s in plan.steps] == ["open", "approach", "descend", "close", "lift", "home", "held"]
     assert plan.steps[4].pose.position[2] == pytest.approx(cfg.workspace.table_z + cfg.robot.lift_height)
@@ -56,15 +67,11 @@ def test_a_grasp_whose_approach_height_reaches_the_lift_height_lifts_slowly_all_
 def test_grasp_plan_shape() -> None:
     plan = plan_grasp(-0.5, 0.05, 0.05, math.radians(30), CFG)
     labels = [s.label for s in plan.steps]
-    assert labels == ["open", "approach", "descend", "close", "lift", "raise", "home", "held"]
+    assert labels == ["open", "approach", "descend", "close", "lift", "home", "held"]
     descend = plan.steps[2].pose
     assert descend.position == pytest.approx((-0.5, 0.05, 0.05 - CFG.robot.grasp_depth))
     assert plan.steps[1].pose.position[2] == pytest.approx(descend.position[2] + CFG.robot.approach_height)
-    # slow only among the neighbours: up to the approach height at the approach speed, then free-space fast
-    lift, raise_ = plan.steps[4], plan.steps[5]
-    assert lift.pose.position == pytest.approx(plan.steps[1].pose.position) and lift.speed == CFG.robot.approach_speed
-    assert raise_.pose.position[2] == pytest.approx(CFG.workspace.table_z + CFG.robot.lift_height)
-    assert raise_.speed == CFG.robot.speed > CFG.robot.approach_speed
+    assert plan.steps[4].speed == CFG.robot.approach_speed   # the whole lift slow: raise_speed is off by default
     # Fingers close along theta: tool x axis = (cos, sin, 0); tool z points down.
     r = descend.matrix
     assert r[:, 0] == pytest.approx([math.cos(math.radians(30)), math.sin(math.radians(30)), 0], abs=1e-12)

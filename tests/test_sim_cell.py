@@ -12,7 +12,7 @@ import pytest
 from flgd.clutter import grasp_reward
 from flgd.geometry import ToolPose
 from flgd.perception import base_to_pixel, frame_heightmaps
-from flgd.plans import LIFT_LABEL, RAISE_LABEL, MoveL, Plan, plan_grasp, plan_home, plan_push, plan_release
+from flgd.plans import LIFT_LABEL, MoveL, Plan, plan_grasp, plan_home, plan_push, plan_release
 from flgd.safety import CheckedPlan, PlanRefused, check_plan
 from sim_cell.cell import SimCell
 from sim_cell.objects import ObjectSpec
@@ -433,8 +433,8 @@ def test_an_object_lost_after_the_gripper_lifted_it_counts_as_dropped_one_knocke
     other = cube_at(empty_cell, -0.40, -0.12)
     s = state(empty_cell, body)
     grasp = plan_grasp(s.position[0], s.position[1], s.top - cfg.workspace.table_z, 0.3 + math.pi / 2, cfg)
-    up = next(i for i, step in enumerate(grasp.steps) if getattr(step, "label", "") == RAISE_LABEL)
-    result = empty_cell.execute(check_plan(dataclasses.replace(grasp, steps=grasp.steps[:up + 1]), cfg))
+    lift = next(i for i, step in enumerate(grasp.steps) if getattr(step, "label", "") == LIFT_LABEL)
+    result = empty_cell.execute(check_plan(dataclasses.replace(grasp, steps=grasp.steps[:lift + 1]), cfg))
     assert result.completed, result.failure
     assert empty_cell._world.lifted == {body} and state(empty_cell, body).position[2] > 0.15
     # the grip gives way beyond the workspace's edge; the other block is knocked out of it

@@ -89,7 +89,7 @@ def check_relations(cfg: CellConfig, problems: list[str]) -> None:
                         f"y {list(ws.y)!r}); every picture is taken with the arm at home, so the arm would be in "
                         "every heightmap. Expected a home beside the workspace, out of the camera's view")
     rb = cfg.robot
-    for key in ("speed", "approach_speed"):
+    for key in ("speed", "approach_speed", "raise_speed"):
         if getattr(rb, key) > sf.max_speed:
             problems.append(f"robot.{key}: got {getattr(rb, key)!r} m/s, expected <= safety.max_speed "
                             f"({sf.max_speed!r} m/s)")

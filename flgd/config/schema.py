@@ -125,9 +125,13 @@ class RobotConfig:
     push_distance: float = param(0.10, unit="m", gt=0.0)
     shift_press: float = param(0.012, unit="m", ge=0.0, help="how far below the top surface a shift presses")
     shift_distance: float = param(0.06, unit="m", gt=0.0)
-    speed: float = param(0.25, unit="m/s", gt=0.0, help="free moves, and a grasp's lift above the approach height")
+    speed: float = param(0.25, unit="m/s", gt=0.0, help="free moves")
     approach_speed: float = param(0.10, unit="m/s", gt=0.0,
-                                  help="descents, pushes and shifts, and a grasp's lift up to the approach height")
+                                  help="descents, pushes and shifts, and a grasp's lift (up to the approach height "
+                                       "when raise_speed is set)")
+    raise_speed: float = param(0.0, unit="m/s", ge=0.0,
+                               help="a grasp's lift above robot.approach_height over the grasp, where the object has "
+                                    "left its neighbours (0 = the whole lift at approach_speed)")
     descent_contact_force: float = param(
         20.0, unit="N", ge=0.0,
         help="a grasp descent stops where the fingers meet this much resistance and closes there (0 = no guard)")
