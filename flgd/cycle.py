@@ -190,6 +190,8 @@ class CycleRunner:
         why = "" if frame.tool_position is None else tool_in_view(frame.tool_position, self.config)
         if why:
             self.frames_refused += 1
+            if self.store is not None:
+                self.store.record_event("frame_refused", why)
             raise ToolInView(f"frame refused: {why}; a picture is taken only with the arm out of view (robot.home "
                              f"in {self.config.source})")
         self.last_frame = frame

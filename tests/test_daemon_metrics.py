@@ -55,6 +55,7 @@ def test_a_scrape_of_a_running_daemon_agrees_with_flgctl(daemon_factory):
     for kind in ("push", "shift"):
         assert _value(m, "flgd_moves_total", kind=kind) == stats["moves"][kind]
     assert _value(m, "flgd_plans_refused_total") == stats["plans_refused"]
+    assert _value(m, "flgd_frames_refused_total") == stats["frames_refused"]
     assert sum(s.value for s in m["flgd_faults"] if s.name == "flgd_faults_total") == stats["faults"]
     assert _value(m, "flgd_learner_updates_total") >= status["learner_updates"]  # the learner goes on
     assert "flgd_learner_backlog" in m and "flgd_learner_dropped_updates" in m and "flgd_learner_skipped_updates" in m

@@ -14,6 +14,7 @@ from flgd.actions import Action
 from flgd.camera_view import tool_in_view
 from flgd.cell import CellFault
 from flgd.cycle import CycleRunner, ToolInView
+from flgd.daemon.metrics import compute_stats
 from flgd.geometry import ToolPose
 from flgd.perception import base_to_pixel
 from flgd.plans import MoveL, Plan
@@ -161,10 +162,13 @@ def test_a_frame_taken_with_the_tool_over_the_workspace_is_refused(tmp_path):
     try:
         over = MoveL(ToolPose.top_down(-0.50, 0.0, 0.30, 0.0), 0.25, 0.8, "over the table")
         assert cell.execute(check_plan(Plan("jog", (over,)), cfg)).completed
-        runner = CycleRunner(cfg, cell, agent)
+        store = Store(tmp_path)
+        runner = CycleRunner(cfg, cell, agent, store=store)
         with pytest.raises(ToolInView, match="stands between the camera and the workspace") as raised:
             runner.perceive_now()
         assert isinstance(raised.value, CellFault) and runner.frames_refused == 1 and runner.last_frame is None
+        assert compute_stats(store)["frames_refused"] == 1   # flgctl stats and the metrics page count it
+        store.close()
     finally:
         cell.close()
 

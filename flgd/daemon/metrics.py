@@ -15,6 +15,7 @@ Definitions (VPG's where they exist):
     ``robot.descent_contact_force`` tunes.
   * plans refused: decisions the safety envelope refused (never sent to the cell).
   * faults: fault events recorded by the daemon.
+  * frames refused: pictures taken with the tool in the camera's view of the workspace (never decided on).
   * timing: medians over the last ``TIMING_WINDOW`` cycles of each phase, the
     whole cycle, and the controller's own time (cycle minus execution); on the
     cell's clock, the cycle and its motion, gripper and waiting parts (the arm
@@ -77,6 +78,7 @@ def compute_stats(store: Store) -> dict[str, Any]:
     cycle_time = _cycle_time(store)
     faults = q("SELECT COUNT(*) FROM events WHERE kind='fault'")[0][0]
     stuck = q("SELECT COUNT(*) FROM events WHERE kind='stuck'")[0][0]
+    frames_refused = q("SELECT COUNT(*) FROM events WHERE kind='frame_refused'")[0][0]
     since_pick = _actions_since_pick(store)
     cols = ", ".join(f"t_{p}" for p in TIMING_PHASES)
     recent = q(f"SELECT {cols}, duration FROM actions ORDER BY step DESC LIMIT ?", (TIMING_WINDOW,))
@@ -118,6 +120,7 @@ def compute_stats(store: Store) -> dict[str, Any]:
         "contact_stop_mm_median": statistics.median(stopped_short) if stopped_short else None,
         "faults": faults,
         "stuck_events": stuck,
+        "frames_refused": frames_refused,
         "actions_since_pick": since_pick,
         "cycle_time_total": cycle_time,
         "timing_median": timing,
@@ -180,6 +183,8 @@ def format_stats(s: dict[str, Any]) -> str:
         f"{_num(s['contact_stop_mm_median'], '{:.1f}')} mm short of the planned depth",
         f"plans refused        {s['plans_refused']}",
         f"faults               {s['faults']}",
+        f"frames refused       {s['frames_refused']} (taken with the tool between the camera and the workspace: "
+        f"never decided on)",
         f"stuck                {s['stuck_events']} times declared; {s['actions_since_pick']} actions since the "
         f"last successful grasp",
         f"cycle time (median of last {s['timing_window']}):",

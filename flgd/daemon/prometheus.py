@@ -163,6 +163,8 @@ def cell_metric_families(controller: Any, state_name: Callable[[], str],
     for kind, n in faults.items():
         fam.add_metric([kind], n)
     yield fam
+    yield _counter("flgd_frames_refused", "pictures refused because the tool stood between the camera and the "
+                                          "workspace (never decided on)", stats["frames_refused"])
     yield _counter("flgd_plans_refused", "plans the safety envelope refused (never sent to the cell)",
                    stats["plans_refused"])
     yield _counter("flgd_stuck", "times the cell declared itself stuck (exploration.stuck_after actions without a "
