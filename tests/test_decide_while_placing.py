@@ -213,6 +213,32 @@ def test_a_pick_dropped_on_the_way_to_the_place_takes_back_the_decision_made_on_
         cell.close()
 
 
+class _FaultAtPlace(_Watched):
+    """The arm faults (a protective stop, say) on the way to the place."""
+
+    def execute(self, plan):
+        if plan.plan.primitive == "place":
+            raise CellFault("protective stop during move 'place' (injected)")
+        return super().execute(plan)
+
+
+def test_a_fault_on_the_way_to_the_place_takes_back_the_outcome_and_the_decision_and_is_raised(tmp_path):
+    cfg, cell, agent = _cell_and_agent(tmp_path, cls=_FaultAtPlace)
+    store = Store(tmp_path)
+    try:
+        runner = CycleRunner(cfg, cell, agent, store=store)
+        with pytest.raises(CellFault, match="injected"):
+            runner.run_once()
+        assert len(agent.decisions) == 2   # the next decision was made while the arm was on its way ...
+        assert agent.outcomes == [] and agent.taken == 1   # ... and taken back with the outcome it rested on
+        assert runner.current is None and runner._ahead is None   # the next cycle starts from a fresh picture
+        [row] = store.action_log()
+        assert row["outcome"] == "fault" and "injected" in row["failure"]
+    finally:
+        store.close()
+        cell.close()
+
+
 def test_the_agent_takes_back_a_provisional_outcome_and_the_draws_made_after_it():
     from flgd.learning.agent import Agent
     from flgd.learning.networks import FastQNet
