@@ -297,7 +297,7 @@ class CycleRunner:
         first and the picture is taken after, as without ``decide_while_placing``."""
         try:
             after = self.perceive(timer)
-        except ToolInView as exc:
+        except CellFault as exc:   # the tool in view, or a camera fault: place the pick first, capture after
             log.warning("decide while placing: %s", exc)
             return None
         return after if self.last_frame is not None and self.last_frame.tool_position is not None else None
@@ -327,22 +327,27 @@ class CycleRunner:
 
         mover = threading.Thread(target=place, name="flgd-place", daemon=True)
         mover.start()
-        provisional, decided = None, None
+        provisional, decided, failed = None, None, None
         try:
-            if not done:
+            if not done and not self._stop.is_set():
                 busy_from = time.perf_counter()
                 provisional = self.agent.outcome_state()
                 _record_outcome(self.agent, action, True, True, after.height, record.kind)
                 self.wait_for_learner()
-                started = time.perf_counter()
-                decision, stuck = self._decide(after)
-                decided = (decision, stuck, time.perf_counter() - started, time.perf_counter() - busy_from)
+                if not self._stop.is_set():
+                    started = time.perf_counter()
+                    decision, stuck = self._decide(after)
+                    decided = (decision, stuck, time.perf_counter() - started, time.perf_counter() - busy_from)
+        except BaseException as exc:   # raised once the arm has placed (or failed to): the cell's fault first
+            failed = exc
         finally:
             mover.join()
-        if "error" in outcome:
+        if "error" in outcome or failed is not None:
             if provisional is not None:
                 self.agent.restore_outcome_state(provisional)
-            raise outcome["error"]
+            if "error" in outcome and failed is not None:
+                log.error("deciding while placing failed too: %r", failed)
+            raise outcome.get("error") or failed
         released = on_cell_clock(record, outcome["result"])
         if decided is not None:
             decision, stuck, seconds, busy = decided
@@ -478,6 +483,7 @@ class CycleRunner:
                         held, dropped = held_at_place(released, self.config)
                         if dropped:
                             record.failure = dropped
+                            after = None   # taken before the drop: the object may have fallen into view since
                             if provisional is not None:   # decided on "held": take it back, as if it had waited
                                 self.agent.restore_outcome_state(provisional)
                                 provisional, self._ahead = None, None

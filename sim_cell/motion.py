@@ -99,12 +99,13 @@ def flange_to_tcp(flange: np.ndarray, tcp_offset: np.ndarray) -> np.ndarray:
 def line_profile(distance: float, angle: float, speed: float, acceleration: float,
                  scale: float = 1.0) -> tuple[float, float, float]:
     """(length, top speed, acceleration) of the trapezoid that times a line: the translation's or, for a line that
-    mostly turns the wrist, the rotation's; ``scale`` (<= 1) slows both speeds (``joint_speed_scale``)."""
-    t_lin = trapezoid_duration(distance, speed * scale, acceleration)
-    t_rot = trapezoid_duration(angle, ANGULAR_SPEED * scale, ANGULAR_ACCELERATION)
+    mostly turns the wrist, the rotation's.  ``scale`` (<= 1) slows the line in time: speeds times ``scale``,
+    accelerations times its square, so every joint's speed along the line scales by ``scale`` (``joint_speed_scale``)."""
+    t_lin = trapezoid_duration(distance, speed * scale, acceleration * scale ** 2)
+    t_rot = trapezoid_duration(angle, ANGULAR_SPEED * scale, ANGULAR_ACCELERATION * scale ** 2)
     if t_lin >= t_rot:
-        return distance, speed * scale, acceleration
-    return angle, ANGULAR_SPEED * scale, ANGULAR_ACCELERATION
+        return distance, speed * scale, acceleration * scale ** 2
+    return angle, ANGULAR_SPEED * scale, ANGULAR_ACCELERATION * scale ** 2
 
 
 def joint_speed_scale(traj: Trajectory, q_start: np.ndarray) -> float:
@@ -122,14 +123,12 @@ def plan_line(q_start: np.ndarray, start: np.ndarray, goal: np.ndarray, speed: f
     Raises Unreachable with the reason when some sample has no exact IK solution
     or the arm would have to flip configuration between two ticks.
     """
-    scale = 1.0
-    for _ in range(4):
-        traj = _solve_line(q_start, start, goal, speed, acceleration, tick, tcp_offset, scale)
-        slower = joint_speed_scale(traj, q_start)
-        if slower >= 0.999:
-            return traj
-        scale *= slower * 0.98
-    return traj
+    traj = _solve_line(q_start, start, goal, speed, acceleration, tick, tcp_offset, 1.0)
+    slower = joint_speed_scale(traj, q_start)
+    if slower >= 0.999:
+        return traj
+    # the same path, stretched in time: every joint speed scales with it (up to the ticks' sampling)
+    return _solve_line(q_start, start, goal, speed, acceleration, tick, tcp_offset, slower * 0.98)
 
 
 def _solve_line(q_start: np.ndarray, start: np.ndarray, goal: np.ndarray, speed: float, acceleration: float,

@@ -205,6 +205,9 @@ def test_a_pick_dropped_on_the_way_to_the_place_takes_back_the_decision_made_on_
         assert record.success is False and "dropped" in record.failure
         assert agent.outcomes == [False]   # the provisional "held" was taken back, the failure recorded
         assert agent.taken == 1 and len(agent.decisions) == 2   # the decision made on "held" is discarded ...
+        # the picture taken at home before the drop is not the next state: one taken after the place is
+        assert np.allclose(runner.last_frame.tool_position, cfg.robot.place.position, atol=0.01)
+        assert runner.current is not agent.decisions[1][1]
         second = runner.run_once()
         grasp_plans = [plan for plan in cell.plans if plan[0] == "grasp"]
         # ... and the next cycle decides again, before its grasp, the action the agent would have chosen anyway
@@ -239,6 +242,51 @@ def test_a_fault_on_the_way_to_the_place_takes_back_the_outcome_and_the_decision
         cell.close()
 
 
+class _CameraHiccup(_Watched):
+    """The camera fails once: the picture at home after the first grasp."""
+
+    captures = 0
+
+    def capture(self):
+        self.captures += 1
+        if self.captures == 2:
+            raise CellFault("camera: no frame within 5 s (injected)")
+        return super().capture()
+
+
+def test_a_camera_fault_at_home_places_the_pick_first_and_takes_the_picture_after(tmp_path):
+    cfg, cell, agent = _cell_and_agent(tmp_path, cls=_CameraHiccup)
+    try:
+        runner = CycleRunner(cfg, cell, agent)
+        record = runner.run_once()
+        assert record.success is True and cell.stats["grasped_out"] == 1   # placed, not left in the gripper
+        place = [plan for plan in cell.plans if plan[0] == "place"]
+        assert "home" in place[0][1] and len(agent.decisions) == 1   # the serial cycle: no decision ahead
+        assert cell.captures == 3 and agent.outcomes == [True]
+    finally:
+        cell.close()
+
+
+class _FailsSecondTime(_Scripted):
+    def decide(self, heightmaps, step):
+        if self.decisions:
+            raise RuntimeError("the network failed (injected)")
+        return super().decide(heightmaps, step)
+
+
+def test_a_decision_that_fails_while_the_arm_places_takes_the_provisional_outcome_back(tmp_path):
+    cfg, cell, scripted = _cell_and_agent(tmp_path)
+    agent = _FailsSecondTime(scripted.actions)
+    try:
+        runner = CycleRunner(cfg, cell, agent)
+        with pytest.raises(RuntimeError, match="injected"):
+            runner.run_once()
+        assert [plan[0] for plan in cell.plans] == ["home", "grasp", "place"]   # the arm placed the pick
+        assert agent.outcomes == [] and runner._ahead is None
+    finally:
+        cell.close()
+
+
 def test_the_agent_takes_back_a_provisional_outcome_and_the_draws_made_after_it():
     from flgd.learning.agent import Agent
     from flgd.learning.networks import FastQNet
@@ -262,3 +310,18 @@ def test_the_agent_takes_back_a_provisional_outcome_and_the_draws_made_after_it(
         (twin.failed_grasps, twin.forced_moves, twin.previous)
     assert agent.rng.random() == twin.rng.random() and agent._assign_rng.random() == twin._assign_rng.random()
     assert np.array_equal(agent.memory.suppressed(), twin.memory.suppressed())
+
+
+def test_a_snapshot_asked_for_with_the_arm_in_view_is_refused_without_faulting_the_daemon():
+    from flgd.daemon.commands import fresh_snapshot
+    from flgd.daemon.protocol import ProtocolError
+
+    faults: list[str] = []
+
+    def in_view():
+        raise ToolInView("frame refused: the tool stands between the camera and the workspace")
+
+    ctl = SimpleNamespace(runner=SimpleNamespace(perceive_now=in_view), _fault=faults.append)
+    with pytest.raises(ProtocolError, match="stands between the camera"):
+        fresh_snapshot(ctl)
+    assert faults == []   # the arm standing in view is no cell fault

@@ -20,6 +20,7 @@ import time
 from typing import TYPE_CHECKING, Any, Callable
 
 from flgd.cell import CellFault, make_cell
+from flgd.cycle import ToolInView
 from flgd.daemon.metrics import compute_stats, status_summary
 from flgd.daemon.protocol import ProtocolError, Request
 from flgd.daemon.state import IllegalTransition, State
@@ -388,6 +389,8 @@ def fresh_snapshot(ctl: Controller) -> dict:
     assert ctl.runner is not None
     try:
         hm = ctl.runner.perceive_now()
+    except ToolInView as exc:   # the arm stands where a picture shows it: nothing wrong with the cell
+        raise ProtocolError("failed", f"snapshot: {exc}") from None
     except CellFault as exc:
         ctl._fault(f"cell fault during snapshot capture: {exc}")
         raise ProtocolError("failed", f"snapshot: capture failed: {exc}") from None
