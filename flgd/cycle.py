@@ -60,7 +60,7 @@ import math
 import threading
 import time
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import TYPE_CHECKING, Any, Callable
 
 import numpy as np
 
@@ -74,6 +74,9 @@ from flgd.cycle_record import (UNSTABLE_MARK, CycleRecord, float_or_none, held_a
 from flgd.perception import Heightmaps, frame_heightmaps
 from flgd.plans import plan_action, plan_home, plan_release
 from flgd.safety import PlanRefused, check_plan
+
+if TYPE_CHECKING:
+    from flgd.learning.agent import Decision, OutcomeState
 
 __all__ = ["CycleRecord", "CycleRunner", "ToolInView", "UNSTABLE_MARK"]
 
@@ -126,7 +129,7 @@ class _Ahead:
     """The next decision, made on ``state`` while the arm placed the last pick (``decide_while_placing``)."""
 
     state: Heightmaps
-    decision: Any
+    decision: Decision | None
     stuck: str
     seconds: float   # what deciding took
     hidden: float    # the part of it the place's motion covered
@@ -281,7 +284,7 @@ class CycleRunner:
         if self.learner is not None and self.config.learning.wait_for_updates and hasattr(self.learner, "wait_idle"):
             self.learner.wait_idle(LEARNER_WAIT_LIMIT)
 
-    def _decide(self, state: Heightmaps) -> tuple[Any, str]:
+    def _decide(self, state: Heightmaps) -> tuple[Decision | None, str]:
         """The agent's decision on ``state`` (None when it found nothing), and its reason to give up ('' = none)."""
         if hasattr(self.agent, "maybe_swap_weights"):
             self.agent.maybe_swap_weights()
@@ -303,7 +306,7 @@ class CycleRunner:
         return after if self.last_frame is not None and self.last_frame.tool_position is not None else None
 
     def _place_and_decide(self, record: CycleRecord, action: Action, after: Heightmaps,
-                          timer: _Timer) -> tuple[ExecutionResult, Any]:
+                          timer: _Timer) -> tuple[ExecutionResult, OutcomeState | None]:
         """Place the picked object in a thread of its own while the next decision is made on ``after``.
 
         The decision rests on the outcome measured at home (held), recorded first; the agent as it was before is

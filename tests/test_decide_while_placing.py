@@ -302,6 +302,7 @@ def test_the_agent_takes_back_a_provisional_outcome_and_the_draws_made_after_it(
     saved = agent.outcome_state()
     agent.record_outcome(grasp, True, height_after=height)
     agent.rng.random(), agent._assign_rng.random()
+    agent._exhausted = "nothing left to try"   # as a decision made on the provisional outcome may leave it
     assert agent.failed_grasps == 0
     agent.restore_outcome_state(saved)
     agent.record_outcome(grasp, False, height_after=height)
@@ -310,6 +311,7 @@ def test_the_agent_takes_back_a_provisional_outcome_and_the_draws_made_after_it(
         (twin.failed_grasps, twin.forced_moves, twin.previous)
     assert agent.rng.random() == twin.rng.random() and agent._assign_rng.random() == twin._assign_rng.random()
     assert np.array_equal(agent.memory.suppressed(), twin.memory.suppressed())
+    assert agent.stuck_reason() == twin.stuck_reason()
 
 
 def test_a_snapshot_asked_for_with_the_arm_in_view_is_refused_without_faulting_the_daemon():

@@ -178,6 +178,7 @@ class OutcomeState:
     memory: FailureMemory
     rng: dict
     assign_rng: dict
+    exhausted: str
 
 
 class Agent:
@@ -386,13 +387,14 @@ class Agent:
         measured at home; should the object slip out on the way, that outcome is taken back and the failure
         recorded instead, so the agent ends as if it had waited."""
         return OutcomeState(self.failed_grasps, self.forced_moves, self.previous, copy.deepcopy(self.memory),
-                            self.rng.bit_generator.state, self._assign_rng.bit_generator.state)
+                            self.rng.bit_generator.state, self._assign_rng.bit_generator.state, self._exhausted)
 
     def restore_outcome_state(self, state: "OutcomeState") -> None:
         self.failed_grasps, self.forced_moves, self.previous = state.failed_grasps, state.forced_moves, state.previous
         self.memory = copy.deepcopy(state.memory)
         self.rng.bit_generator.state = state.rng
         self._assign_rng.bit_generator.state = state.assign_rng
+        self._exhausted = state.exhausted
 
     def reset_episode(self) -> None:
         """Forget the streak, the previous location and the failure memory (new scene)."""
