@@ -13,7 +13,7 @@ from flgd.actions import Action
 from flgd.config import CellConfig
 from flgd.learning.augment import mirror_action, mirror_heightmaps
 from flgd.learning.learner import Learner
-from flgd.learning.networks import build_network
+from flgd.learning.networks import build_network, q_maps
 from flgd.learning.replay import PrioritizedReplay, Transition
 from flgd.perception import Heightmaps
 from flgd.plans import plan_action
@@ -78,12 +78,14 @@ def test_the_learner_puts_the_gradient_at_the_mirrored_pixel_and_rotations(p, mi
     lrn = Learner(cfg, build_network("fast", 16, seed=0), PrioritizedReplay(4))
     t = Transition(scene, Action("grasp", 12, 6, 3), 1.0, None, True)
     terms = lrn.loss_terms([t], np.ones(1, np.float32))
-    terms.maps.retain_grad()
-    terms.loss.backward()
-    nonzero = {tuple(int(v) for v in idx) for idx in torch.nonzero(terms.maps.grad)}
     if mirrored:
         assert terms.actions == [Action("grasp", 12, n - 1 - 6, 5)] and terms.rotations == [5, 13]
-        assert nonzero == {(0, 0, 12, 25), (1, 0, 12, 25)}
+        trained, pixel = mirror_heightmaps(scene), (12, n - 1 - 6)
     else:
         assert terms.actions == [t.action] and terms.rotations == [3, 11]
-        assert nonzero == {(0, 0, 12, 6), (1, 0, 12, 6)}
+        trained, pixel = scene, (12, 6)
+    with torch.no_grad():  # the values the loss read are the full Q-maps' at that scene, pixel and rotations
+        full = q_maps(lrn.online, trained, 16, rotation_indices=terms.rotations)[:, 0, pixel[0], pixel[1]]
+        other = q_maps(lrn.online, mirror_heightmaps(trained), 16, rotation_indices=terms.rotations)
+    assert torch.allclose(terms.predicted.detach(), full, atol=1e-6)
+    assert not torch.allclose(terms.predicted.detach(), other[:, 0, pixel[0], pixel[1]], atol=1e-4)

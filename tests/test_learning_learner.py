@@ -16,7 +16,7 @@ from flgd.actions import Action
 from flgd.config import CellConfig
 from flgd.learning.agent import Agent, WeightsMailbox, greedy_index, masked_maps
 from flgd.learning.learner import Learner
-from flgd.learning.networks import build_network, q_maps, twin_grasp_maps
+from flgd.learning.networks import build_network, q_maps, rotated_inputs, twin_grasp_maps, unrotate_maps
 from flgd.learning.replay import PrioritizedReplay, Transition, state_key
 from flgd.perception import Heightmaps
 from tests.fakes.learning import block_scene, learner_config
@@ -29,20 +29,28 @@ def learner(cfg: CellConfig | None = None, replay: PrioritizedReplay | None = No
     return Learner(cfg, build_network("fast", 16, seed=0), replay or PrioritizedReplay.from_config(cfg.learning), **kw)
 
 
-def test_only_the_executed_pixel_and_the_grasp_twin_receive_gradient():
-    lrn = learner()
+def test_the_loss_reads_the_executed_pixel_and_the_grasp_twin_as_the_full_q_maps_do():
+    lrn = learner(learner_config(gamma=0.0))
     grasp = Transition(block_scene(1), Action("grasp", 9, 20, 3), 1.0, block_scene(2), False)
     push = Transition(block_scene(3), Action("push", 25, 4, 13), 0.5, None, True)
-    terms = lrn.loss_terms([grasp, push], np.array([1.0, 0.5], np.float32))
-    assert terms.owners == [0, 0, 1] and terms.rotations == [3, 11, 13]
-    terms.maps.retain_grad()
-    terms.loss.backward()
-    grad = terms.maps.grad
-    nonzero = {tuple(int(v) for v in idx) for idx in torch.nonzero(grad)}
-    # rows of maps: (grasp, rot 3), (grasp, twin rot 11), (push, rot 13); channels 0 grasp, 1 move
-    assert nonzero == {(0, 0, 9, 20), (1, 0, 9, 20), (2, 1, 25, 4)}
-    # and the network's weights get gradient through it
-    assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in lrn.online.parameters())
+    edge = Transition(block_scene(4), Action("grasp", 31, 0, 6), 0.0, None, True)  # the border of the map
+    terms = lrn.loss_terms([grasp, push, edge], np.array([1.0, 0.5, 1.0], np.float32))
+    assert terms.owners == [0, 0, 1, 2, 2] and terms.rotations == [3, 11, 13, 6, 14]
+    terms.predicted.sum().backward()
+    pixel_grads = {n: p.grad.clone() for n, p in lrn.online.named_parameters()}
+    lrn.online.zero_grad(set_to_none=True)
+    # the same rows read from the full heightmap-frame Q-maps, forwarded as one batch like the loss's
+    rows = [(grasp.state, 3, 0, 9, 20), (grasp.state, 11, 0, 9, 20), (push.state, 13, 1, 25, 4),
+            (edge.state, 6, 0, 31, 0), (edge.state, 14, 0, 31, 0)]
+    inputs = [rotated_inputs(s, [r], 16, lrn.online.stride) for s, r, *_ in rows]
+    out = lrn.online(torch.cat([c for c, _ in inputs]), torch.cat([h for _, h in inputs]))
+    maps = unrotate_maps(out, [r for _, r, *_ in rows], 16, 32, 32)
+    full = torch.stack([maps[i, ch, row, col] for i, (_, _, ch, row, col) in enumerate(rows)])
+    assert torch.allclose(terms.predicted.detach(), full.detach(), atol=1e-6)
+    full.sum().backward()
+    for name, p in lrn.online.named_parameters():
+        assert torch.allclose(pixel_grads[name], p.grad, atol=1e-5, rtol=1e-4), name
+    assert any(g.abs().sum() > 0 for g in pixel_grads.values())
 
 
 def test_double_dqn_target_uses_online_argmax_under_masks_and_target_value():
@@ -369,10 +377,10 @@ def test_frozen_batchnorm_keeps_the_running_statistics_while_the_weights_learn(m
         assert moved == []
         # the training forward normalised with the running statistics: it matches the eval-mode output
         t = Transition(block_scene(1), Action("grasp", 12, 12, 1), 1.0, None, True)
-        train_pred = lrn.loss_terms([t], np.ones(1, np.float32)).maps.detach()
+        train_pred = lrn.loss_terms([t], np.ones(1, np.float32)).predicted.detach()
         lrn.online.eval()
         with torch.no_grad():
-            eval_pred = lrn.loss_terms([t], np.ones(1, np.float32)).maps
+            eval_pred = lrn.loss_terms([t], np.ones(1, np.float32)).predicted
         assert torch.allclose(train_pred, eval_pred, atol=1e-5)
     else:
         assert any("running_mean" in k for k in moved) and any("running_var" in k for k in moved)

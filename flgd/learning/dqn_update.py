@@ -12,11 +12,14 @@ One update (``update``):
   of the *online* network over all rotations of s' under the masks of s' (the
   same masks the agent acts with; none for the DPEN ablation; no moves in
   grasp-only mode) and only a'`s rotation is forwarded through the target
-  network (double DQN); with ``exploration.twin_grasps`` both use the mean of
-  a grasp's two twin rotations, as the agent does;
+  network (double DQN), one batch for the whole sample; with
+  ``exploration.twin_grasps`` both use the mean of a grasp's two twin
+  rotations, as the agent does;
 * prediction: only the executed rotation i is forwarded through the online
   network, plus its twin (i + R/2) % R for a grasp, since the two-finger
   gripper closing along u or -u is the same grasp; both are trained towards y;
+  Q is read at the one trained pixel (``q_at_pixels``: the same value as the
+  full Q-maps', without resizing and rotating them back);
 * loss: Huber (delta = huber_delta) at the executed channel and pixel only,
   averaged over the transition's rotations, weighted by w, averaged over the
   batch; Adam with the configured learning rate and weight decay;
@@ -90,7 +93,7 @@ from flgd.perception import Heightmaps
 
 from flgd.learning.augment import mirror_action, mirror_heightmaps
 from flgd.learning.agent import Decision, greedy_index
-from flgd.learning.networks import QMapNetwork, q_maps, rotated_inputs, twin_grasp_maps, unrotate_maps
+from flgd.learning.networks import QMapNetwork, q_at_pixels, q_maps, rotated_inputs, twin_grasp_maps
 from flgd.learning.prior_sample import PriorSample
 from flgd.learning.replay import PrioritizedReplay, Transition, state_key
 
@@ -123,9 +126,9 @@ class LossTerms:
     loss: torch.Tensor
     td_errors: np.ndarray  # per transition, y - Q(s, a) at the executed rotation
     targets: np.ndarray  # y per transition
-    maps: torch.Tensor  # [N,2,H,W] predicted maps (heightmap frame) of the forwarded rotations
-    owners: list[int]  # transition index of each row of maps
-    rotations: list[int]  # rotation index of each row of maps
+    predicted: torch.Tensor  # [N] Q(s, a) of each forwarded rotation at the trained channel and pixel
+    owners: list[int]  # transition index of each row of predicted
+    rotations: list[int]  # rotation index of each row of predicted
     actions: list[Action]  # the action trained per transition (mirrored when the transition was)
 
 
@@ -280,47 +283,66 @@ class DQNUpdate:
             self._next_argmax = {k: v for k, v in self._next_argmax.items() if self._argmax_age_ok(v[0])}
         self._next_value = {k: v for k, v in self._next_value.items() if k in self._next_argmax}
 
-    def _target_value(self, t: Transition, index: tuple[int, int, int, int]) -> float:
-        key = t.next_key
-        if key is not None:
-            cached = self._next_value.get(key)
+    def _target_values(self, wanted: list[tuple[Transition, tuple[int, int, int, int]]]) -> list[float]:
+        """Q_target(s', a') for each (transition, a'), from the value cache or one batched target-network pass
+        (in eval mode each input is independent of the others, so batching changes no value)."""
+        values: list[float | None] = [None] * len(wanted)
+        twins = self.config.exploration.twin_grasps and self.rotations % 2 == 0
+        misses: dict[tuple[int, int], list[int]] = {}
+        for k, (t, index) in enumerate(wanted):
+            cached = self._next_value.get(t.next_key) if t.next_key is not None else None
             if cached is not None and cached[0] == index:
-                return cached[1]
-        rot, ch, row, col = index
-        if ch == 0 and self.config.exploration.twin_grasps and self.rotations % 2 == 0:
-            twin = (rot + self.rotations // 2) % self.rotations
-            q_t = q_maps(self.target, t.next_state, self.rotations, rotation_indices=[rot, twin])
-            value = float(q_t[:, ch, row, col].mean())
-        else:
-            q_t = q_maps(self.target, t.next_state, self.rotations, rotation_indices=[rot])
-            value = float(q_t[0, ch, row, col])
-        if key is not None and self._caching():
-            self._next_value[key] = (index, value)
-        return value
+                values[k] = cached[1]
+            else:
+                misses.setdefault(tuple(np.asarray(t.next_state.height).shape), []).append(k)
+        for (h_px, w_px), ks in misses.items():
+            colors, heights, rots, owners = [], [], [], []
+            for k in ks:
+                rot = wanted[k][1][0]
+                these = [rot, (rot + self.rotations // 2) % self.rotations] if wanted[k][1][1] == 0 and twins else [rot]
+                c, h = rotated_inputs(wanted[k][0].next_state, these, self.rotations, self.target.stride, self.device)
+                colors.append(c)
+                heights.append(h)
+                rots += these
+                owners += [k] * len(these)
+            q = q_at_pixels(self.target, torch.cat(colors), torch.cat(heights), rots,
+                            [wanted[k][1][1] for k in owners], [wanted[k][1][2] for k in owners],
+                            [wanted[k][1][3] for k in owners], h_px, w_px).cpu().numpy()
+            for k in ks:
+                value = float(np.mean([q[i] for i, o in enumerate(owners) if o == k]))
+                values[k] = value
+                t, index = wanted[k]
+                if t.next_key is not None and self._caching():
+                    self._next_value[t.next_key] = (index, value)
+        return [float(v) for v in values]
 
     @torch.no_grad()
     def targets(self, transitions: Sequence[Transition]) -> np.ndarray:
         """y = r + gamma * Q_target(s', argmax_a' online(s')) * (1 - done) for each transition."""
         gamma = self.config.learning.gamma
-        ys = np.zeros(len(transitions), dtype=np.float64)
+        ys = np.array([t.reward for t in transitions], dtype=np.float64)
         was_training = self.online.training
         self.online.eval()
         try:
+            wanted: list[tuple[Transition, tuple[int, int, int, int]]] = []
+            rows: list[int] = []
             for k, t in enumerate(transitions):
-                ys[k] = t.reward
                 if t.done or t.next_state is None or gamma == 0.0:
                     continue
                 index = self._greedy_next(t)
                 if index is None:
                     continue  # nothing left to act on in s': no future value
-                ys[k] += gamma * self._target_value(t, index)
+                wanted.append((t, index))
+                rows.append(k)
+            for k, value in zip(rows, self._target_values(wanted)):
+                ys[k] += gamma * value
         finally:
             if was_training:
                 self._training_mode()
         return ys
 
     def loss_terms(self, transitions: Sequence[Transition], weights: np.ndarray) -> LossTerms:
-        """The weighted Huber loss at the executed pixels (see module doc), with its intermediate maps."""
+        """The weighted Huber loss at the executed pixels (see module doc), with its intermediate values."""
         ys = self.targets(transitions)
         p_mirror = self.config.learning.mirror_probability
         colors, heights, owners, rots, actions = [], [], [], [], []
@@ -348,12 +370,9 @@ class DQNUpdate:
         if len(shapes) != 1:
             raise ValueError(f"transitions in one batch have different heightmap sizes: {sorted(shapes)}")
         (h_px, w_px), = shapes
-        out = self.online(torch.cat(colors), torch.cat(heights))
-        maps = unrotate_maps(out, rots, self.rotations, h_px, w_px)
-        channel = torch.tensor([actions[k].channel for k in owners], device=self.device)
-        row = torch.tensor([actions[k].row for k in owners], device=self.device)
-        col = torch.tensor([actions[k].col for k in owners], device=self.device)
-        predicted = maps[torch.arange(len(owners), device=self.device), channel, row, col]
+        predicted = q_at_pixels(self.online, torch.cat(colors), torch.cat(heights), rots,
+                                [actions[k].channel for k in owners], [actions[k].row for k in owners],
+                                [actions[k].col for k in owners], h_px, w_px)
         y = torch.tensor(ys[owners], dtype=predicted.dtype, device=self.device)
         per_row = F.huber_loss(predicted, y, reduction="none", delta=self.config.learning.huber_delta)
         owner_t = torch.tensor(owners, device=self.device)
@@ -364,7 +383,7 @@ class DQNUpdate:
         loss = (w * per_transition / counts).mean()
         first = [owners.index(k) for k in range(len(transitions))]  # the executed rotation's row
         td = (y[first] - predicted[first]).detach().cpu().numpy().astype(np.float64)
-        return LossTerms(loss=loss, td_errors=td, targets=ys, maps=maps, owners=owners, rotations=rots,
+        return LossTerms(loss=loss, td_errors=td, targets=ys, predicted=predicted, owners=owners, rotations=rots,
                          actions=actions)
 
     def set_anchor(self, network: QMapNetwork) -> None:
