@@ -53,6 +53,18 @@ def test_the_loss_reads_the_executed_pixel_and_the_grasp_twin_as_the_full_q_maps
     assert any(g.abs().sum() > 0 for g in pixel_grads.values())
 
 
+def test_with_one_grasp_twin_a_grasp_trains_one_of_its_two_rotations_drawn_at_random():
+    lrn = learner(learner_config(grasp_twins="one", gamma=0.0))
+    grasp = Transition(block_scene(1), Action("grasp", 9, 20, 3), 1.0, None, True)
+    push = Transition(block_scene(3), Action("push", 25, 4, 13), 0.5, None, True)
+    drawn = []
+    for _ in range(40):
+        terms = lrn.loss_terms([grasp, push], np.ones(2, np.float32))
+        assert terms.owners == [0, 1] and terms.rotations[1] == 13  # a move keeps its one rotation
+        drawn.append(terms.rotations[0])
+    assert set(drawn) == {3, 11} and 8 <= drawn.count(3) <= 32
+
+
 def test_double_dqn_target_uses_online_argmax_under_masks_and_target_value():
     cfg = learner_config(gamma=0.5)
     lrn = learner(cfg)

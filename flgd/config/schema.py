@@ -235,6 +235,9 @@ class LearningConfig:
                                            "replayed: the a' of the decision that acted on it (or, where none was "
                                            "recorded, the learner's first) is never recomputed, so a target costs "
                                            "one or two rotations of the target network (`flgd train`'s recipe)")
+    grasp_twins: Literal["both", "one"] = param(
+        "both", help="a replayed grasp trains its rotation and the theta+pi twin ('both'), or one of the two drawn "
+                     "at random ('one': a grasp's update forwards one rotated image instead of two)")
     max_backlog: int = param(0, ge=0, unit="updates",
                              help="most scheduled updates the background learner may owe; more are dropped "
                                   "(0 = no limit)")

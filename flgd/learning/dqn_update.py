@@ -17,7 +17,8 @@ One update (``update``):
   rotations, as the agent does;
 * prediction: only the executed rotation i is forwarded through the online
   network, plus its twin (i + R/2) % R for a grasp, since the two-finger
-  gripper closing along u or -u is the same grasp; both are trained towards y;
+  gripper closing along u or -u is the same grasp; both are trained towards y
+  (with ``grasp_twins: one``, one of the two drawn at random);
   Q is read at the one trained pixel (``q_at_pixels``: the same value as the
   full Q-maps', without resizing and rotating them back);
 * loss: Huber (delta = huber_delta) at the executed channel and pixel only,
@@ -179,6 +180,7 @@ class DQNUpdate:
         self.optimizer = torch.optim.Adam(self.online.parameters(), lr=lc.learning_rate,
                                           weight_decay=lc.weight_decay)
         self._mirror_rng = np.random.default_rng([lc.seed, 0x6D69])  # its own stream: other draws unchanged
+        self._twin_rng = np.random.default_rng([lc.seed, 0x7477])  # which twin a grasp trains (grasp_twins "one")
         self.prior = prior if prior_share > 0.0 else None
         self.prior_share = prior_share if prior is not None else 0.0
         self._prior_rng = np.random.default_rng([lc.seed, 0x7072])  # its own stream, like mirroring's
@@ -360,7 +362,11 @@ class DQNUpdate:
             actions.append(a)
             these = [a.rotation]
             if not a.is_move:
-                these.append((a.rotation + self.rotations // 2) % self.rotations)
+                twin = (a.rotation + self.rotations // 2) % self.rotations
+                if self.config.learning.grasp_twins == "both":
+                    these.append(twin)
+                elif self._twin_rng.random() < 0.5:
+                    these = [twin]
             c, h = rotated_inputs(state, these, self.rotations, self.online.stride, self.device)
             colors.append(c)
             heights.append(h)
@@ -381,7 +387,7 @@ class DQNUpdate:
         counts = torch.bincount(owner_t, minlength=len(transitions)).to(per_row.dtype)
         w = torch.as_tensor(np.asarray(weights, dtype=np.float32), device=self.device)
         loss = (w * per_transition / counts).mean()
-        first = [owners.index(k) for k in range(len(transitions))]  # the executed rotation's row
+        first = [owners.index(k) for k in range(len(transitions))]  # the executed rotation's row (or its twin's)
         td = (y[first] - predicted[first]).detach().cpu().numpy().astype(np.float64)
         return LossTerms(loss=loss, td_errors=td, targets=ys, predicted=predicted, owners=owners, rotations=rots,
                          actions=actions)
