@@ -142,3 +142,34 @@ def test_only_the_temporaries_of_interrupted_trainer_state_writes_are_removed(tm
     assert not any(p.exists() for p in stale)
     assert all(p.exists() for p in keep)
     assert remove_temporary(tmp_path / "missing") == 0
+
+
+def test_a_resumed_learner_takes_back_the_remembered_a_prime_and_searches_no_next_state_again(tmp_path):
+    cfg = config(actor_argmax=True, gamma=0.5)
+    original = trained_learner(cfg)
+    _, batch, _ = original.replay.sample(4)  # replayed transitions carry their next state's key
+    batch = [t for t in batch if not t.done]
+    assert original.argmax_computed > 0 and original.remembered_argmax()
+    path = tmp_path / TRAINER_STATE
+    save_trainer_state(path, original, np.zeros(0, np.int64), np.zeros(0))
+
+    resumed = fresh_learner_with_weights_of(cfg, original)
+    restore_learner(resumed, load_trainer_state(path))
+    assert sorted(resumed.remembered_argmax()) == sorted(original.remembered_argmax())
+    resumed.targets(batch)
+    assert resumed.argmax_computed == 0 and resumed.argmax_reused == len(batch)
+
+
+def test_a_trainer_state_without_remembered_a_prime_loads_with_none(tmp_path):
+    from safetensors.torch import load_file, save_file
+    cfg = config(actor_argmax=True)
+    original = trained_learner(cfg)
+    assert original.remembered_argmax()
+    path = tmp_path / TRAINER_STATE
+    save_trainer_state(path, original, np.zeros(0, np.int64), np.zeros(0))
+    from safetensors import safe_open
+    with safe_open(str(path), framework="pt") as f:
+        meta = f.metadata()
+    older = {k: v for k, v in load_file(str(path)).items() if not k.startswith("argmax.")}
+    save_file(older, str(path), metadata=meta)
+    assert load_trainer_state(path).argmax == []

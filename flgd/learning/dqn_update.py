@@ -251,6 +251,22 @@ class DQNUpdate:
         with self._argmax_lock:
             self._next_argmax[key] = (int(weights_version), None if index is None else tuple(int(v) for v in index))
 
+    def remembered_argmax(self) -> list[tuple[bytes, int, tuple[int, int, int, int] | None]]:
+        """Every remembered a' as (state key, update count of the weights that found it, index or None): what a
+        trainer state keeps, so that a resumed learner does not search the next states again."""
+        with self._argmax_lock:
+            return [(key, version, index) for key, (version, index) in self._next_argmax.items()]
+
+    def remember_argmax(self, entries: Sequence[tuple[bytes, int, tuple[int, int, int, int] | None]]) -> int:
+        """Take back a' saved by ``remembered_argmax`` (entries found with weights newer than this learner's are
+        never used, as in ``note_greedy``); how many were taken."""
+        taken = 0
+        for key, version, index in entries:
+            if self._caching() and self._argmax_age_ok(int(version)):
+                self.note_greedy(bytes(key), int(version), index)
+                taken += 1
+        return taken
+
     def _greedy_next(self, t: Transition) -> tuple[int, int, int, int] | None:
         """a' for ``t.next_state``: from the cache while fresh enough, else from the online network."""
         caching = self._caching()

@@ -8,7 +8,13 @@ replay's default priorities, and says so.
 
 Tensors: ``target.<name>`` (target network), ``adam.<i>.<key>`` (per
 parameter state of torch.optim.Adam), ``priority.ids`` (int64 store
-transition ids) and ``priority.values`` (float64 raw priorities).
+transition ids), ``priority.values`` (float64 raw priorities), and the
+remembered double-DQN a' of the replayed next states: ``argmax.keys`` (uint8,
+one state key per row) and ``argmax.values`` (int64 rows of weights' update
+count, rotation, channel, row, column; rotation -1 = nothing left to act on).
+Without them a resumed learner with ``actor_argmax`` searches every replayed
+next state again, a 16-rotation pass each; a state written before they
+existed loads with none.
 Metadata: ``updates`` and ``adam_groups`` (JSON of the hyper-parameters when saved; on restore the
 configured ones are used, so an edited learning rate takes effect).
 """
@@ -17,7 +23,7 @@ from __future__ import annotations
 
 import json
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -40,6 +46,7 @@ class TrainerState:
     adam_groups: list[dict]
     priority_ids: np.ndarray
     priorities: np.ndarray
+    argmax: list[tuple[bytes, int, tuple[int, int, int, int] | None]] = field(default_factory=list)
 
 
 def save_trainer_state(path: str | os.PathLike, learner, priority_ids: np.ndarray, priorities: np.ndarray) -> None:
@@ -56,6 +63,13 @@ def save_trainer_state(path: str | os.PathLike, learner, priority_ids: np.ndarra
               for g in opt["param_groups"]]
     tensors["priority.ids"] = torch.from_numpy(np.asarray(priority_ids, dtype=np.int64).copy())
     tensors["priority.values"] = torch.from_numpy(np.asarray(priorities, dtype=np.float64).copy())
+    remembered = learner.remembered_argmax()
+    key_size = len(remembered[0][0]) if remembered else 16
+    tensors["argmax.keys"] = torch.from_numpy(
+        np.frombuffer(b"".join(key for key, _, _ in remembered), dtype=np.uint8).reshape(-1, key_size).copy())
+    tensors["argmax.values"] = torch.tensor(
+        [[version, *(index if index is not None else (-1, 0, 0, 0))] for _, version, index in remembered],
+        dtype=torch.int64).reshape(-1, 5)
     meta = {"updates": str(int(learner.updates)), "adam_groups": json.dumps(groups)}
     data = save(tensors, metadata=meta)
     write_atomically(path, data)
@@ -91,9 +105,22 @@ def load_trainer_state(path: str | os.PathLike) -> TrainerState:
                 _, i, key = k.split(".", 2)
                 adam.setdefault(int(i), {})[key] = v
         priority_ids, priorities = tensors["priority.ids"].numpy(), tensors["priority.values"].numpy()
+        argmax = _remembered_argmax(tensors)
     except (KeyError, ValueError, TypeError) as exc:
         raise ValueError(f"{path}: trainer state is incomplete: {exc!r}") from None
-    return TrainerState(updates, target, adam, groups, priority_ids, priorities)
+    return TrainerState(updates, target, adam, groups, priority_ids, priorities, argmax)
+
+
+def _remembered_argmax(tensors: dict[str, torch.Tensor]) -> list[tuple[bytes, int, tuple[int, int, int, int] | None]]:
+    """The saved a' entries; none in a state written before they were saved."""
+    if "argmax.keys" not in tensors and "argmax.values" not in tensors:
+        return []
+    keys, values = tensors["argmax.keys"].numpy(), tensors["argmax.values"].numpy()
+    if keys.ndim != 2 or values.ndim != 2 or values.shape[1] != 5 or len(keys) != len(values):
+        raise ValueError(f"argmax.keys {keys.shape} and argmax.values {values.shape} do not pair up "
+                         "(expected [n, key size] and [n, 5])")
+    return [(row.tobytes(), int(v[0]), None if v[1] < 0 else (int(v[1]), int(v[2]), int(v[3]), int(v[4])))
+            for row, v in zip(keys, values)]
 
 
 def restore_learner(learner, state: TrainerState) -> None:
@@ -128,3 +155,4 @@ def restore_learner(learner, state: TrainerState) -> None:
     groups = learner.optimizer.state_dict()["param_groups"]
     learner.optimizer.load_state_dict({"state": {i: dict(s) for i, s in state.adam_state.items()},
                                        "param_groups": groups})
+    learner.remember_argmax(state.argmax)
