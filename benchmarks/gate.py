@@ -2,9 +2,9 @@
 
 Each trial plays the daemon's schedule with the config's gate settings: every action is the challenger's with
 probability ``gate.share`` (rising to ``gate.max_share`` with the evidence, when set), else the champion's; its outcome is a successful grasp with the policy's rate; the gate
-looks after every action (``flgd.learning.gate``, the functions the daemon runs).  Printed per case: how often a
+looks after every action (``flgd.gate.statistics``, the functions the daemon runs).  Printed per case: how often a
 challenger is promoted, dropped early as worse, and after how many of its actions; how often a champion that falls
-below its predecessor's record is rolled back.  tests/test_learning_gate.py asserts the issue's bounds with the same
+below its predecessor's record is rolled back.  tests/test_gate_statistics.py asserts the issue's bounds with the same
 functions.
 
     flgd bench gate [--config cell_config/sim.yaml] [--trials 1000] [--rate 0.75] [--max-share S]
@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from flgd.learning.gate import GateSettings, Tally, challenger_decision, challenger_share, rollback_decision
+from flgd.gate.statistics import GateSettings, Tally, challenger_decision, challenger_share, rollback_decision
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -55,7 +55,7 @@ def rollback_trial(rng: np.random.Generator, predecessor: Tally, p_live: float, 
 
 def main(argv: list[str]) -> int:
     from flgd.config import load_config
-    from flgd.gatekeeper import gate_settings
+    from flgd.gate.keeper import gate_settings
 
     p = argparse.ArgumentParser(prog="flgd bench gate", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)

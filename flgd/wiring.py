@@ -188,7 +188,7 @@ def attach_gate(config: CellConfig, store: Store, agent: Any, learner: Any, stat
     The daemon and ``flgd eval --learn`` both call this, so that what the evaluation measures is what the
     daemon does.  Raises GateError / PolicyFileError when there is no usable policy, StoreError on storage.
     """
-    from flgd.gatekeeper import Gatekeeper
+    from flgd.gate.keeper import Gatekeeper
 
     gate = Gatekeeper(config, store, agent, state_dir)
     gate.on_champion = learner.set_anchor  # the learner's L2-SP anchor is what acts

@@ -14,8 +14,8 @@ from pathlib import Path
 
 import pytest
 
-import flgd.gatekeeper as gatekeeper
-from flgd.gatekeeper import GateFileUnreadable
+import flgd.gate.keeper as gatekeeper
+from flgd.gate.keeper import GateFileUnreadable
 from tests.fakes.gate import GateCell, gate_config, make_network, same_weights
 
 

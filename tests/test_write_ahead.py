@@ -25,7 +25,7 @@ from flgd.cell import make_cell
 from flgd.config import load_config
 from flgd.cycle import CycleRunner
 from flgd.daemon.metrics import compute_stats, status_summary
-from flgd.gatekeeper import CREDITED_OUTCOMES
+from flgd.gate.keeper import CREDITED_OUTCOMES
 from flgd.learning.agent import Agent
 from flgd.learning.networks import build_network
 from flgd.learning.replay import Transition

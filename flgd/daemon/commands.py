@@ -278,7 +278,7 @@ def swap_in_policy(ctl: Controller, path: str, loaded: Any, who: str) -> dict:
 
 def gate_command(ctl: Controller, cmd: str, who: str) -> dict:
     """Run loop: a manual promote, reject or rollback, recorded with who asked."""
-    from flgd.gatekeeper import GateError
+    from flgd.gate.keeper import GateError
     from flgd.learning.policy_file import PolicyFileError
 
     if ctl.gate is None:

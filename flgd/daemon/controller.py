@@ -5,7 +5,7 @@ only one that touches the cell and the acting networks, so commands that need
 them (reset, backend, a first snapshot, a policy load, the gate's overrides)
 are queued to it and executed between cycles.  The learner trains in its own
 thread and hands its weights over on a schedule: to the champion/challenger
-gate (flgd/gatekeeper.py), which decides between cycles whether they act, or,
+gate (flgd/gate/keeper.py), which decides between cycles whether they act, or,
 with the gate off, straight to the agent's mailbox; a decision never waits for it.
 
 Learner settings: with a policy given the daemon fine-tunes it (the config's
@@ -231,7 +231,7 @@ class Controller:
     def _build_gate(self) -> None:
         """The gatekeeper on the store: the agent acts with the stored champion (or the configured policy on a
         first start), and the learner hands its weights to the gate -- or, with the gate off, to the agent."""
-        from flgd.gatekeeper import GateError
+        from flgd.gate.keeper import GateError
         from flgd.learning.policy_file import PolicyFileError
 
         if self.store is None:

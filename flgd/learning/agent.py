@@ -46,7 +46,7 @@ can never win and keeps ties inside the mask.
 ``exploration.masks = False`` is the DPEN ablation: both masks are all ones.
 The returned ``Decision`` carries the masks that were applied.
 
-Champion and challenger (flgd/gatekeeper.py): ``network`` is the champion; with a
+Champion and challenger (flgd/gate/keeper.py): ``network`` is the champion; with a
 ``challenger`` set, each decision is made by the challenger with probability
 ``challenger_share`` (its own random stream, so the other draws are those of an
 agent without one), and ``Decision.role`` / ``Decision.policy_id`` say which

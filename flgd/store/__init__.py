@@ -40,7 +40,7 @@ Schema (``SCHEMA_VERSION`` 5), file ``<state_dir>/flgd.sqlite``:
   training_steps, since_step, record)`` and ``gate_events(id, time, step, kind, policy,
   other, who, message, evidence)`` -- the champion/challenger gate's policies (files in
   ``<state_dir>/gate``) and every promotion, drop, rollback and manual override
-  (flgd/gatekeeper.py).
+  (flgd/gate/keeper.py).
 
 A version-1 to -4 store is upgraded in place when it is opened: the missing columns
 (``contact_stop_mm``, ``policy``, ``cell_time``, ``gripper_time``, ``decide_hidden``) are added (empty for the old rows) and nothing else changes.

@@ -10,7 +10,7 @@ import torch
 
 from flgd.config import CellConfig
 from flgd.cycle import CycleRecord
-from flgd.gatekeeper import Gatekeeper
+from flgd.gate.keeper import Gatekeeper
 from flgd.learning.agent import Agent
 from flgd.learning.networks import build_network
 from flgd.store import Store

@@ -3,7 +3,7 @@
 Every policy the gate knows is a policy file in ``<state_dir>/gate/`` (written
 atomically) and a row of the store's ``policies`` table; ``GateStorage`` writes,
 reads, moves aside and prunes the files, and reads the rows.  Which policy acts,
-and why, is ``flgd.gatekeeper``'s.
+and why, is ``flgd.gate.keeper``'s.
 
 Only a file's content proves it unusable: a size, format or checksum the loader
 refuses, weights other than the ones recorded for it, or a file missing from a
@@ -48,7 +48,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 from flgd.config import CellConfig
-from flgd.learning.gate import Tally
+from flgd.gate.statistics import Tally
 from flgd.store import Store
 
 __all__ = ["GateStorage", "GateError", "GateFileUnreadable", "GateDirUnwritable", "PolicyRecord", "insert_record", "tally_json",

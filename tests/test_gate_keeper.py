@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import torch
 
-from flgd.gatekeeper import GateError
+from flgd.gate.keeper import GateError
 from flgd.learning.agent import Agent
 from flgd.perception import Heightmaps
 from flgd.store import Store
@@ -299,7 +299,7 @@ def test_a_gate_directory_that_refuses_a_hand_over_is_retried_keeps_the_weights_
     error and the remedy, and the learner's weights kept until the directory takes them."""
     import errno
 
-    from flgd.gate_storage import GateDirUnwritable
+    from flgd.gate.storage import GateDirUnwritable
     from flgd.learning import policy_file
 
     c = GateCell(tmp_path, gate_config())

@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 
 from flgd.config import CellConfig
-from flgd.gatekeeper import gate_settings
-from flgd.learning.gate import Tally, challenger_verdict, p_better
+from flgd.gate.keeper import gate_settings
+from flgd.gate.statistics import Tally, challenger_verdict, p_better
 
 from benchmarks.gate import challenger_trial, rollback_trial
 
@@ -81,7 +81,7 @@ def test_the_verdict_names_its_evidence():
 
 
 def test_the_challengers_share_rises_with_the_evidence_that_it_is_better_and_only_then():
-    from flgd.learning.gate import challenger_share
+    from flgd.gate.statistics import challenger_share
 
     s = dataclasses.replace(SETTINGS, share=0.2, max_share=0.5, drop_min_attempts=40)
     champion = Tally(400, 300, 400)                                              # 0.75

@@ -14,7 +14,7 @@ variance v_c + v_0).  Why Bayesian with fixed thresholds rather than a
 fixed-sample test: the gate looks after every action and must stop as soon as the
 evidence is clear either way, and the posterior probability is meaningful at every
 look; its error rates under repeated looks are not the nominal ones, so they were
-measured by simulation (tests/test_learning_gate.py; the README states them).
+measured by simulation (tests/test_gate_statistics.py; the README states them).
 
 * **promote** when the challenger has at least ``min_attempts`` actions and
   P(better) >= ``promote_confidence``;

@@ -1,6 +1,6 @@
 """The champion/challenger gatekeeper: which policy acts, on what evidence, kept in the state directory.
 
-The statistics are in ``flgd.learning.gate`` (a pure function of counts); this
+The statistics are in ``flgd.gate.statistics`` (a pure function of counts); this
 module holds the state around them and keeps it across restarts:
 
 * every policy the gate knows is a policy file in ``<state_dir>/gate/`` (written
@@ -20,7 +20,7 @@ module holds the state around them and keeps it across restarts:
 A restart acts with the stored champion, never with a learner checkpoint.
 
 How the files are kept, and what a file that cannot be read or used does to a
-start (it is set aside, or the start is refused): ``flgd.gate_storage``.
+start (it is set aside, or the start is refused): ``flgd.gate.storage``.
 
 Only the daemon's run loop calls the methods that change state (they swap the
 agent's networks); ``status`` and ``history`` may be called from any thread.
@@ -37,11 +37,11 @@ from pathlib import Path
 from typing import Any, Callable
 
 from flgd.config import CellConfig
-from flgd.gate_storage import (GATE_DIR, KEEP_UNUSABLE, READ_RETRY_DELAYS, UNUSABLE_DIR, GateDirUnwritable,
+from flgd.gate.storage import (GATE_DIR, KEEP_UNUSABLE, READ_RETRY_DELAYS, UNUSABLE_DIR, GateDirUnwritable,
                                GateError, GateFileUnreadable, GateStorage, PolicyRecord, insert_record, tally_json,
                                write_event)
 from flgd.learning.agent import WeightsMailbox
-from flgd.learning.gate import GateSettings, Tally, Verdict, challenger_share, challenger_verdict, rollback_verdict
+from flgd.gate.statistics import GateSettings, Tally, Verdict, challenger_share, challenger_verdict, rollback_verdict
 from flgd.store import Store
 
 __all__ = ["Gatekeeper", "GateError", "GateFileUnreadable", "PolicyRecord", "gate_settings", "CREDITED_OUTCOMES",
