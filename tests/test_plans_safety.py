@@ -64,6 +64,35 @@ def test_a_grasp_whose_approach_height_reaches_the_lift_height_lifts_slowly_all_
     assert plan.steps[4].speed == cfg.robot.approach_speed
 
 
+def _centring(metres: float):
+    return dataclasses.replace(CFG, robot=dataclasses.replace(CFG.robot, grasp_centring=metres))
+
+
+def test_a_grasp_near_the_end_of_a_bar_moves_along_the_pads_to_its_middle_by_at_most_the_limit() -> None:
+    h = np.zeros((224, 224), np.float32)
+    h[100:140, 110:125] = 0.03    # an 8 cm bar along the rows: the pads' axis of a grasp closing along x (angle 0)
+    h[140:160, 110:125] = 0.012   # a lower neighbour touching its end: not the surface the fingers grip
+    near_end = Action("grasp", 105, 117, 0)
+    res = CFG.workspace.resolution
+
+    def target(cfg, action=near_end):
+        return plan_action(action, h, cfg).target
+
+    chosen = pixel_to_base(105, 117, 0.03, CFG.workspace)
+    assert target(CFG)[:2] == pytest.approx(chosen[:2])                           # off by default
+    assert target(_centring(0.05))[:2] == pytest.approx((chosen[0], pixel_to_base(119.5, 117, 0, CFG.workspace)[1]))
+    assert target(_centring(0.02))[:2] == pytest.approx((chosen[0], chosen[1] + 0.02))   # at most the limit
+    assert target(_centring(0.02))[2] == pytest.approx(plan_action(near_end, h, CFG).target[2])
+    # closing along y (angle pi/2): the pads lie along x, across the bar's 3 cm: centred on its width
+    across = Action("grasp", 120, 112, 4)
+    assert target(_centring(0.05), across)[:2] == pytest.approx(
+        (pixel_to_base(120, 117, 0, CFG.workspace)[0], pixel_to_base(120, 112, 0, CFG.workspace)[1]), abs=res / 2)
+    # a grasp on the table has no surface to centre on
+    assert target(_centring(0.05), Action("grasp", 20, 20, 0))[:2] == pytest.approx(
+        pixel_to_base(20, 20, 0, CFG.workspace)[:2])
+    check_plan(plan_action(near_end, h, _centring(0.05)), CFG)
+
+
 def test_grasp_plan_shape() -> None:
     plan = plan_grasp(-0.5, 0.05, 0.05, math.radians(30), CFG)
     labels = [s.label for s in plan.steps]

@@ -132,6 +132,10 @@ class RobotConfig:
     raise_speed: float = param(0.0, unit="m/s", ge=0.0,
                                help="a grasp's lift above robot.approach_height over the grasp, where the object has "
                                     "left its neighbours (0 = the whole lift at approach_speed)")
+    grasp_centring: float = param(
+        0.0, unit="m", ge=0.0, le=0.05,
+        help="a grasp moves along the finger pads towards the middle of the top surface it was chosen on, by at most "
+             "this much, so that the object sits between the pads' centres (0 = grasp where the policy chose)")
     descent_contact_force: float = param(
         20.0, unit="N", ge=0.0,
         help="a grasp descent stops where the fingers meet this much resistance and closes there (0 = no guard)")
@@ -299,7 +303,7 @@ class FinetuneConfig:
 
 @dataclass(frozen=True)
 class GateConfig:
-    """The champion/challenger gate (flgd/learning/gate.py): learned weights act only once shown better."""
+    """The champion/challenger gate (flgd/gate/statistics.py): learned weights act only once shown better."""
 
     enabled: bool = param(True, help="false = the learner's weights act as soon as they are handed over, "
                                      "unvetted (unsafe: a fine-tune that makes the policy worse keeps acting)")
