@@ -33,7 +33,7 @@ def resume_seed(seed: int, at: int, stream: int | None = None) -> int:
     the start (``at`` 0) the configured seed itself, so a first start is reproducible from its config alone;
     after it a draw from (seed, at[, stream]), so that a continued run meets new simulated scenes and makes
     new exploration draws instead of replaying those it began with.  (The daemon's draws are 31-bit and the
-    segments' 32-bit, each as it was before both used this rule: a resumed run draws what it drew.)"""
+    segments' 32-bit, so that a state directory written by either continues with the seeds it would have drawn.)"""
     import numpy as np
 
     if at <= 0:

@@ -16,9 +16,9 @@ network from scratch with ``learning`` as written.  Control connections have the
 only read state, validate input and queue work; what each operator command does is in its handler
 (flgd/daemon/commands.py), which ``handle`` looks up.
 
-Size: about 630 lines, kept in one module on purpose: start-up, the run loop, faults, reset and shutdown share
-the state machine, the learning lock and the stop latch, and each needs the others' order of events (a stop
-during a reset, a fault during a checkpoint); the learning itself is flgd/learning_stack.py's.
+Start-up, the run loop, faults, reset and shutdown share the state machine, the learning lock and the stop latch,
+and each depends on the others' order of events (a stop during a reset, a fault during a checkpoint); the
+learning parts are built by flgd/learning_stack.py.
 """
 
 from __future__ import annotations
