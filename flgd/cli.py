@@ -17,7 +17,7 @@ _COMMANDS: dict[str, tuple[str, str]] = {
     "calibrate": ("flgd.hardware.calibration:main", "camera-to-base calibration on the real cell"),
     "run": ("flgd.daemon.run:main", "run the cell-controller daemon (foreground; systemd: Type=notify)"),
     "eval": ("flgd.evaluation.cli:main", "evaluate a policy in simulation (VPG's metrics, scene sets, Q-maps)"),
-    "train": ("flgd.training.run:main", "train a policy headless in sim_cell (resumable run directory)"),
+    "train": ("flgd.training.command:main", "train a policy headless in sim_cell (resumable run directory)"),
     "pretrain": ("flgd.training.pretrain:main", "pre-train the network's perception trunk on sim ground truth"),
     "prior-sample": ("flgd.learning.prior_sample:main", "write a prior sample (finetune.prior_sample) from a store"),
     "emulate": ("sim_cell.emulator.main:main", "play the real cell's UR5e, RG2 and D415 on the simulated cell"),

@@ -18,7 +18,7 @@ from flgd.config import load_config
 from flgd.learning.policy_file import load_policy
 from flgd.store import Store
 from flgd.training.actionlog import read_rows
-from flgd.training.run import main as train_main
+from flgd.training.command import main as train_main
 
 REPO = Path(__file__).resolve().parents[1]
 CONFIG = str(REPO / "cell_config" / "sim.yaml")
@@ -276,10 +276,11 @@ def _run_with_flaky_cell(tmp_path, errors, faults, steps):
     import io
 
     from flgd.config import load_config
-    from flgd.training.run import RunSettings, TrainingRun, _Progress
+    from flgd.training.progress import LineProgress
+    from flgd.training.run import RunSettings, TrainingRun
 
     out = tmp_path / "run"
-    run = TrainingRun(out, RunSettings(steps=steps, seed=1), load_config(CONFIG), _Progress(io.StringIO(), False),
+    run = TrainingRun(out, RunSettings(steps=steps, seed=1), load_config(CONFIG), LineProgress(io.StringIO(), False),
                       threads=1)
     try:
         run.setup()
@@ -404,11 +405,12 @@ def test_a_give_up_whose_new_scene_fails_is_recovered_like_a_fault(tmp_path):
     import dataclasses
     import io
 
-    from flgd.training.run import RunSettings, TrainingRun, _Progress
+    from flgd.training.progress import LineProgress
+    from flgd.training.run import RunSettings, TrainingRun
 
     config = dataclasses.replace(load_config(CONFIG), policy="")   # a fresh network: grasps fail
     run = TrainingRun(tmp_path / "run", RunSettings(steps=4, seed=1, give_up_after=1), config,
-                      _Progress(io.StringIO(), False), threads=1)
+                      LineProgress(io.StringIO(), False), threads=1)
     try:
         run.setup()
         run.cell = ResetFailsOnce(run.cell)

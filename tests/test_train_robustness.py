@@ -16,8 +16,9 @@ from flgd.config import load_config
 from flgd.store import Store
 from flgd.training.actionlog import read_rows
 from flgd.training.pretrain import main as pretrain_main
-from flgd.training.run import CONFIG_FILE, RunSettings, TrainingRun, _Progress
-from flgd.training.run import main as train_main
+from flgd.training.progress import LineProgress
+from flgd.training.run import CONFIG_FILE, RunSettings, TrainingRun
+from flgd.training.command import main as train_main
 
 REPO = Path(__file__).resolve().parents[1]
 CONFIG = str(REPO / "cell_config" / "sim.yaml")
@@ -66,7 +67,7 @@ def test_a_damaged_run_json_is_refused_with_the_file_named_and_the_run_untouched
 def test_config_yaml_is_replaced_atomically_and_left_alone_when_unchanged(tmp_path, monkeypatch):
     out = tmp_path / "run"
     out.mkdir()
-    run = TrainingRun(out, RunSettings(seed=1), load_config(CONFIG), _Progress(io.StringIO(), False), threads=1)
+    run = TrainingRun(out, RunSettings(seed=1), load_config(CONFIG), LineProgress(io.StringIO(), False), threads=1)
     path = out / CONFIG_FILE
     path.write_text("learning: {truncated")  # what a kill during the old plain write_text could leave
     run._write_config()
@@ -78,7 +79,7 @@ def test_config_yaml_is_replaced_atomically_and_left_alone_when_unchanged(tmp_pa
     # a failure during the write leaves the old file whole and no temporary behind
     import flgd.atomic_file as atomic_file
 
-    run2 = TrainingRun(out, RunSettings(seed=2), load_config(CONFIG), _Progress(io.StringIO(), False), threads=1)
+    run2 = TrainingRun(out, RunSettings(seed=2), load_config(CONFIG), LineProgress(io.StringIO(), False), threads=1)
     old = path.read_bytes()
 
     def power_cut(*_a):
@@ -132,7 +133,7 @@ class NothingGraspableCell(Cell):
 
 
 def _train_in(out: Path, steps: int, fail_reset: int | None = None) -> tuple[TrainingRun, NothingGraspableCell]:
-    run = TrainingRun(out, RunSettings(steps=steps, seed=4), load_config(CONFIG), _Progress(io.StringIO(), False),
+    run = TrainingRun(out, RunSettings(steps=steps, seed=4), load_config(CONFIG), LineProgress(io.StringIO(), False),
                       threads=1)
     try:
         run.setup()

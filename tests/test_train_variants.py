@@ -113,7 +113,7 @@ def test_the_variant_picks_head_and_masks_and_learning_network_the_trunk(tmp_pat
 @pytest.mark.slow
 def test_a_densenet121_config_trains_a_few_steps_and_writes_a_loadable_policy(tmp_path):
     """The paper's network is trainable, not only built: a tiny run on CPU (56 x 56 heightmaps, 2 rotations)."""
-    from flgd.training.run import main as train_main
+    from flgd.training.command import main as train_main
 
     cfg = yaml.safe_load((REPO / "cell_config" / "sim.yaml").read_text())
     cfg["policy"] = ""

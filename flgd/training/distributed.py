@@ -32,7 +32,7 @@ from typing import Any
 
 import numpy as np
 
-from flgd.training.run import CURVE_FILE, EXIT_INTERRUPTED, EXIT_OK, LOG_FILE, TrainingRun
+from flgd.training.run import CURVE_FILE, EXIT_INTERRUPTED, EXIT_OK, LOG_FILE, TrainingRun, next_scene_id
 
 __all__ = ["DistributedTrainingRun", "MAX_REPLACEMENTS"]
 
@@ -93,10 +93,9 @@ class DistributedTrainingRun(TrainingRun):
         """Instead of a cell here: N workers."""
         from flgd.training.cell_worker import CellWorker
         from flgd.training.ray_engine import remote_class
-        from flgd.training.run import _next_scene_id
 
         self._next_step = step
-        self._next_scene = _next_scene_id(self.actions.rows)
+        self._next_scene = next_scene_id(self.actions.rows)
         self.store.remember_states = self.workers   # each worker's last next state, their cycles interleaved
         if self.engine.cpus < self.workers:
             self.progress.message(f"flgd train: the Ray cluster has {self.engine.cpus:g} CPUs for {self.workers} "

@@ -42,7 +42,6 @@ import json
 import logging
 import math
 import os
-import signal
 import sys
 import time
 from collections import deque
@@ -50,17 +49,17 @@ from pathlib import Path
 from typing import Any
 
 from flgd.atomic_file import write_atomically
-from flgd.config import CellConfig, ConfigError, dump_config, load_sim_config
+from flgd.config import CellConfig, dump_config
 from flgd.learning_stack import CheckpointMeta, LearningStack
 from flgd.store import CheckpointDir
-from flgd.training.progress import BarProgress, LineProgress, make_progress
+from flgd.training.progress import BarProgress, LineProgress
 from flgd.training.settings import (RUN_FILE, TRAIN_VARIANTS, TRUNK_NETWORKS, RunFileError, RunSettings,
-                                    command_line, effective_config, read_run_info, settings_from_command_line,
-                                    variant_network)
+                                    effective_config, read_run_info, variant_network)
 from flgd.wiring import resume_seed
 
-__all__ = ["TRAIN_VARIANTS", "TRUNK_NETWORKS", "variant_network", "RunSettings", "RunFileError", "TrainingRun", "effective_config", "read_run_info",
-           "main", "EXIT_INTERRUPTED"]
+__all__ = ["TRAIN_VARIANTS", "TRUNK_NETWORKS", "variant_network", "RunSettings", "RunFileError", "TrainingRun",
+           "effective_config", "read_run_info", "next_scene_id", "EXIT_OK", "EXIT_ERROR", "EXIT_USAGE",
+           "EXIT_INTERRUPTED"]
 
 log = logging.getLogger("flgd.train")
 
@@ -78,7 +77,6 @@ def rolling(outcomes: deque, window: int) -> float | None:
     return sum(recent) / window
 
 
-_Progress = LineProgress  # the name the tests and benches have used
 
 
 class TrainingRun:
@@ -192,7 +190,7 @@ class TrainingRun:
         from flgd.training.cell_loop import TrainingCell
 
         self.cell_loop = TrainingCell(self.config, self.settings, self.agent, step=step,
-                                      scene=_next_scene_id(self.actions.rows),
+                                      scene=next_scene_id(self.actions.rows),
                                       curriculum_seed=resume_seed(self.settings.seed, self.segment, 5),
                                       note=self._note, store=self.store, replay=self.replay, learner=self.learner)
         self.cell, self.runner = self.cell_loop.cell, self.cell_loop.runner
@@ -264,6 +262,13 @@ class TrainingRun:
         self.learning.write_checkpoint(network, updates, meta)
         self.learning.write_trainer_state()
         self.write_curve()
+
+    def record_failure(self) -> None:
+        """After an error: the last checkpoint and run.json saying "failed", where the run got far enough to
+        have them."""
+        if self.learner is not None and self.actions is not None:
+            self.final_checkpoint()
+            self._write_run_info("failed")
 
     def final_checkpoint(self) -> None:
         if self.learning.owes_checkpoint():
@@ -364,7 +369,7 @@ def _move_old_worker_record(info: dict[str, Any]) -> None:
             return
 
 
-def _next_scene_id(rows: list[dict[str, str]]) -> int:
+def next_scene_id(rows: list[dict[str, str]]) -> int:
     """The scene id a (re)started segment begins with: one past the last logged, since a new cell starts a
     new scene (ids stay unique across segments)."""
     ids = []
@@ -399,97 +404,3 @@ def _duration(seconds: float) -> str:
     seconds = int(seconds)
     h, rem = divmod(seconds, 3600)
     return f"{h}h{rem // 60:02d}m" if h else f"{rem // 60}m{rem % 60:02d}s"
-
-
-# ---------------------------------------------------------------------- command line
-
-def main(argv: list[str]) -> int:
-    args = command_line().parse_args(argv)
-    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
-    out = Path(args.out).resolve()
-    try:
-        previous_info = read_run_info(out)
-    except RunFileError as exc:
-        print(f"flgd train: {exc}", file=sys.stderr)
-        return EXIT_USAGE
-    try:
-        settings = settings_from_command_line(args, previous_info.get("settings") if previous_info else None)
-        for name in ("objects", "steps", "seed", "give_up_after"):
-            v = getattr(settings, name)
-            if v < 0 or (name == "objects" and not 1 <= v <= 60):
-                raise ValueError(f"--{name.replace('_', '-')}: got {v!r}, expected "
-                                 + ("1..60" if name == "objects" else ">= 0"))
-        if args.threads is not None and args.threads < 0:
-            raise ValueError(f"--threads: got {args.threads!r}, expected >= 0")
-        if args.workers < 0:
-            raise ValueError(f"--workers: got {args.workers!r}, expected >= 0 (0 = one process, no Ray)")
-        if args.address and not args.workers:
-            raise ValueError("--address: joins a Ray cluster for --workers N; give --workers too")
-    except ValueError as exc:
-        print(f"flgd train: {exc}", file=sys.stderr)
-        return EXIT_USAGE
-    config_path = args.config or (str(out / CONFIG_FILE) if previous_info else None)
-    if config_path is None:
-        print("flgd train: --config is required for a new run", file=sys.stderr)
-        return EXIT_USAGE
-    try:
-        base = load_sim_config(config_path, "training runs in sim_cell; fine-tune on a real cell with `flgd run`")
-    except ConfigError as exc:
-        print(f"flgd train: {exc}", file=sys.stderr)
-        return EXIT_USAGE
-    try:
-        network = variant_network(settings.variant, base.learning.network)
-        if settings.init_policy and not previous_info:
-            from flgd.learning.policy_file import PolicyFileError, load_policy
-            try:
-                load_policy(settings.init_policy, expected_variant=network)
-            except PolicyFileError as exc:
-                raise ValueError(f"--init-policy: {exc}") from None
-    except ValueError as exc:
-        print(f"flgd train: {config_path}: {exc}", file=sys.stderr)
-        return EXIT_USAGE
-    if base.learning.init_trunk and not previous_info and not settings.init_policy:
-        from flgd.learning.trunk import TrunkFileError
-        from flgd.wiring import fresh_network
-        try:  # a new run would start from it: refuse a trunk that does not fit before anything starts
-            fresh_network(effective_config(base, settings, out), None)
-        except TrunkFileError as exc:
-            print(f"flgd train: {config_path}: learning.init_trunk: {exc}", file=sys.stderr)
-            return EXIT_USAGE
-
-    progress = make_progress(sys.stderr, every_steps=max(1, args.log_every))
-    if args.workers:
-        from flgd.training.distributed import DistributedTrainingRun
-
-        run: TrainingRun = DistributedTrainingRun(out, settings, base, progress, threads=args.threads,
-                                                  workers=args.workers, address=args.address)
-    else:
-        run = TrainingRun(out, settings, base, progress, threads=args.threads)
-
-    def on_signal(signum, _frame) -> None:
-        run.stop_signals.append(signum)
-        if len(run.stop_signals) > 1:
-            sys.stderr.write("\nflgd train: second interrupt, exiting now (the store and checkpoints are "
-                             "consistent; the updates since the last checkpoint are lost)\n")
-            sys.stderr.flush()
-            os._exit(EXIT_INTERRUPTED)
-        progress.message("flgd train: stopping after the current step (Ctrl-C again to exit at once)")
-
-    previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
-    try:
-        run.setup()
-        return run.train()
-    except Exception as exc:
-        progress.finish()
-        print(f"flgd train: {type(exc).__name__}: {exc}", file=sys.stderr)
-        if run.learner is not None and run.actions is not None:
-            try:
-                run.final_checkpoint()
-                run._write_run_info("failed")
-            except Exception as exc2:
-                print(f"flgd train: final checkpoint failed: {exc2}", file=sys.stderr)
-        return EXIT_ERROR
-    finally:
-        run.close()
-        for sig, handler in previous.items():  # called in-process (tests, scripts): leave no handler behind
-            signal.signal(sig, handler)
