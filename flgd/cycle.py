@@ -179,6 +179,11 @@ class CycleRunner:
     def stop_requested(self) -> bool:
         return self._stop.is_set()
 
+    def use_cell(self, cell: Cell, backend: str) -> None:
+        """Act on ``cell`` (registered as ``backend``) from the next cycle on, starting from a fresh capture."""
+        self.cell, self.backend = cell, backend
+        self.forget_state()
+
     def forget_state(self) -> None:
         """The next cycle starts from a fresh capture (after a reset, a swap of cell or agent)."""
         self.current = None

@@ -91,13 +91,13 @@ def test_a_disk_problem_faults_before_any_motion_and_reset_is_refused_until_it_i
             assert "read-only filesystem" in cause
 
         with pytest.raises(ProtocolError, match="reset refused, still FAULT") as refused:
-            c._reset()
+            c.reset()
         assert str(c.state_dir) in refused.value.message
         assert c.state.state is State.FAULT and len(moves) == before
         assert c.handle(Request("status"))["state"] == "FAULT"
 
         disk.free, disk.read_only = None, False  # space is back / the filesystem is writable again
-        assert c._reset() == {"state": "IDLE"}
+        assert c.reset() == {"state": "IDLE"}
         c.handle(Request("start"))
         c._one_cycle()
         assert c.state.state is State.RUNNING and len(moves) > before

@@ -257,7 +257,7 @@ def test_reset_homes_the_arm_once(ctl, daemons):
     ctl.tcp[:3] = (0.50, 0.10, 0.20)
     c.state.transition(State.FAULT, "cell fault (test)")
     n = len(ctl.log)
-    assert c._reset() == {"state": "IDLE"}
+    assert c.reset() == {"state": "IDLE"}
     assert len(ctl.calls("moveL", n)) == 1, "the cell's recovery homes; the reset does not home again"
     np.testing.assert_allclose(ctl.tcp[:3], c.config.robot.home.position, atol=1e-9)
 
@@ -327,9 +327,9 @@ def test_a_stale_checkpoint_failure_is_cleared_by_a_successful_reset(ctl, daemon
 
     c.checkpoints.write = full_disk
     with pytest.raises(StoreError):
-        c._write_checkpoint(c.learner.snapshot(), 7)  # the learner's checkpoint, failing while in FAULT
+        c.write_checkpoint(c.learner.snapshot(), 7)  # the learner's checkpoint, failing while in FAULT
     del c.checkpoints.write  # the disk has room again
-    assert c._reset() == {"state": "IDLE"}
+    assert c.reset() == {"state": "IDLE"}
     cause = c.state.cause
     c.run_loop(stop_requested=_loop_turns(3))
     after = [h.new for h in c.state.history()]
@@ -349,7 +349,7 @@ def test_a_loaded_policy_is_checkpointed_at_once_and_a_restart_resumes_it(daemon
     lr.optimizer.step()
     lr.optimizer.zero_grad(set_to_none=True)
     assert lr.optimizer.state
-    c._write_checkpoint(lr.snapshot(), lr.updates)
+    c.write_checkpoint(lr.snapshot(), lr.updates)
     old = {k: v.clone() for k, v in lr.online.state_dict().items()}
 
     net = build_network(c.config.learning.network, rotations=c.config.learning.rotations, seed=1234)

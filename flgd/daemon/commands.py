@@ -4,8 +4,8 @@
 accepted by the protocol and missing here, or the other way round.  ``Controller.handle`` looks a request up
 in it; what the handlers change they change through the controller, which keeps the run loop, faults,
 recovery and shutdown.  Handlers run in the control connection's thread: whatever touches the cell or the
-acting networks is queued to the run loop (``Controller._in_loop``) and executed between cycles, so these
-functions use the controller's loop-side helpers (``_in_loop``, ``_event``, ``_fault``) as its own methods did.
+acting networks is queued to the run loop (``DaemonControl.run_on_loop``) and executed between cycles.  The
+handlers see the controller only through ``flgd.daemon.control.DaemonControl``, its public face.
 """
 
 from __future__ import annotations
@@ -28,7 +28,7 @@ from flgd.learning_stack import LEARNER_QUIET_TIMEOUT  # a name here, so that a 
 from flgd.store import StoreError
 
 if TYPE_CHECKING:
-    from flgd.daemon.controller import Controller
+    from flgd.daemon.control import DaemonControl
 
 __all__ = ["Command", "HANDLERS", "status", "status_text", "summary", "policy_load"]
 
@@ -39,7 +39,7 @@ log = logging.getLogger("flgd")
 class Command:
     """One operator command: what serves it, and whether it is served in every state (STOPPING included)."""
 
-    run: Callable[["Controller", Request], dict]
+    run: Callable[["DaemonControl", Request], dict]
     any_state: bool = False
 
 
@@ -48,7 +48,7 @@ def _fmt_pct(v: float | None) -> str:
     return "-" if v is None else f"{100 * v:.0f}%"
 
 
-def summary(ctl: Controller) -> dict[str, Any]:
+def summary(ctl: DaemonControl) -> dict[str, Any]:
     """Cycles, the rolling grasp success and picks per hour from the store (None where it cannot be read)."""
     if ctl.store is None:
         return {"cycles": 0, "grasp_success_last_50": None, "picks_per_hour": None}
@@ -58,7 +58,7 @@ def summary(ctl: Controller) -> dict[str, Any]:
         return {"cycles": None, "grasp_success_last_50": None, "picks_per_hour": None}
 
 
-def status_text(ctl: Controller) -> str:
+def status_text(ctl: DaemonControl) -> str:
     """The one-line status of systemd's STATUS= and the log."""
     s = summary(ctl)
     pph = "-" if s["picks_per_hour"] is None else f"{s['picks_per_hour']:.0f}"
@@ -75,7 +75,7 @@ def status_text(ctl: Controller) -> str:
     return text
 
 
-def status(ctl: Controller) -> dict[str, Any]:
+def status(ctl: DaemonControl) -> dict[str, Any]:
     """``flgctl status``: state, policy, learner, gate, store, last cycle, calibration and failure memory."""
     rec = ctl.last_record
     last = None
@@ -94,7 +94,7 @@ def status(ctl: Controller) -> dict[str, Any]:
         "cause": ctl.state.cause,
         "since": ctl.state.since,
         "pid": os.getpid(),
-        "uptime": time.time() - ctl._started,
+        "uptime": time.time() - ctl.started_at,
         "backend": ctl.backend,
         "config": ctl.config.source,
         "state_dir": str(ctl.state_dir),
@@ -117,7 +117,7 @@ def status(ctl: Controller) -> dict[str, Any]:
     }
 
 
-def _acting_policy(ctl: Controller) -> str:
+def _acting_policy(ctl: DaemonControl) -> str:
     """The gate's champion; with no store (and so no gate), what will act after a reset."""
     if ctl.gate is not None and ctl.gate.champion is not None:
         return f"champion #{ctl.gate.champion.id}: {ctl.gate.champion.origin}"
@@ -129,7 +129,7 @@ def _acting_policy(ctl: Controller) -> str:
 
 
 # ================================================================== state changes
-def change_state(ctl: Controller, new: State, cause: str, allowed: set[State], cmd: str) -> dict:
+def change_state(ctl: DaemonControl, new: State, cause: str, allowed: set[State], cmd: str) -> dict:
     """The operator's state change, refused with the states it is allowed in."""
     try:
         ctl.state.transition(new, cause, allowed_from=frozenset(allowed))
@@ -138,34 +138,34 @@ def change_state(ctl: Controller, new: State, cause: str, allowed: set[State], c
         hint = " (reset first)" if ctl.state.state is State.FAULT else ""
         raise ProtocolError("wrong_state", f"{cmd}: not allowed while {ctl.state.state.value}; "
                                            f"allowed in {names}{hint}") from None
-    ctl._wake.set()
+    ctl.wake()
     return {"state": new.value}
 
 
-def _start(ctl: Controller, req: Request) -> dict:
-    if not ctl._clear_stop_latch():
+def _start(ctl: DaemonControl, req: Request) -> dict:
+    if not ctl.clear_stop_latch():
         raise ProtocolError("wrong_state", f"start: the daemon is stopping ({ctl.state.cause})")
     return change_state(ctl, State.RUNNING, "start by operator", {State.IDLE, State.PAUSED}, req.cmd)
 
 
-def _pause(ctl: Controller, req: Request) -> dict:
+def _pause(ctl: DaemonControl, req: Request) -> dict:
     return change_state(ctl, State.PAUSED, "pause by operator", {State.RUNNING}, req.cmd)
 
 
-def _stop(ctl: Controller, req: Request) -> dict:
+def _stop(ctl: DaemonControl, req: Request) -> dict:
     ctl.request_stop("stop by operator")
     return {"stopping": True}
 
 
-def _reset(ctl: Controller, req: Request) -> dict:
+def _reset(ctl: DaemonControl, req: Request) -> dict:
     st = ctl.state.state
     if st not in (State.IDLE, State.PAUSED, State.FAULT):
         raise ProtocolError("wrong_state", f"reset: not allowed while {st.value}; pause first")
-    return ctl._in_loop(ctl._reset)
+    return ctl.run_on_loop(ctl.reset)
 
 
 # ================================================================== what the store says
-def _stats(ctl: Controller, req: Request) -> dict:
+def _stats(ctl: DaemonControl, req: Request) -> dict:
     if ctl.store is None:
         raise ProtocolError("failed", f"no statistics: {ctl.store_problem}")
     try:
@@ -174,7 +174,7 @@ def _stats(ctl: Controller, req: Request) -> dict:
         raise ProtocolError("failed", str(exc)) from None
 
 
-def _policy_history(ctl: Controller, req: Request) -> dict:
+def _policy_history(ctl: DaemonControl, req: Request) -> dict:
     limit = req.args.get("limit", 50)
     if isinstance(limit, bool) or not 1 <= limit <= 10000:
         raise ProtocolError("bad_request", f"policy_history: limit must be 1..10000, got {limit!r}")
@@ -187,18 +187,18 @@ def _policy_history(ctl: Controller, req: Request) -> dict:
 
 
 # ================================================================== policies, backend, snapshot
-def policy_load(ctl: Controller, path: str, who: str = "") -> dict:
+def policy_load(ctl: DaemonControl, path: str, who: str = "") -> dict:
     """Validate the file here, then make it the champion between cycles (see ``swap_in_policy``); a refusal is
     logged and recorded as an event with its reason."""
     try:
         return _load_policy(ctl, path, who)
     except ProtocolError as exc:
         log.warning("policy load of %s by %s refused: %s", path, who or "operator", exc.message)
-        ctl._event("policy", f"load of {path} by {who or 'operator'} refused: {exc.message}")
+        ctl.record_event("policy", f"load of {path} by {who or 'operator'} refused: {exc.message}")
         raise
 
 
-def _load_policy(ctl: Controller, path: str, who: str) -> dict:
+def _load_policy(ctl: DaemonControl, path: str, who: str) -> dict:
     from flgd.learning.policy_file import PolicyFileError, load_policy
     from flgd.policy_header import check_policy_header
 
@@ -210,10 +210,10 @@ def _load_policy(ctl: Controller, path: str, who: str) -> dict:
         loaded = load_policy(path, expected_variant=ctl.config.learning.network, expected_architecture=running)
     except PolicyFileError as exc:
         raise ProtocolError("failed", f"policy not loaded, the running policy stays: {exc}") from None
-    return ctl._in_loop(lambda: swap_in_policy(ctl, path, loaded, who or "operator"))
+    return ctl.run_on_loop(lambda: swap_in_policy(ctl, path, loaded, who or "operator"))
 
 
-def swap_in_policy(ctl: Controller, path: str, loaded: Any, who: str) -> dict:
+def swap_in_policy(ctl: DaemonControl, path: str, loaded: Any, who: str) -> dict:
     """Run loop: the loaded policy becomes the champion and the learner's weights, checkpointed at once.
 
     Why a checkpoint: a restart resumes learning from the newest checkpoint, which would otherwise
@@ -227,7 +227,7 @@ def swap_in_policy(ctl: Controller, path: str, loaded: Any, who: str) -> dict:
     lr = ctl.learner
     step = ctl.runner.step if ctl.runner else 0
     checkpoint_error = ""
-    with ctl._learning_lock:
+    with ctl.learning_lock:
         try:
             with lr.paused(LEARNER_QUIET_TIMEOUT):
                 before = {k: v.detach().clone() for k, v in lr.online.state_dict().items()}
@@ -258,13 +258,13 @@ def swap_in_policy(ctl: Controller, path: str, loaded: Any, who: str) -> dict:
                 try:
                     if ctl.store is not None:
                         ctl.store.set_counter("exploration_offset", offset)
-                    ctl._write_checkpoint(lr.snapshot(), lr.updates)
+                    ctl.write_checkpoint(lr.snapshot(), lr.updates)
                 except (StoreError, OSError, PolicyFileError) as exc:  # storage errors also mean FAULT
                     checkpoint_error = str(exc)
         except LearnerBusy as exc:
             raise ProtocolError("busy", f"policy not loaded, the running policy stays: {exc} (the learner "
                                         f"keeps running; try again)") from None
-    ctl._event("policy", f"loaded {path} by {who}")
+    ctl.record_event("policy", f"loaded {path} by {who}")
     if checkpoint_error:
         raise ProtocolError("failed", f"policy {path} is loaded and acting, but its checkpoint could not be "
                                       f"written ({checkpoint_error}), so a restart would resume learning from "
@@ -276,7 +276,7 @@ def swap_in_policy(ctl: Controller, path: str, loaded: Any, who: str) -> dict:
                          if isinstance(v, (str, int, float, bool, type(None)))}}
 
 
-def gate_command(ctl: Controller, cmd: str, who: str) -> dict:
+def gate_command(ctl: DaemonControl, cmd: str, who: str) -> dict:
     """Run loop: a manual promote, reject or rollback, recorded with who asked."""
     from flgd.gate.keeper import GateError
     from flgd.learning.policy_file import PolicyFileError
@@ -295,11 +295,11 @@ def gate_command(ctl: Controller, cmd: str, who: str) -> dict:
         raise ProtocolError("failed", f"{cmd.replace('_', ' ')}: {exc}") from None
     except (StoreError, OSError, PolicyFileError) as exc:
         raise ProtocolError("failed", f"{cmd.replace('_', ' ')}: the gate could not record it: {exc}") from None
-    ctl._event("policy", f"{cmd.replace('_', ' ')} by {who}: {out}")
+    ctl.record_event("policy", f"{cmd.replace('_', ' ')} by {who}: {out}")
     return out
 
 
-def policy_save(ctl: Controller, path: str | None) -> dict:
+def policy_save(ctl: DaemonControl, path: str | None) -> dict:
     from flgd.learning.policy_file import PolicyFileError, save_policy
 
     # The daemon writes only inside its state directory: a client of another uid must not be able
@@ -316,7 +316,7 @@ def policy_save(ctl: Controller, path: str | None) -> dict:
                                                "omit the path (flgctl policy save FILE copies the file out)")
     stats = summary(ctl)
     # the acting policy (the champion), copied between decisions; the learner's own weights are in checkpoints
-    acting = ctl._in_loop(lambda: {"network": copy.deepcopy(ctl.agent.network)})["network"]
+    acting = ctl.run_on_loop(lambda: {"network": copy.deepcopy(ctl.agent.network)})["network"]
     champion = ctl.gate.champion if ctl.gate is not None else None
     meta = {"training_steps": max(0, int(ctl.runner.step if ctl.runner else 0) + ctl.agent.exploration_offset),
             "cell": ctl.config.name or ctl.backend,
@@ -328,30 +328,21 @@ def policy_save(ctl: Controller, path: str | None) -> dict:
         save_policy(path, acting, meta)
     except (PolicyFileError, OSError) as exc:
         raise ProtocolError("failed", f"policy not saved to {path}: {exc}") from None
-    ctl._event("policy", f"saved {path}")
+    ctl.record_event("policy", f"saved {path}")
     return {"saved": path, "learner_updates": int(ctl.learner.updates),
             "champion": None if champion is None else champion.id}
 
 
-def swap_backend(ctl: Controller, name: str) -> dict:
+def swap_backend(ctl: DaemonControl, name: str) -> dict:
     """Run loop: connect the new cell first; keep the old one if that fails."""
     assert ctl.runner is not None
     try:
-        new = make_cell(ctl._cell_config(ctl.runner.step), backend=name)
+        new = make_cell(ctl.cell_config_at(ctl.runner.step), backend=name)
     except Exception as exc:
         raise ProtocolError("failed", f"backend {name!r} did not connect; still on {ctl.backend!r}: "
                                       f"{type(exc).__name__}: {exc}") from None
-    old, old_name = ctl.cell, ctl.backend
-    ctl.cell, ctl.backend = new, name
-    ctl.runner.cell, ctl.runner.backend = new, name
-    ctl.runner.forget_state()
-    ctl.agent.reset_episode()
-    if old is not None:
-        try:
-            old.close()
-        except Exception as exc:
-            log.error("closing the %s cell failed: %s", old_name, exc)
-    ctl._event("backend", f"{old_name} -> {name}")
+    old_name = ctl.swap_cell(new, name)
+    ctl.record_event("backend", f"{old_name} -> {name}")
     # A new cell never starts moving on its own: the operator looks at it, then starts it.
     try:
         ctl.state.transition(State.PAUSED, f"backend swapped {old_name} -> {name}: flgctl start to run on it",
@@ -361,7 +352,7 @@ def swap_backend(ctl: Controller, name: str) -> dict:
     return {"backend": name, "previous": old_name}
 
 
-def snapshot(ctl: Controller) -> dict:
+def snapshot(ctl: DaemonControl) -> dict:
     from flgd.visualize import ActionGlyph, encode_png, qmap_picture
 
     runner = ctl.runner
@@ -371,7 +362,7 @@ def snapshot(ctl: Controller) -> dict:
     if last is None:
         if ctl.state.state is State.FAULT:
             raise ProtocolError("failed", "snapshot: no decision yet and the cell is in FAULT")
-        return ctl._in_loop(lambda: fresh_snapshot(ctl))
+        return ctl.run_on_loop(lambda: fresh_snapshot(ctl))
     hm, decision, step = last
     image = qmap_picture(hm.color, hm.height, decision.q_maps, decision.grasp_mask, decision.move_mask,
                          decision.action, caption=f"{note}: step {step}, rule {decision.rule}, "
@@ -382,7 +373,7 @@ def snapshot(ctl: Controller) -> dict:
             "action": dataclasses.asdict(decision.action), "q_value": decision.q_value}
 
 
-def fresh_snapshot(ctl: Controller) -> dict:
+def fresh_snapshot(ctl: DaemonControl) -> dict:
     """Run loop: capture and evaluate the network without acting (no decision state changes)."""
     from flgd.visualize import ActionGlyph, encode_png, greedy_action, qmap_picture
 
@@ -392,7 +383,7 @@ def fresh_snapshot(ctl: Controller) -> dict:
     except ToolInView as exc:   # the arm stands where a picture shows it: nothing wrong with the cell
         raise ProtocolError("failed", f"snapshot: {exc}") from None
     except CellFault as exc:
-        ctl._fault(f"cell fault during snapshot capture: {exc}")
+        ctl.fault(f"cell fault during snapshot capture: {exc}")
         raise ProtocolError("failed", f"snapshot: capture failed: {exc}") from None
     ctl.agent.maybe_swap_weights()
     q = ctl.agent.q_maps(hm)
@@ -411,8 +402,8 @@ def fresh_snapshot(ctl: Controller) -> dict:
 
 
 # ================================================================== the table
-def _gate_override(ctl: Controller, req: Request) -> dict:
-    return ctl._in_loop(lambda: gate_command(ctl, req.cmd, req.peer or "operator"))
+def _gate_override(ctl: DaemonControl, req: Request) -> dict:
+    return ctl.run_on_loop(lambda: gate_command(ctl, req.cmd, req.peer or "operator"))
 
 
 HANDLERS: dict[str, Command] = {
@@ -429,6 +420,6 @@ HANDLERS: dict[str, Command] = {
     "policy_promote": Command(_gate_override),
     "policy_reject": Command(_gate_override),
     "policy_rollback": Command(_gate_override),
-    "backend": Command(lambda ctl, req: ctl._in_loop(lambda: swap_backend(ctl, req.args["name"]))),
+    "backend": Command(lambda ctl, req: ctl.run_on_loop(lambda: swap_backend(ctl, req.args["name"]))),
     "snapshot": Command(lambda ctl, req: snapshot(ctl)),
 }

@@ -93,7 +93,7 @@ class Controller:
         self.checkpoints = CheckpointDir(self.state_dir / "checkpoints", keep=checkpoint_keep)
         # replay, agent, learner, gate and prior sample (flgd/learning_stack.py), on the store once it is open
         self.learning = LearningStack(config, fine_tune=self.fine_tune, state_dir=self.state_dir,
-                                      checkpoints=self.checkpoints, checkpoint_callback=self._write_checkpoint)
+                                      checkpoints=self.checkpoints, checkpoint_callback=self.write_checkpoint)
         self.store: Store | None = None
         self.store_problem = ""
         self.cell: Cell | None = None
@@ -108,11 +108,11 @@ class Controller:
         self._watched_frame: Any = None  # the frame the calibration watch judged last
         self.cycle_in_flight = False
         self._learning_problem = ""
-        self._learning_lock = threading.Lock()  # a policy load and a learner rebuild never interleave
+        self.learning_lock = threading.Lock()  # a policy load and a learner rebuild never interleave
         self._inbox: "queue.Queue[tuple[Callable[[], dict], concurrent.futures.Future]]" = queue.Queue()
         self._wake = threading.Event()
         self._lock_fd: int | None = None
-        self._started = time.time()
+        self.started_at = time.time()
 
     # ================================================================== setup
     def setup(self) -> None:
@@ -134,7 +134,7 @@ class Controller:
         self._restore_trainer_state()
         self._build_gate()
         try:
-            self.cell = make_cell(self._cell_config(step))
+            self.cell = make_cell(self.cell_config_at(step))
         except CellFault as exc:
             raise StartupError(f"cell {self.backend!r} failed to connect: {exc}") from exc
         except (ValueError, ImportError, OSError, RuntimeError) as exc:
@@ -157,7 +157,7 @@ class Controller:
                      "(seed, %d)", step, step)
         return step
 
-    def _cell_config(self, step: int) -> CellConfig:
+    def cell_config_at(self, step: int) -> CellConfig:
         """The config a cell is built from at action ``step``: a restarted daemon's simulated cell deals new scenes
         (``flgd.wiring.continuing_config``), not the first ones of its run again."""
         from flgd.wiring import continuing_config
@@ -252,12 +252,12 @@ class Controller:
         from flgd.learning.learner import LearnerBusy
 
         try:
-            with self._learning_lock:
+            with self.learning_lock:
                 owed = self.learning.restart_learner_from(network, commands.LEARNER_QUIET_TIMEOUT)
         except LearnerBusy as exc:
-            self._event("learner", f"not reset to the champion: {exc}")
+            self.record_event("learner", f"not reset to the champion: {exc}")
             raise
-        self._event("learner", f"learner restarted from the champion ({owed} owed updates dropped)")
+        self.record_event("learner", f"learner restarted from the champion ({owed} owed updates dropped)")
 
     def _configured_policy(self) -> tuple[Any, dict, str] | None:
         from flgd.learning.policy_file import load_policy
@@ -286,7 +286,7 @@ class Controller:
             log.info("trainer state: %s", self.trainer_state)
 
     # ================================================================== checkpoints
-    def _write_checkpoint(self, network: Any, updates: int) -> None:
+    def write_checkpoint(self, network: Any, updates: int) -> None:
         """Learner thread: write a checkpoint; a storage failure puts the daemon in FAULT."""
         step = self.runner.step if self.runner is not None else 0
         step += int(getattr(self.agent, "exploration_offset", 0) or 0)  # the policy's own count, not the daemon's
@@ -295,7 +295,7 @@ class Controller:
             path = self.learning.write_checkpoint(network, updates, meta)
         except (StoreError, OSError) as exc:
             self._learning_problem = f"checkpoint failed: {exc}"
-            self._wake.set()
+            self.wake()
             raise
         log.info("checkpoint %s", path)
         self._write_trainer_state()
@@ -324,7 +324,7 @@ class Controller:
                 self.request_stop("signal")
             self._drain_inbox()
             if self._learning_problem and self.state.state in (State.RUNNING, State.IDLE, State.PAUSED):
-                self._fault(self._learning_problem)
+                self.fault(self._learning_problem)
                 self._learning_problem = ""
             st = self.state.state
             if st is State.STOPPING:
@@ -342,12 +342,12 @@ class Controller:
         if lr is None or lr.running or self.store is None:
             return
         why = lr.stopped_why or "unknown"
-        with self._learning_lock:
+        with self.learning_lock:
             if lr.running:
                 return
             lr.start()
         log.warning("the learner thread was not running (%s): started again", why)
-        self._event("learner", f"learner was not running ({why}): started again")
+        self.record_event("learner", f"learner was not running ({why}): started again")
 
     def _one_cycle(self) -> None:
         assert self.runner is not None
@@ -355,14 +355,14 @@ class Controller:
         try:
             record = self.runner.run_once()
         except CellFault as exc:
-            self._fault(f"cell fault: {exc}")
+            self.fault(f"cell fault: {exc}")
             return
         except StoreError as exc:
-            self._fault(str(exc))
+            self.fault(str(exc))
             return
         except Exception as exc:  # a bug must stop the arm, not kill the service
             log.exception("cycle failed")
-            self._fault(f"internal error in the cycle: {type(exc).__name__}: {exc}")
+            self.fault(f"internal error in the cycle: {type(exc).__name__}: {exc}")
             return
         finally:
             self.cycle_in_flight = False
@@ -373,18 +373,18 @@ class Controller:
             try:
                 self.learning.after_cycle(record, self.runner)  # paced: this cycle's hand-over is taken now
             except (StoreError, OSError, PolicyFileError) as exc:
-                self._fault(f"the gate could not record its decision: {exc}")
+                self.fault(f"the gate could not record its decision: {exc}")
                 return
             except Exception as exc:  # a bug must stop the arm, not kill the service
                 log.exception("the gate failed")
-                self._fault(f"internal error in the gate: {type(exc).__name__}: {exc}")
+                self.fault(f"internal error in the gate: {type(exc).__name__}: {exc}")
                 return
         if record.outcome == "empty" and record.refill_needed:
             self._wait_for_refill()
         elif record.outcome == "empty":
-            self._event("scene", "workspace empty: new scene")
+            self.record_event("scene", "workspace empty: new scene")
         elif record.outcome == "discarded":
-            self._event("discarded", f"step {record.step}: {record.failure}")
+            self.record_event("discarded", f"step {record.step}: {record.failure}")
         elif record.outcome == "stuck":
             self._on_stuck(record)
         self.notifier.status(self.status_text())
@@ -402,7 +402,7 @@ class Controller:
         message = f"stuck after step {self.runner.step - 1 if self.runner else '?'}: {record.failure}; {what}"
         self.last_stuck = {"time": record.time, "reason": record.failure, "relaid": record.relaid, "action": what}
         log.warning("%s", message)
-        self._event("stuck", message)
+        self.record_event("stuck", message)
         if not record.relaid and self.config.exploration.stuck_action == "pause":
             try:
                 self.state.transition(State.PAUSED, f"stuck: {record.failure}; flgctl start resumes",
@@ -423,7 +423,7 @@ class Controller:
             return
         if event is not None:
             (log.warning if event.kind == "calibration_drift" else log.info)("%s", event.message)
-            self._event(event.kind, event.message)
+            self.record_event(event.kind, event.message)
 
     def _wait_for_refill(self) -> None:
         """PAUSED until the operator refilled the table: a real cell cannot do it, so cycling on would
@@ -433,14 +433,16 @@ class Controller:
         except IllegalTransition:
             pass  # paused or stopping meanwhile: either way no further cycle runs
 
-    def _fault(self, cause: str) -> None:
+    def fault(self, cause: str) -> None:
+        """Latch FAULT with its cause (and record it): nothing moves until an operator's reset."""
         try:
             self.state.transition(State.FAULT, cause)
         except IllegalTransition:
             return
-        self._event("fault", cause)
+        self.record_event("fault", cause)
 
-    def _event(self, kind: str, message: str) -> None:
+    def record_event(self, kind: str, message: str) -> None:
+        """An event in the store's log; a store that cannot take it is a fault."""
         if self.store is None:
             return
         try:
@@ -448,7 +450,7 @@ class Controller:
         except StoreError as exc:
             log.error("cannot record event %s (%s): %s", kind, message, exc)
             if kind != "fault" and self.state.state is not State.STOPPING:
-                self._fault(str(exc))
+                self.fault(str(exc))
 
     def _drain_inbox(self) -> None:
         while True:
@@ -463,10 +465,30 @@ class Controller:
             except BaseException as exc:
                 fut.set_exception(exc)
 
-    def _in_loop(self, fn: Callable[[], dict], timeout: float = COMMAND_TIMEOUT) -> dict:
+    def swap_cell(self, cell: Cell, backend: str) -> str:
+        """Run loop: act on ``cell`` from the next cycle; the old cell is closed.  Returns the old backend's name."""
+        assert self.runner is not None
+        old, old_name = self.cell, self.backend
+        self.cell, self.backend = cell, backend
+        self.runner.use_cell(cell, backend)
+        self.agent.reset_episode()
+        if old is not None:
+            try:
+                old.close()
+            except Exception as exc:
+                log.error("closing the %s cell failed: %s", old_name, exc)
+        return old_name
+
+    def wake(self) -> None:
+        """Let the run loop look at its inbox and state now instead of at its next poll."""
+        self._wake.set()
+
+    def run_on_loop(self, fn: Callable[[], dict], timeout: float = COMMAND_TIMEOUT) -> dict:
+        """Run ``fn`` on the run loop between cycles and return its result (ProtocolError "busy" if the loop does
+        not take it within ``timeout``)."""
         fut: concurrent.futures.Future = concurrent.futures.Future()
         self._inbox.put((fn, fut))
-        self._wake.set()
+        self.wake()
         try:
             return fut.result(timeout)
         except concurrent.futures.TimeoutError:
@@ -478,7 +500,7 @@ class Controller:
         """STOPPING: halt the motion in flight (the cell decelerates and holds), send nothing more.
 
         The cell is latched before the state changes, so no one who sees STOPPING can
-        still get a move out of the cell (see ``_clear_stop_latch`` for the other side).
+        still get a move out of the cell (see ``clear_stop_latch`` for the other side).
         """
         if self.state.state is State.STOPPING:
             return
@@ -488,7 +510,7 @@ class Controller:
             self.state.transition(State.STOPPING, cause)
         except IllegalTransition:
             return
-        self._wake.set()
+        self.wake()
 
     def _on_state_change(self, change: StateChange) -> None:
         if change.new is State.STOPPING:
@@ -509,7 +531,7 @@ class Controller:
             self.learner.stop(timeout=30.0, why="the daemon is stopping")
             if self.learning.owes_checkpoint() and self.store is not None:
                 try:
-                    self._write_checkpoint(self.learner.snapshot(), self.learner.updates)
+                    self.write_checkpoint(self.learner.snapshot(), self.learner.updates)
                 except Exception as exc:
                     log.error("final checkpoint failed: %s", exc)
         if self.store is not None:
@@ -550,7 +572,7 @@ class Controller:
         """A stop was requested (the daemon is STOPPING, or the runner was told to stop)."""
         return self.state.state is State.STOPPING or bool(self.runner is not None and self.runner.stop_requested)
 
-    def _clear_stop_latch(self) -> bool:
+    def clear_stop_latch(self) -> bool:
         """Clear the cell's stop latch if, and only if, no stop is pending; False when one is.
 
         Why clear first and look after: ``request_stop`` marks the runner stopped
@@ -573,7 +595,7 @@ class Controller:
         return ProtocolError("failed", f"reset interrupted by a stop ({self.state.cause}) {when}: the arm was not "
                                        f"homed and the daemon is stopping; start flgd again, then flgctl reset")
 
-    def _reset(self) -> dict:
+    def reset(self) -> dict:
         """Run loop: clear a fault, home the arm (the cell's recovery does), new scene (simulation).
 
         A stop requested before, during or after the recovery wins: nothing more
@@ -588,9 +610,9 @@ class Controller:
         stale_problem = self._learning_problem  # from before the reset (a checkpoint that failed in FAULT)
         if self.store is None:
             if not self._open_store():
-                self._fault(self.store_problem)
+                self.fault(self.store_problem)
                 raise ProtocolError("failed", f"reset: {self.store_problem}")
-            with self._learning_lock:  # the learner goes on from its weights; nothing handed over until the gate
+            with self.learning_lock:  # the learner goes on from its weights; nothing handed over until the gate
                 problem = self.learning.rebuild(self._next_step())
                 if problem:
                     self.store_problem = problem
@@ -600,7 +622,7 @@ class Controller:
             try:
                 self._build_gate()
             except StartupError as exc:
-                self._fault(str(exc))
+                self.fault(str(exc))
                 raise ProtocolError("failed", f"reset: {exc}") from None
         disk = self.store.space_problem()
         if disk:  # the recovery moves the arm, and nothing may move that cannot be recorded
@@ -608,9 +630,9 @@ class Controller:
         try:
             self.store.record_event("reset", f"reset requested in {st.value}")
         except StoreError as exc:
-            self._fault(str(exc))
+            self.fault(str(exc))
             raise ProtocolError("failed", f"reset: the store is still unusable: {exc}") from None
-        if not self._clear_stop_latch():
+        if not self.clear_stop_latch():
             raise self._stopped_during_reset("before the recovery")
         try:
             self.cell.recover()  # homes the arm through a checked plan
@@ -620,7 +642,7 @@ class Controller:
         except (CellFault, PlanRefused) as exc:
             if isinstance(exc, StopPending) or self._stop_pending():
                 raise self._stopped_during_reset("during the recovery") from None
-            self._fault(f"reset failed: {exc}")
+            self.fault(f"reset failed: {exc}")
             raise ProtocolError("failed", f"reset failed, still FAULT: {exc}") from None
         self.runner.forget_state()
         self.agent.reset_episode()
