@@ -14,7 +14,8 @@ import pytest
 
 from flgd.config import load_config
 from flgd.geometry import ToolPose, pose_matrix
-from flgd.hardware.rg2 import GripperFault, RG2XmlRpcDriver
+from flgd.hardware.gripper import GripperFault
+from flgd.hardware.rg2 import RG2XmlRpcDriver
 from sim_cell import kinematics, motion
 from sim_cell.emulator.rg2_service import RG2Service
 from sim_cell.emulator.world import EmulatorWorld

@@ -11,8 +11,8 @@ import xmlrpc.client
 import pytest
 
 from flgd.config import config_from_dict
-from flgd.hardware.rg2 import (GripperFault, GripperWidthUnavailable, RG2XmlRpcDriver, ToolDigitalOutputDriver,
-                               make_gripper_driver)
+from flgd.hardware.gripper import GripperFault, GripperWidthUnavailable
+from flgd.hardware.rg2 import RG2XmlRpcDriver, ToolDigitalOutputDriver, make_gripper_driver
 from tests.fakes.rg2 import LoopbackRG2
 
 

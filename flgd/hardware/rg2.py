@@ -1,7 +1,7 @@
 """OnRobot RG2 gripper drivers: the URCap's XML-RPC service, or a tool digital output.
 
-The measured finger width decides grasp success (FLG's grasp reward), so a
-driver says whether it can measure it (``measures_width``).
+Both implement ``flgd.hardware.gripper.GripperDriver``.  The measured finger width decides grasp success (FLG's
+grasp reward), so a driver says whether it can measure it (``measures_width``).
 
 XML-RPC (``gripper.driver: rg2_xmlrpc``).  The OnRobot URCap runs an XML-RPC
 server on the robot controller, port 41414 (``gripper.xmlrpc_port``).  The
@@ -27,7 +27,6 @@ refuses to run a learning cell with such a driver unless told otherwise.
 
 from __future__ import annotations
 
-import abc
 import http.client
 import math
 import socket
@@ -35,14 +34,11 @@ import time
 import xmlrpc.client
 from typing import Any, Callable
 
-from flgd.cell import CellFault
 from flgd.config import CellConfig
+from flgd.hardware.gripper import GripperDriver, GripperFault, GripperWidthUnavailable
 from flgd.safety import GRIPPER_STROKE
 
 __all__ = [
-    "GripperDriver",
-    "GripperFault",
-    "GripperWidthUnavailable",
     "RG2XmlRpcDriver",
     "ToolDigitalOutputDriver",
     "make_gripper_driver",
@@ -52,34 +48,6 @@ __all__ = [
 RG2_MAX_FORCE = 40.0       # N
 _BUSY_START_DELAY = 0.05   # s before the first busy poll: the URCap needs a moment to start the move
 _WIDTH_SANITY_MM = (-5.0, 120.0)
-
-
-class GripperFault(CellFault):
-    """The gripper did not do what it was told, or could not be reached."""
-
-
-class GripperWidthUnavailable(GripperFault):
-    """This driver has no way to measure the finger width."""
-
-
-class GripperDriver(abc.ABC):
-    """Open/close to a width with a force limit, and read the width."""
-
-    measures_width: bool = True
-
-    @abc.abstractmethod
-    def move(self, width: float, force: float) -> None:
-        """Move the fingers towards ``width`` (m) with at most ``force`` (N); return when they stopped."""
-
-    @abc.abstractmethod
-    def width(self) -> float:
-        """Current finger opening in metres."""
-
-    def stop(self) -> None:
-        """Halt the fingers (best effort, any thread)."""
-
-    def close(self) -> None:
-        """Release connections; safe to call twice."""
 
 
 def _check_command(width: float, force: float) -> None:

@@ -25,7 +25,8 @@ from flgd.config import CellConfig
 from flgd.geometry import ToolPose, rotvec_to_matrix
 from flgd.plans import GripperCommand, MeasureWidth, MoveL, Plan, plan_home
 from flgd.safety import CheckedPlan, PlanRefused, check_plan
-from flgd.hardware.rg2 import GripperDriver, GripperFault, make_gripper_driver
+from flgd.hardware.gripper import GripperDriver, GripperFault
+from flgd.hardware.rg2 import make_gripper_driver
 from flgd.hardware.ur_arm import MotionStopped, PoseUnreachable, RTDEFactory, URArm, pose_error
 
 __all__ = ["UR5eCell"]
