@@ -42,7 +42,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from flgd.atomic_file import write_atomically
-from flgd.training.actionlog import read_rows
+from flgd.training.actions_csv import read_rows
 from flgd.training.curve import (grasp_series, plot_curves, rolling_success, spread, steps_to_threshold,
                                 success_by_rule)
 from flgd.training.run import RunFileError, read_run_info

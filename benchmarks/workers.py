@@ -45,7 +45,7 @@ def _machine_cpu() -> float:
 
 def _run(config: Path, out: Path, steps: int, seed: int, workers: int, warmup: int) -> dict:
     """One training run from scratch; its rates and CPU split."""
-    from flgd.training.actionlog import read_rows
+    from flgd.training.actions_csv import read_rows
 
     shutil.rmtree(out, ignore_errors=True)
     cmd = [sys.executable, "-m", "flgd.cli", "train", "--config", str(config), "--steps", str(steps), "--seed",

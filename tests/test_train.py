@@ -17,7 +17,7 @@ from flgd.cell import Cell, CellFault
 from flgd.config import load_config
 from flgd.learning.policy_file import load_policy
 from flgd.store import Store
-from flgd.training.actionlog import read_rows
+from flgd.training.actions_csv import read_rows
 from flgd.training.command import main as train_main
 
 REPO = Path(__file__).resolve().parents[1]

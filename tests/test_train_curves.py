@@ -16,7 +16,7 @@ import pytest
 
 from benchmarks import learning as bench
 from flgd.learning.agent import RULES
-from flgd.training.actionlog import COLUMNS
+from flgd.training.actions_csv import COLUMNS
 from flgd.training.curve import grasp_series, move_fraction, rolling_success, spread, steps_to_threshold, success_by_rule
 
 

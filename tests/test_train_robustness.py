@@ -14,7 +14,7 @@ import pytest
 from flgd.cell import Cell
 from flgd.config import load_config
 from flgd.store import Store
-from flgd.training.actionlog import read_rows
+from flgd.training.actions_csv import read_rows
 from flgd.training.pretrain import main as pretrain_main
 from flgd.training.progress import LineProgress
 from flgd.training.run import CONFIG_FILE, RunSettings, TrainingRun

@@ -18,7 +18,7 @@ import yaml
 
 from flgd.config import load_config
 from flgd.store import Store
-from flgd.training.actionlog import read_rows
+from flgd.training.actions_csv import read_rows
 from flgd.training.ray_reaper import _descendants, _is_ray, _start_time
 from flgd.training.command import main as train_main
 

@@ -19,7 +19,7 @@ import sys
 from pathlib import Path
 
 from flgd.learning.policy_file import PolicyFileError, load_policy, read_metadata
-from flgd.training.actionlog import read_rows
+from flgd.training.actions_csv import read_rows
 from flgd.training.curve import plot_curves
 from flgd.training.run import RUN_FILE, read_run_info
 

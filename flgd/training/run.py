@@ -15,7 +15,7 @@ Run directory (``--out``), also the store's state directory:
 * ``checkpoints/``    -- policy files, every ``learning.checkpoint_every``
   updates and at exit (metadata: variant, method, steps, cell, rolling success);
 * ``trainer-state.safetensors`` -- target network, Adam state, priorities;
-* ``actions.csv``     -- one row per step (see flgd.training.actionlog);
+* ``actions.csv``     -- one row per step (see flgd.training.actions_csv);
 * ``curve.png``       -- rolling grasp success (last 50 and 200 grasps) and moves.
 
 Resume = run the same command again (or ``flgd train --out DIR``).  Restored
@@ -52,6 +52,7 @@ from flgd.atomic_file import write_atomically
 from flgd.config import CellConfig, dump_config
 from flgd.learning_stack import CheckpointMeta, LearningStack
 from flgd.store import CheckpointDir
+from flgd.training.actions_csv import ActionsCsv
 from flgd.training.progress import BarProgress, LineProgress
 from flgd.training.settings import (RUN_FILE, TRAIN_VARIANTS, TRUNK_NETWORKS, RunFileError, RunSettings,
                                     effective_config, read_run_info, variant_network)
@@ -107,7 +108,7 @@ class TrainingRun:
         self.replay: Any = None
         self.agent: Any = None
         self.learner: Any = None
-        self.actions: Any = None  # the ActionLog (actions.csv)
+        self.actions: ActionsCsv | None = None  # actions.csv
         self.cell_loop: Any = None  # the TrainingCell (its cell and cycle runner below)
         self.cell: Any = None
         self.runner: Any = None
@@ -153,7 +154,6 @@ class TrainingRun:
         import torch
 
         from flgd.store import Store
-        from flgd.training.actionlog import ActionLog
         from flgd.training.state import remove_temporary as remove_trainer_state_temporaries
 
         self.out.mkdir(parents=True, exist_ok=True)
@@ -174,7 +174,7 @@ class TrainingRun:
         self.replay, self.agent, self.learner = learning.replay, learning.agent, learning.learner
         self._restore_trainer_state()
 
-        self.actions = ActionLog(self.out / LOG_FILE)
+        self.actions = ActionsCsv(self.out / LOG_FILE)
         self.actions.reconcile(self.store.action_log())
         for r in self.actions.rows:
             if r.get("primitive") == "grasp" and r.get("success") not in ("", None) \

@@ -21,7 +21,7 @@ import os
 from pathlib import Path
 from typing import Any, Mapping
 
-__all__ = ["COLUMNS", "ActionLog", "read_rows"]
+__all__ = ["COLUMNS", "ActionsCsv", "read_rows"]
 
 COLUMNS = ("step", "time", "outcome", "primitive", "kind", "row", "col", "rotation", "reward", "success", "rule",
            "epsilon", "q_value",
@@ -49,7 +49,7 @@ def _cell(v: Any) -> Any:
     return v
 
 
-class ActionLog:
+class ActionsCsv:
     """Appends rows and keeps them in memory for the learning curve."""
 
     def __init__(self, path: str | os.PathLike):
