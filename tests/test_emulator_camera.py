@@ -20,7 +20,8 @@ from flgd.perception import frame_heightmaps
 
 pytest.importorskip("pyrealsense2", reason="pyrealsense2 cannot load here (libusb-1.0 missing?)")
 
-from flgd.hardware.d415 import CameraFault, D415Camera  # noqa: E402
+from flgd.hardware.camera import CameraFault  # noqa: E402
+from flgd.hardware.d415 import D415Camera  # noqa: E402
 from flgd.hardware.frame_feed import FrameFeedClient  # noqa: E402
 from flgd.hardware.ur5e_cell import _open_d415  # noqa: E402  (the real cell's camera factory)
 from sim_cell.emulator.camera_feed import CameraFeed  # noqa: E402

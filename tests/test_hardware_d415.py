@@ -19,7 +19,8 @@ from flgd.perception import frame_heightmaps
 
 rs = pytest.importorskip("pyrealsense2", reason="pyrealsense2 cannot load here (libusb-1.0 missing?)")
 
-from flgd.hardware.d415 import CameraFault, D415Camera  # noqa: E402
+from flgd.hardware.camera import CameraFault  # noqa: E402
+from flgd.hardware.d415 import D415Camera  # noqa: E402
 from tests.fakes.realsense import (BOXES, SERIAL, SoftwareD415, registered_camera,  # noqa: E402
                                    scene_frame, sim_config, synthetic_frame)
 

@@ -413,7 +413,8 @@ def test_reset_reopens_a_camera_whose_stream_died(ctl, rg2):
     D415Camera; its depth sensor stopping is a stream that died under the camera.
     """
     pytest.importorskip("pyrealsense2", reason="pyrealsense2 cannot load here (libusb-1.0 missing?)")
-    from flgd.hardware.d415 import CameraFault, D415Camera
+    from flgd.hardware.camera import CameraFault
+    from flgd.hardware.d415 import D415Camera
     from tests.fakes.realsense import SERIAL, registered_camera, sim_config, synthetic_frame
 
     frame = synthetic_frame(sim_config(), width=64, height=48)

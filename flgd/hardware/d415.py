@@ -15,19 +15,18 @@ recording and playback).
 
 from __future__ import annotations
 
-import abc
 import threading
-import time
 from typing import Any
 
 import numpy as np
 
-from flgd.cell import CellFault, Frame
+from flgd.cell import Frame
 from flgd.config import CellConfig
 from flgd.geometry import pose_matrix, rpy_to_matrix
-from flgd.hardware import hardware_library
+from flgd.hardware.camera import CameraFault
+from flgd.hardware.frame_sources import EmulatorSource, FrameSource, PipelineSource, SensorSource, rs_library
 
-__all__ = ["D415Camera", "CameraFault", "TEMPORAL_FILTER_FRAMES", "LIVE_WARMUP_FRAMES"]
+__all__ = ["D415Camera", "TEMPORAL_FILTER_FRAMES", "LIVE_WARMUP_FRAMES"]
 
 # Consecutive frames fed to the temporal filter per capture (camera.temporal_filter).
 TEMPORAL_FILTER_FRAMES = 5
@@ -36,284 +35,6 @@ LIVE_WARMUP_FRAMES = 30
 # Streams closer than this to "already registered" are not re-aligned (see _registered).
 _REGISTERED_TOL = 1e-6
 
-
-class CameraFault(CellFault):
-    """The camera stopped delivering usable frames (timeout, disconnect, library error)."""
-
-
-def _rs():
-    return hardware_library("pyrealsense2")
-
-
-# --------------------------------------------------------------------------- sources
-
-class _FrameSource(abc.ABC):
-    """Where framesets come from; hides the pipeline / sensor+syncer difference."""
-
-    description: str = "RealSense"
-
-    @abc.abstractmethod
-    def wait(self, timeout_s: float) -> Any | None:
-        """The next frameset holding depth and colour, or None after ``timeout_s``."""
-
-    @abc.abstractmethod
-    def drop_queued(self) -> None:
-        """Discard framesets already queued (taken before the caller's moment of interest)."""
-
-    @property
-    @abc.abstractmethod
-    def device(self) -> Any:
-        """The ``rs.device`` behind this source."""
-
-    @abc.abstractmethod
-    def depth_scale(self) -> float:
-        """Metres per raw depth unit, as the device reports it."""
-
-    def still_connected(self) -> bool:
-        """False when the device is known to be gone (asked only after a timeout)."""
-        return True
-
-    @abc.abstractmethod
-    def close(self) -> None:
-        """Stop streaming; safe to call twice."""
-
-
-def _has_depth_and_color(frames) -> bool:
-    return bool(frames) and bool(frames.get_depth_frame()) and bool(frames.get_color_frame())
-
-
-class _PipelineSource(_FrameSource):
-    """An ``rs.pipeline`` already started (a live device or a recording)."""
-
-    def __init__(self, pipeline: Any, profile: Any, description: str, serial: str = "", live: bool = False):
-        self._pipeline = pipeline
-        self._profile = profile
-        self._serial = serial
-        self._live = live
-        self._closed = False
-        self.description = description
-
-    def wait(self, timeout_s: float):
-        deadline_ms = max(1, int(timeout_s * 1000))
-        ok, frames = self._pipeline.try_wait_for_frames(deadline_ms)
-        if ok and _has_depth_and_color(frames):
-            frames.keep()
-            return frames
-        return None
-
-    def drop_queued(self) -> None:
-        while True:
-            frames = self._pipeline.poll_for_frames()
-            if not frames:
-                return
-
-    @property
-    def device(self):
-        return self._profile.get_device()
-
-    def depth_scale(self) -> float:
-        return float(self.device.first_depth_sensor().get_depth_scale())
-
-    def still_connected(self) -> bool:
-        if not self._live:
-            return True
-        rs = _rs()
-        serials = [d.get_info(rs.camera_info.serial_number) for d in rs.context().query_devices()]
-        return self._serial in serials
-
-    def close(self) -> None:
-        if not self._closed:
-            self._closed = True
-            try:
-                self._pipeline.stop()
-            except RuntimeError:
-                pass  # already stopped (device gone): nothing left to release
-
-
-class _SensorSource(_FrameSource):
-    """Depth and colour sensors of an ``rs.device`` started into one ``rs.syncer``."""
-
-    def __init__(self, device: Any, width: int, height: int, fps: int, description: str):
-        rs = _rs()
-        self._device = device
-        self._syncer = rs.syncer()
-        self._sensors: list[Any] = []
-        self.description = description
-        depth = _find_profile(device, rs.stream.depth, (rs.format.z16,), width, height, fps)
-        color = _find_profile(device, rs.stream.color, (rs.format.rgb8, rs.format.bgr8), width, height, fps)
-        self._depth_sensor = depth[0] if depth else None
-        if depth is None or color is None:
-            missing = " and ".join(n for n, p in (("depth (z16)", depth), ("colour (rgb8/bgr8)", color)) if p is None)
-            raise CameraFault(f"{description}: the device offers no {missing} stream")
-        try:
-            for sensor, profile in (depth, color):
-                sensor.open(profile)
-                self._sensors.append(sensor)
-                sensor.start(self._syncer)
-        except RuntimeError as exc:
-            self.close()
-            raise CameraFault(f"{description}: cannot start streaming: {exc}") from exc
-
-    def wait(self, timeout_s: float):
-        remaining_ms = max(1, int(timeout_s * 1000))
-        # The syncer may hand out a lone frame before its partner arrives; wait on for the pair.
-        while remaining_ms > 0:
-            step = min(remaining_ms, 100)
-            ok, frames = self._syncer.try_wait_for_frames(step)
-            remaining_ms -= step
-            if ok and _has_depth_and_color(frames):
-                frames.keep()
-                return frames
-        return None
-
-    def drop_queued(self) -> None:
-        while True:
-            frames = self._syncer.poll_for_frames()
-            if not frames:
-                return
-
-    @property
-    def device(self):
-        return self._device
-
-    def depth_scale(self) -> float:
-        # A recorder's or software sensor is not always typed as a depth_sensor; the option is always there.
-        return float(self._depth_sensor.get_option(_rs().option.depth_units))
-
-    def close(self) -> None:
-        self._device = None  # lets an rs.recorder be destroyed, which finalises its file
-        sensors, self._sensors = self._sensors, []
-        for sensor in sensors:
-            for action in (sensor.stop, sensor.close):
-                try:
-                    action()
-                except RuntimeError:
-                    pass  # not started / already closed
-
-
-class _EmulatorSource(_SensorSource):
-    """``flgd emulate``'s camera feed (``camera.emulator``) pushed into a software D415 by a thread.
-
-    The software device has the feed's intrinsics and depth scale, so everything after it (syncer,
-    filters, alignment, the depth scale read from the device) is the path a camera's frames take.
-    A feed that stops answering leaves the syncer empty: the capture's frame timeout, as for a camera.
-
-    A frame is rendered when the feed answers a request, so one asked for before a capture began can show the
-    world as it was before (an arm still on its way) and arrive after the capture dropped what was queued; on a
-    loaded PC that lag reaches a large part of a second.  A capture therefore takes only frames asked for after
-    it began (checked by frame number), as a live camera's next exposure is.
-
-    Frames are asked for only while a capture waits: a render holds the emulator's physics for tens of
-    milliseconds, and a stream rendered through every move would slow the emulated arm by a third.
-    """
-
-    KEEP_REQUEST_TIMES = 64  # frame numbers remembered with the moment they were asked for
-
-    def __init__(self, address: str, timeout: float, width: int, height: int):
-        from flgd.config import parse_emulator_address
-        from flgd.hardware.frame_feed import FrameFeedClient
-        from flgd.hardware.software_d415 import SoftwareD415
-
-        description = f"emulated RealSense at {address} (camera.emulator)"
-        try:
-            host, port = parse_emulator_address(address)
-            self._client = FrameFeedClient(host, port, timeout)
-        except (OSError, ValueError) as exc:
-            kind = "no answer" if isinstance(exc, TimeoutError) else f"{type(exc).__name__}: {exc}"
-            raise CameraFault(f"{description}: cannot open the feed: {kind}; is `flgd emulate` running?") from exc
-        hello = self._client.hello
-        self._camera = SoftwareD415(hello.intrinsics, hello.intrinsics, (hello.width, hello.height),
-                                    hello.depth_scale, serial=hello.serial, fps=hello.fps)
-        self._lost = threading.Event()
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
-        self._asked_at: dict[int, float] = {}   # software frame number -> when the pump asked the feed for it
-        self._fresh_from = 0.0                  # frames asked for before this moment are stale
-        self._wanted = threading.Event()        # set while a capture waits for a frame
-        try:
-            super().__init__(self._camera.device, width, height, hello.fps, description)
-        except CameraFault:
-            self._client.close()
-            raise
-        self._thread = threading.Thread(target=self._pump, name="d415-emulator-feed", daemon=True)
-        self._thread.start()
-
-    def _pump(self) -> None:
-        """Ask for a frame, push it in, keep the feed's rate; a stalled feed is waited on, a broken one ends it."""
-        from flgd.hardware.frame_feed import FeedStalled
-
-        period = 1.0 / self._camera.fps
-        try:
-            while not self._stop.is_set():
-                if not self._wanted.wait(0.05):
-                    continue
-                started = time.monotonic()
-                self._client.request()
-                while True:
-                    try:
-                        frame = self._client.receive()
-                        break
-                    except FeedStalled:
-                        if self._stop.is_set():
-                            return
-                number = self._camera.next_frame_number
-                self._asked_at[number] = started   # before the feed: the syncer may hand it out at once
-                self._asked_at.pop(number - self.KEEP_REQUEST_TIMES, None)
-                self._camera.feed(frame.depth, frame.color)
-                self._stop.wait(max(0.0, period - (time.monotonic() - started)))
-        except (OSError, RuntimeError):
-            self._lost.set()  # the feed closed or broke its format: a camera unplugged
-
-    def wait(self, timeout_s: float):
-        """The next frameset asked for after the last :meth:`drop_queued`; older ones are passed over."""
-        deadline = time.monotonic() + timeout_s
-        self._wanted.set()   # the stream runs while a capture waits (the syncer pairs a frame once the next comes)
-        try:
-            while True:
-                frames = super().wait(max(0.001, deadline - time.monotonic()))
-                if frames is None:
-                    return None
-                asked = self._asked_at.get(frames.get_depth_frame().get_frame_number())
-                if asked is None or asked >= self._fresh_from:   # None: older than 64 requests, dropped with the queue
-                    return frames
-                if time.monotonic() >= deadline:
-                    return None
-        finally:
-            self._wanted.clear()
-
-    def drop_queued(self) -> None:
-        self._fresh_from = time.monotonic()
-        super().drop_queued()
-
-    def still_connected(self) -> bool:
-        return not self._lost.is_set()
-
-    def close(self) -> None:
-        self._stop.set()
-        self._client.close()
-        if self._thread is not None and self._thread is not threading.current_thread():
-            self._thread.join(timeout=5)
-        super().close()
-
-
-def _find_profile(device: Any, stream: Any, formats: tuple, width: int, height: int, fps: int):
-    """(sensor, profile) for ``stream``; the configured size and rate if offered, else the first."""
-    fallback = None
-    for sensor in device.query_sensors():
-        for profile in sensor.get_stream_profiles():
-            if profile.stream_type() != stream or profile.format() not in formats:
-                continue
-            if not profile.is_video_stream_profile():
-                continue
-            vp = profile.as_video_stream_profile()
-            if (vp.width(), vp.height(), vp.fps()) == (width, height, fps):
-                return sensor, profile
-            if fallback is None:
-                fallback = (sensor, profile)
-    return fallback
-
-
-# --------------------------------------------------------------------------- camera
 
 def _intrinsics_matrix(intr) -> np.ndarray:
     return np.array([[intr.fx, 0.0, intr.ppx], [0.0, intr.fy, intr.ppy], [0.0, 0.0, 1.0]])
@@ -347,9 +68,9 @@ class D415Camera:
     when no frame arrives in ``camera.frame_timeout`` seconds or the library fails.
     """
 
-    def __init__(self, config: CellConfig, source: _FrameSource, *, discard_queued: bool = True,
+    def __init__(self, config: CellConfig, source: FrameSource, *, discard_queued: bool = True,
                  warmup_frames: int = 0):
-        rs = _rs()
+        rs = rs_library()
         self.config = config
         self._source = source
         self._discard_queued = discard_queued
@@ -383,10 +104,10 @@ class D415Camera:
     def open(cls, config: CellConfig, warmup_frames: int = LIVE_WARMUP_FRAMES) -> "D415Camera":
         """The live camera named by ``camera.serial`` (the only one when the serial is empty), or the
         emulator's feed when ``camera.emulator`` is set."""
-        rs = _rs()
+        rs = rs_library()
         cam = config.camera
         if cam.emulator:
-            source: _FrameSource = _EmulatorSource(cam.emulator, cam.frame_timeout, cam.intrinsics.width,
+            source: FrameSource = EmulatorSource(cam.emulator, cam.frame_timeout, cam.intrinsics.width,
                                                    cam.intrinsics.height)
             return cls(config, source, discard_queued=True, warmup_frames=warmup_frames)
         try:
@@ -415,13 +136,13 @@ class D415Camera:
         except RuntimeError as exc:
             raise CameraFault(f"RealSense {serial}: cannot stream depth+colour {w}x{h} at {cam.fps} Hz "
                               f"(camera.intrinsics / camera.fps in {config.source}): {exc}") from exc
-        source = _PipelineSource(pipeline, profile, f"RealSense {serial}", serial=serial, live=True)
+        source = PipelineSource(pipeline, profile, f"RealSense {serial}", serial=serial, live=True)
         return cls(config, source, discard_queued=True, warmup_frames=warmup_frames)
 
     @classmethod
     def from_recording(cls, config: CellConfig, path: str) -> "D415Camera":
         """Play a librealsense recording (``.db3`` or ``.bag``) frame by frame, not in real time."""
-        rs = _rs()
+        rs = rs_library()
         rs_config = rs.config()
         pipeline = rs.pipeline()
         try:
@@ -430,22 +151,22 @@ class D415Camera:
             profile.get_device().as_playback().set_real_time(False)
         except RuntimeError as exc:
             raise CameraFault(f"cannot play RealSense recording {path}: {exc}") from exc
-        source = _PipelineSource(pipeline, profile, f"RealSense recording {path}")
+        source = PipelineSource(pipeline, profile, f"RealSense recording {path}")
         return cls(config, source, discard_queued=False)
 
     @classmethod
     def from_device(cls, config: CellConfig, device: Any, *, discard_queued: bool = True,
                     warmup_frames: int = 0) -> "D415Camera":
         """Stream an existing ``rs.device`` (a software_device, an ``rs.recorder`` around one, ...)."""
-        cam, info = config.camera, _rs().camera_info
+        cam, info = config.camera, rs_library().camera_info
         name = device.get_info(info.name) if device.supports(info.name) else "device"
-        source = _SensorSource(device, cam.intrinsics.width, cam.intrinsics.height, cam.fps, f"RealSense {name}")
+        source = SensorSource(device, cam.intrinsics.width, cam.intrinsics.height, cam.fps, f"RealSense {name}")
         return cls(config, source, discard_queued=discard_queued, warmup_frames=warmup_frames)
 
     # -- capture
     def capture(self) -> Frame:
         """One aligned frame; with the temporal filter, the last of a few consecutive frames."""
-        rs = _rs()
+        rs = rs_library()
         with self._lock:
             try:
                 if self._discard_queued:
@@ -470,7 +191,7 @@ class D415Camera:
         self.close()
 
     # -- internals
-    def _check_serial(self, rs, source: _FrameSource) -> None:
+    def _check_serial(self, rs, source: FrameSource) -> None:
         want = self.config.camera.serial
         dev = source.device
         if want and dev.supports(rs.camera_info.serial_number):

@@ -18,13 +18,14 @@ from __future__ import annotations
 
 import dataclasses
 import time
-from typing import Any, Callable
+from typing import Callable
 
 from flgd.cell import STOPPED_ON_REQUEST, Cell, CellFault, ContactStop, ExecutionResult, Frame, StopPending
 from flgd.config import CellConfig
 from flgd.geometry import ToolPose, rotvec_to_matrix
 from flgd.plans import GripperCommand, MeasureWidth, MoveL, Plan, plan_home
 from flgd.safety import CheckedPlan, PlanRefused, check_plan
+from flgd.hardware.camera import Camera
 from flgd.hardware.gripper import GripperDriver, GripperFault
 from flgd.hardware.rg2 import make_gripper_driver
 from flgd.hardware.ur_arm import MotionStopped, PoseUnreachable, RTDEFactory, URArm, pose_error
@@ -38,7 +39,7 @@ WIDTH_SETTLE_TIMEOUT = 1.0   # s: after this the last reading counts
 FLOOR_MEASUREMENT_TOLERANCE = 0.0005  # m below the table clearance floor an arm stopped on it may read
 
 
-def _open_d415(config: CellConfig) -> Any:
+def _open_d415(config: CellConfig) -> Camera:
     from flgd.hardware.d415 import D415Camera
 
     return D415Camera.open(config)
@@ -50,7 +51,7 @@ class UR5eCell(Cell):
     name = "ur5e"
 
     def __init__(self, config: CellConfig, *, arm: URArm | None = None, gripper: GripperDriver | None = None,
-                 camera_factory: Callable[[CellConfig], Any] = _open_d415,
+                 camera_factory: Callable[[CellConfig], Camera] = _open_d415,
                  rtde_factory: RTDEFactory | None = None, clock: Callable[[], float] = time.monotonic,
                  sleep: Callable[[float], None] = time.sleep, require_width: bool = True):
         super().__init__(config)
@@ -58,7 +59,7 @@ class UR5eCell(Cell):
         self._sleep = sleep
         self.arm = arm
         self.gripper = gripper
-        self.camera: Any = None
+        self.camera: Camera | None = None
         self._camera_factory = camera_factory
         try:
             if self.arm is None:

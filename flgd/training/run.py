@@ -42,7 +42,6 @@ import json
 import logging
 import math
 import os
-import sys
 import time
 from collections import deque
 from pathlib import Path

@@ -7,7 +7,7 @@ import numpy as np
 from flgd.cell import Frame
 from flgd.config import CellConfig
 from flgd.geometry import pose_matrix, rpy_to_matrix
-from flgd.hardware.d415 import CameraFault
+from flgd.hardware.camera import CameraFault
 
 
 class FakeD415:
