@@ -297,7 +297,6 @@ def test_a_fresh_runner_homes_the_arm_before_its_first_capture(tmp_path):
         rec = runner.run_once()
         assert rec.step == 0
         assert order[:2] == [("execute", "home"), ("capture", None)]
-        tcp = cell.inner._tcp()[:3, 3]
         # the runner keeps its state: the next cycle starts with its action, not with a home
         mark = len(order)
         runner.run_once()

@@ -219,7 +219,7 @@ def test_a_momentary_deep_contact_is_tolerated_a_lasting_one_is_unstable(empty_c
     c = empty_cell._client
 
     def push_the_far_block():
-        far = cube_at(empty_cell, -0.62, -0.12)
+        cube_at(empty_cell, -0.62, -0.12)
         return empty_cell.execute(check_plan(plan_push(-0.67, -0.12, 0.0, cfg), cfg))
 
     body = cube_at(empty_cell, -0.45, 0.10, size=(0.04, 0.04, 0.04))

@@ -395,9 +395,10 @@ class Gatekeeper:
                 raise GateDirUnwritable(f"{exc} Then flgctl reset: learner update {version} is kept and becomes "
                                         "the challenger.") from None
             except PolicyFileError as exc:  # e.g. non-finite weights: never tested, never acting
+                why = str(exc)
                 self.store.transaction(lambda db: write_event(
-                    db, "refused", step, None, None, "gate", f"hand-over of learner update {version} refused: {exc}",
-                    {"error": str(exc)}))
+                    db, "refused", step, None, None, "gate", f"hand-over of learner update {version} refused: {why}",
+                    {"error": why}))
                 log.error("gate: hand-over of learner update %s refused: %s", version, exc)
                 return False
             rec = PolicyRecord(pid, "challenger", rel, sha, origin, None, int(version), steps, int(step), None)
@@ -484,8 +485,9 @@ class Gatekeeper:
             except GateError as exc:
                 log.error("gate: rollback not possible: %s", exc)
                 self.by_promotion = False  # do not retry every cycle; the operator sees the event
+                why = str(exc)
                 self.store.transaction(lambda db: write_event(
-                    db, "rollback-failed", step, self.champion.id, None, "gate", f"rollback not possible: {exc}",
+                    db, "rollback-failed", step, self.champion.id, None, "gate", f"rollback not possible: {why}",
                     {"verdict": rv.reason}))
                 return None
             self._restart_learner_from_champion("rollback")
