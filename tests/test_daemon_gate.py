@@ -162,12 +162,10 @@ def test_paced_the_hand_over_of_a_cycles_updates_is_the_challenger_right_after_t
     assert challenger["step"] == first + 1, challenger
 
 
-def test_a_policy_load_while_the_learner_is_in_a_long_update_never_stops_the_learner(tmp_path, monkeypatch):
-    import flgd.daemon.commands as commands
-
+def test_a_policy_load_while_the_learner_is_in_a_long_update_never_stops_the_learner(tmp_path):
     d = InProcess(tmp_path, SHIPPED, gate={"handover_every": 1000})
     _rig(d.ctl.learner, load_policy(SHIPPED).network, seconds=3.0)
-    monkeypatch.setattr(commands, "LEARNER_QUIET_TIMEOUT", 0.5)
+    d.ctl.learner_quiet_timeout = 0.5
     try:
         d.run()
         d.wait(lambda: d.ctl.learner._busy, "an update in progress")
@@ -175,7 +173,7 @@ def test_a_policy_load_while_the_learner_is_in_a_long_update_never_stops_the_lea
             d.ctl.handle(Request("policy_load", {"path": str(SHIPPED)}, peer="uid 0 pid 1"))
         assert busy.value.code == "busy" and "keeps running" in busy.value.message
         assert d.ctl.learner.running and d.ctl.status()["learner_running"]
-        monkeypatch.setattr(commands, "LEARNER_QUIET_TIMEOUT", 30.0)
+        d.ctl.learner_quiet_timeout = 30.0
         out = d.ctl.handle(Request("policy_load", {"path": str(SHIPPED)}, peer="uid 0 pid 1"))
         assert out["champion"] == 2
         assert d.ctl.learner.running

@@ -14,14 +14,13 @@ from pathlib import Path
 
 import pytest
 
-import flgd.gate.keeper as gatekeeper
-from flgd.gate.keeper import GateFileUnreadable
+from flgd.gate.keeper import GateError, GateFileUnreadable
 from tests.fakes.gate import GateCell, gate_config, make_network, same_weights
 
 
-@pytest.fixture(autouse=True)
-def _no_pauses(monkeypatch):
-    monkeypatch.setattr(gatekeeper, "READ_RETRY_DELAYS", (0.0, 0.0, 0.0))
+def unpaused_cell(tmp, config, configured=None, **gate_options) -> GateCell:
+    """The gate of ``tests.fakes.gate`` without the pauses between tries of an unreadable file."""
+    return GateCell(tmp, config, configured, read_retry_delays=(0.0, 0.0, 0.0), **gate_options)
 
 
 class Denied:
@@ -95,7 +94,7 @@ def _line(c: GateCell, length: int) -> list:
 
 
 def test_a_champion_unreadable_across_a_restart_is_not_marked_and_acts_again_once_readable(tmp_path, monkeypatch):
-    c = GateCell(tmp_path, gate_config())
+    c = unpaused_cell(tmp_path, gate_config())
     nets = _line(c, 2)
     roles, kinds = _roles(c), _kinds(c)
     file = tmp_path / c.gate.champion.file
@@ -112,7 +111,7 @@ def test_a_champion_unreadable_across_a_restart_is_not_marked_and_acts_again_onc
 
 
 def test_a_read_refused_once_is_tried_again(tmp_path, monkeypatch):
-    c = GateCell(tmp_path, gate_config())
+    c = unpaused_cell(tmp_path, gate_config())
     nets = _line(c, 2)
     denied = Denied(monkeypatch, tmp_path / c.gate.champion.file, times=1)
     c.reopen()
@@ -122,7 +121,7 @@ def test_a_read_refused_once_is_tried_again(tmp_path, monkeypatch):
 
 @pytest.mark.parametrize("what", ["the directory", "every file"])
 def test_the_whole_gate_directory_unreadable_once_keeps_the_line_and_its_rollbacks(tmp_path, monkeypatch, what):
-    c = GateCell(tmp_path, gate_config())
+    c = unpaused_cell(tmp_path, gate_config())
     nets = _line(c, 4)
     roles = _roles(c)
     gate = tmp_path / "gate"
@@ -141,7 +140,7 @@ def test_the_whole_gate_directory_unreadable_once_keeps_the_line_and_its_rollbac
 
 
 def test_an_unreadable_challenger_is_not_dropped(tmp_path, monkeypatch):
-    c = GateCell(tmp_path, gate_config())
+    c = unpaused_cell(tmp_path, gate_config())
     challenger = make_network(30)
     c.hand_over(challenger)
     for k in range(6):
@@ -156,7 +155,7 @@ def test_an_unreadable_challenger_is_not_dropped(tmp_path, monkeypatch):
 
 
 def test_a_missing_gate_directory_refuses_until_restored_and_an_empty_one_gives_the_line_up(tmp_path):
-    c = GateCell(tmp_path, gate_config())
+    c = unpaused_cell(tmp_path, gate_config())
     nets = _line(c, 2)
     roles, gate, kept = _roles(c), tmp_path / "gate", tmp_path / "gate.kept"
     gate.rename(kept)
@@ -175,10 +174,10 @@ def test_a_missing_gate_directory_refuses_until_restored_and_an_empty_one_gives_
 
 
 def test_another_network_variant_in_the_config_refuses_and_records_nothing(tmp_path):
-    c = GateCell(tmp_path, gate_config())
+    c = unpaused_cell(tmp_path, gate_config())
     roles = _roles(c)
     c.config = dataclasses.replace(c.config, learning=dataclasses.replace(c.config.learning, network="rho-fcn-fast"))
-    with pytest.raises(gatekeeper.GateError, match="set learning.network back to 'fast'"):
+    with pytest.raises(GateError, match="set learning.network back to 'fast'"):
         c.reopen()
     assert _roles(c) == roles and (tmp_path / "gate" / "policy-000001.safetensors").is_file()
 
@@ -191,7 +190,7 @@ def _corrupt(file: Path) -> bytes:
 
 
 def test_a_corrupted_champion_is_marked_unusable_and_moved_aside_with_what_to_do(tmp_path):
-    c = GateCell(tmp_path, gate_config())
+    c = unpaused_cell(tmp_path, gate_config())
     _line(c, 2)
     file = tmp_path / c.gate.champion.file
     corrupted = _corrupt(file)
@@ -207,8 +206,7 @@ def test_a_corrupted_champion_is_marked_unusable_and_moved_aside_with_what_to_do
 
 
 def test_only_the_newest_unusable_files_are_kept(tmp_path, monkeypatch):
-    monkeypatch.setattr(gatekeeper, "KEEP_UNUSABLE", 2)
-    c = GateCell(tmp_path, gate_config())
+    c = unpaused_cell(tmp_path, gate_config(), keep_unusable=2)
     corrupted = {}
     for k in range(4):
         c.hand_over(make_network(40 + k))

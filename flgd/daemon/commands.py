@@ -24,7 +24,6 @@ from flgd.cycle import ToolInView
 from flgd.daemon.metrics import compute_stats, status_summary
 from flgd.daemon.protocol import ProtocolError, Request
 from flgd.daemon.state import IllegalTransition, State
-from flgd.learning_stack import LEARNER_QUIET_TIMEOUT  # a name here, so that a test can shorten it
 from flgd.store import StoreError
 
 if TYPE_CHECKING:
@@ -229,7 +228,7 @@ def swap_in_policy(ctl: DaemonControl, path: str, loaded: Any, who: str) -> dict
     checkpoint_error = ""
     with ctl.learning_lock:
         try:
-            with lr.paused(LEARNER_QUIET_TIMEOUT):
+            with lr.paused(ctl.learner_quiet_timeout):
                 before = {k: v.detach().clone() for k, v in lr.online.state_dict().items()}
                 try:
                     lr.online.load_state_dict(loaded.network.state_dict())  # fits the running network?

@@ -53,6 +53,7 @@ class DaemonControl(Protocol):
     cycle_in_flight: bool
     started_at: float
     learning_lock: threading.Lock
+    learner_quiet_timeout: float
 
     def run_on_loop(self, fn: Callable[[], dict], timeout: float = ...) -> dict:
         """Run ``fn`` on the run loop between cycles; its result."""

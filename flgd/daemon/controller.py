@@ -42,7 +42,7 @@ from flgd.daemon import commands
 from flgd.daemon.notify import Notifier
 from flgd.daemon.protocol import ProtocolError, Request
 from flgd.daemon.state import IllegalTransition, State, StateChange, StateMachine
-from flgd.learning_stack import CheckpointMeta, LearningStack
+from flgd.learning_stack import LEARNER_QUIET_TIMEOUT, CheckpointMeta, LearningStack
 from flgd.safety import PlanRefused
 from flgd.store import CheckpointDir, Store, StoreError
 
@@ -81,7 +81,8 @@ class Controller:
     last_checkpoint = _learning_part("last_checkpoint", "the newest checkpoint resumed from or written")
 
     def __init__(self, config: CellConfig, *, policy_path: str | None = None, autostart: bool = False,
-                 notifier: Notifier | None = None, checkpoint_keep: int = 3):
+                 notifier: Notifier | None = None, checkpoint_keep: int = 3,
+                 learner_quiet_timeout: float = LEARNER_QUIET_TIMEOUT):
         self.config = config
         self.policy_arg = policy_path if policy_path is not None else (config.policy or None)
         self.fine_tune, self.learning_why = fine_tunes(dataclasses.replace(config, policy=self.policy_arg or ""))
@@ -109,6 +110,8 @@ class Controller:
         self.cycle_in_flight = False
         self._learning_problem = ""
         self.learning_lock = threading.Lock()  # a policy load and a learner rebuild never interleave
+        # how long a policy load or a learner restart waits for the learner's update in progress
+        self.learner_quiet_timeout = learner_quiet_timeout
         self._inbox: "queue.Queue[tuple[Callable[[], dict], concurrent.futures.Future]]" = queue.Queue()
         self._wake = threading.Event()
         self._lock_fd: int | None = None
@@ -253,7 +256,7 @@ class Controller:
 
         try:
             with self.learning_lock:
-                owed = self.learning.restart_learner_from(network, commands.LEARNER_QUIET_TIMEOUT)
+                owed = self.learning.restart_learner_from(network, self.learner_quiet_timeout)
         except LearnerBusy as exc:
             self.record_event("learner", f"not reset to the champion: {exc}")
             raise

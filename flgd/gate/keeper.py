@@ -37,15 +37,14 @@ from pathlib import Path
 from typing import Any, Callable
 
 from flgd.config import CellConfig
-from flgd.gate.storage import (GATE_DIR, KEEP_UNUSABLE, READ_RETRY_DELAYS, UNUSABLE_DIR, GateDirUnwritable,
+from flgd.gate.storage import (KEEP_UNUSABLE, READ_RETRY_DELAYS, GateDirUnwritable,
                                GateError, GateFileUnreadable, GateStorage, PolicyRecord, insert_record, tally_json,
                                write_event)
 from flgd.learning.agent import WeightsMailbox
 from flgd.gate.statistics import GateSettings, Tally, Verdict, challenger_share, challenger_verdict, rollback_verdict
 from flgd.store import Store
 
-__all__ = ["Gatekeeper", "GateError", "GateFileUnreadable", "PolicyRecord", "gate_settings", "CREDITED_OUTCOMES",
-           "READ_RETRY_DELAYS", "KEEP_UNUSABLE", "UNUSABLE_DIR", "GATE_DIR"]
+__all__ = ["Gatekeeper", "GateError", "GateFileUnreadable", "PolicyRecord", "gate_settings", "CREDITED_OUTCOMES"]
 
 log = logging.getLogger("flgd")
 
@@ -66,7 +65,8 @@ class Gatekeeper:
     """The gate's state: champion, challenger, their tallies; the agent's networks follow it."""
 
     def __init__(self, config: CellConfig, store: Store, agent: Any, state_dir: str | Path,
-                 keep_champions: int | None = None) -> None:
+                 keep_champions: int | None = None, keep_unusable: int = KEEP_UNUSABLE,
+                 read_retry_delays: tuple[float, ...] = READ_RETRY_DELAYS) -> None:
         self.config = config
         self.settings = gate_settings(config)
         self.enabled = bool(config.gate.enabled)
@@ -89,9 +89,8 @@ class Gatekeeper:
         # called with the champion's network whenever the acting policy changes (restore, promotion, rollback,
         # load): the learner's L2-SP anchor (``learning.anchor_weight``) follows what acts
         self.on_champion: Callable[[Any], None] | None = None
-        # KEEP_UNUSABLE and READ_RETRY_DELAYS as this module holds them when the gate is built
-        self.files = GateStorage(config, store, state_dir, keep_unusable=KEEP_UNUSABLE,
-                                 read_retry_delays=READ_RETRY_DELAYS)
+        self.files = GateStorage(config, store, state_dir, keep_unusable=keep_unusable,
+                                 read_retry_delays=read_retry_delays)
         self._lock = threading.RLock()
         self._unwritten: tuple[Any, int] | None = None  # a hand-over whose file the gate directory refused
 

@@ -34,10 +34,11 @@ def same_weights(a, b) -> bool:
 
 
 class GateCell:
-    """A gate on a store in ``tmp``, as the daemon builds it; ``reopen`` is a restart."""
+    """A gate on a store in ``tmp``, as the daemon builds it (``gate_options``: the Gatekeeper's keyword
+    arguments); ``reopen`` is a restart."""
 
-    def __init__(self, tmp: Path, config: CellConfig, configured=None):
-        self.tmp, self.config = tmp, config
+    def __init__(self, tmp: Path, config: CellConfig, configured=None, **gate_options):
+        self.tmp, self.config, self.gate_options = tmp, config, gate_options
         self.configured = configured if configured is not None else make_network(1)
         self.step = 0
         self.open()
@@ -45,7 +46,7 @@ class GateCell:
     def open(self) -> None:
         self.store = Store(self.tmp)
         self.agent = Agent(self.config, make_network(99), seed=0)
-        self.gate = Gatekeeper(self.config, self.store, self.agent, self.tmp)
+        self.gate = Gatekeeper(self.config, self.store, self.agent, self.tmp, **self.gate_options)
         self.note = self.gate.restore(self.step, self._configured, self._fresh)
 
     def _configured(self):
