@@ -7,12 +7,12 @@ from dataclasses import dataclass
 from typing import Literal
 
 Primitive = Literal["grasp", "push", "shift"]
-PRIMITIVES: tuple[str, ...] = ("grasp", "push", "shift")
+PRIMITIVES: tuple[Primitive, ...] = ("grasp", "push", "shift")
 
 __all__ = ["Action", "Primitive", "PRIMITIVES", "rotation_angle", "move_kind_at"]
 
 
-def move_kind_at(height_at_point: float, shift_height: float) -> str:
+def move_kind_at(height_at_point: float, shift_height: float) -> Primitive:
     """Paper III-A: a move that starts on an object (higher than ``shift_height``) is a shift, elsewhere a push.
 
     The one copy of the rule: the agent labels its decisions with it, the plans execute by it and the

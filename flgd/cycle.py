@@ -335,7 +335,9 @@ class CycleRunner:
 
         mover = threading.Thread(target=place, name="flgd-place", daemon=True)
         mover.start()
-        provisional, decided, failed = None, None, None
+        provisional: OutcomeState | None = None
+        decided: tuple[Any, ...] | None = None
+        failed: BaseException | None = None
         try:
             if not done and not self._stop.is_set():
                 busy_from = time.perf_counter()
@@ -355,7 +357,9 @@ class CycleRunner:
                 self.agent.restore_outcome_state(provisional)
             if "error" in outcome and failed is not None:
                 log.error("deciding while placing failed too: %r", failed)
-            raise outcome.get("error") or failed
+            first = outcome["error"] if "error" in outcome else failed
+            assert isinstance(first, BaseException)
+            raise first
         released = on_cell_clock(record, outcome["result"])
         if decided is not None:
             decision, stuck, seconds, busy = decided

@@ -270,7 +270,7 @@ def swap_in_policy(ctl: DaemonControl, path: str, loaded: Any, who: str) -> dict
                                       f"the previous one; fix the state directory {ctl.state_dir}, flgctl "
                                       f"reset, then load the policy again")
     return {"loaded": path, "checkpoint": ctl.last_checkpoint, "dropped_updates": owed,
-            "champion": None if ctl.gate is None else ctl.gate.champion.id,
+            "champion": None if ctl.gate is None or ctl.gate.champion is None else ctl.gate.champion.id,
             "metadata": {k: v for k, v in loaded.metadata.items()
                          if isinstance(v, (str, int, float, bool, type(None)))}}
 

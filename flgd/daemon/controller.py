@@ -627,6 +627,7 @@ class Controller:
             except StartupError as exc:
                 self.fault(str(exc))
                 raise ProtocolError("failed", f"reset: {exc}") from None
+        assert self.store is not None  # opened above, or it was open
         disk = self.store.space_problem()
         if disk:  # the recovery moves the arm, and nothing may move that cannot be recorded
             raise ProtocolError("failed", f"reset refused, still {st.value}: store {self.store.path}: {disk}")

@@ -22,9 +22,10 @@ from __future__ import annotations
 
 import logging
 import socket
+import socketserver
 import threading
 import time
-from typing import Any
+from typing import Any, cast
 
 from prometheus_client.exposition import MetricsHandler
 from prometheus_client.registry import CollectorRegistry
@@ -56,7 +57,7 @@ class MetricsHTTPServer:
         self.port = port
         self.workers = workers
         self.deadline = deadline
-        self.handler_class: type = MetricsHandler.factory(registry)
+        self.handler_class: type[MetricsHandler] = MetricsHandler.factory(registry)
         self.handler_class.timeout = deadline  # no single read or write may wait longer than the whole deadline
         self._sock: socket.socket | None = None
         self._threads: list[threading.Thread] = []
@@ -123,7 +124,8 @@ class MetricsHTTPServer:
                 self._open[index] = (conn, time.monotonic() + self.deadline)
             try:
                 conn.settimeout(self.deadline)
-                self.handler_class(conn, address, _HandlerServerInfo(self.host, self.port))
+                # the handler reads only the server's name and port: a stand-in, not a socketserver
+                self.handler_class(conn, address, cast(socketserver.BaseServer, _HandlerServerInfo(self.host, self.port)))
                 self.served += 1
             except Exception as exc:  # a client that went away, a collector error: the next one is served
                 log.warning("metrics: a request failed: %s: %s", type(exc).__name__, exc)

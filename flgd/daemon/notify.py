@@ -47,7 +47,7 @@ class Notifier:
 
     def send(self, *lines: str) -> bool:
         """Send one datagram of ``KEY=value`` lines; False if not under systemd or it failed."""
-        if self._sock is None:
+        if self._sock is None or self.address is None:
             return False
         payload = "\n".join(lines).encode("utf-8", "replace")
         with self._lock:

@@ -155,14 +155,14 @@ def cell_metric_families(controller: Any, state_name: Callable[[], str],
                    stats["picks_per_hour"])
     if picks is not None:
         yield picks
-    fam = CounterMetricFamily("flgd_moves", "executed moves by kind", labels=["kind"])
+    moves = CounterMetricFamily("flgd_moves", "executed moves by kind", labels=["kind"])
     for kind, n in sorted(stats["moves"].items()):
-        fam.add_metric([kind], n)
-    yield fam
-    fam = CounterMetricFamily("flgd_faults", "faults recorded, by kind", labels=["kind"])
+        moves.add_metric([kind], n)
+    yield moves
+    faults_family = CounterMetricFamily("flgd_faults", "faults recorded, by kind", labels=["kind"])
     for kind, n in faults.items():
-        fam.add_metric([kind], n)
-    yield fam
+        faults_family.add_metric([kind], n)
+    yield faults_family
     yield _counter("flgd_frames_refused", "pictures refused because the tool stood between the camera and the "
                                           "workspace (never decided on)", stats["frames_refused"])
     yield _counter("flgd_plans_refused", "plans the safety envelope refused (never sent to the cell)",
@@ -183,12 +183,12 @@ def cell_metric_families(controller: Any, state_name: Callable[[], str],
                                                 "previous pick", stats["decide_hidden_share"])
     if hidden is not None:
         yield hidden
-    fam = HistogramMetricFamily("flgd_cycle_phase_seconds", "duration of each phase of a cycle, and of the "
-                                                            "whole cycle (phase=\"cycle\")", labels=["phase"])
+    phase_family = HistogramMetricFamily("flgd_cycle_phase_seconds", "duration of each phase of a cycle, and of "
+                                         "the whole cycle (phase=\"cycle\")", labels=["phase"])
     for phase, (counts, total, n) in phases.items():
         buckets = [(repr(float(b)), c) for b, c in zip(histograms.buckets, counts)] + [("+Inf", n)]
-        fam.add_metric([phase], buckets, sum_value=total)
-    yield fam
+        phase_family.add_metric([phase], buckets, sum_value=total)
+    yield phase_family
 
 
 class CellCollector(Collector):

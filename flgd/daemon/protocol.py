@@ -222,10 +222,10 @@ def parse_request(line: bytes) -> Request:
         if not isinstance(value, tp) or isinstance(value, bool) and tp is not bool:
             raise ProtocolError("bad_request", f"{cmd}: arg {name!r} must be a {tp.__name__}, got "
                                                f"{type(value).__name__}", rid)
-        if tp is int and abs(value) >= _INT_LIMIT:
+        if isinstance(value, int) and abs(value) >= _INT_LIMIT:
             raise ProtocolError("bad_request", f"{cmd}: arg {name!r} is {_described(value)}; expected a number "
                                                "below 2**63", rid)
-        if tp is str and "\x00" in value:
+        if isinstance(value, str) and "\x00" in value:
             raise ProtocolError("bad_request", f"{cmd}: arg {name!r} contains a NUL character (\\x00); "
                                                "expected a file path or name without one", rid)
     return Request(cmd=cmd, args=dict(args), id=rid)

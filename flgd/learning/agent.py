@@ -65,11 +65,12 @@ import copy
 import dataclasses
 import threading
 from dataclasses import dataclass
+from typing import Any, Mapping
 
 import numpy as np
 import torch
 
-from flgd.actions import Action, move_kind_at
+from flgd.actions import Action, Primitive, move_kind_at
 from flgd.clutter import action_masks, grasp_mask
 from flgd.config import CellConfig
 from flgd.perception import Heightmaps
@@ -176,8 +177,8 @@ class OutcomeState:
     forced_moves: int
     previous: Action | None
     memory: FailureMemory
-    rng: dict
-    assign_rng: dict
+    rng: Mapping[str, Any]
+    assign_rng: Mapping[str, Any]
     exhausted: str
 
 
@@ -255,8 +256,8 @@ class Agent:
         """All-rotation Q-maps [R,2,H,W] float32 of ``network`` (default: the champion; grasp twins averaged
         when ``exploration.twin_grasps``)."""
         with torch.inference_mode():
-            q = q_maps(self.network if network is None else network, heightmaps, self.rotations)
-        q = q.float().cpu().numpy()
+            maps = q_maps(self.network if network is None else network, heightmaps, self.rotations)
+        q = maps.float().cpu().numpy()
         return twin_grasp_maps(q) if self.config.exploration.twin_grasps else q
 
     def decide(self, heightmaps: Heightmaps, step: int) -> Decision | None:
@@ -317,8 +318,8 @@ class Agent:
                 near = np.where(self.memory.near(target.row, target.col, reach, height.shape)[None], masked[:, 1],
                                 -np.inf)
                 if np.isfinite(near).any():
-                    rot, row, col = np.unravel_index(int(np.argmax(near)), near.shape)
-                    index, rule = (int(rot), 1, int(row), int(col)), "ladder-move"
+                    n_rot, n_row, n_col = np.unravel_index(int(np.argmax(near)), near.shape)
+                    index, rule = (int(n_rot), 1, int(n_row), int(n_col)), "ladder-move"
             self.forced_moves += 1
         elif not has_grasp:  # grasp-only and every grasp suppressed
             self._exhausted = "every grasp lies in a region where a grasp failed in this scene (grasp-only)"
@@ -346,7 +347,7 @@ class Agent:
             index = self._best(masked, channel)
 
         rot, _, row, col = (int(v) for v in index)
-        primitive = "grasp" if channel == 0 else self._move_kind(float(height[row, col]))
+        primitive: Primitive = "grasp" if channel == 0 else self._move_kind(float(height[row, col]))
         action = Action(primitive, row, col, rot, self.rotations)
         self.previous = action
         return Decision(action=action, q_maps=q, grasp_mask=gmask, move_mask=mmask,
@@ -406,7 +407,7 @@ class Agent:
 
     # ------------------------------------------------------------------ helpers
 
-    def _move_kind(self, height_at_point: float) -> str:
+    def _move_kind(self, height_at_point: float) -> Primitive:
         return move_kind_at(height_at_point, self.config.rewards.shift_height)
 
     @staticmethod

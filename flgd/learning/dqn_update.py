@@ -249,7 +249,8 @@ class DQNUpdate:
         if not self._caching() or not self._argmax_age_ok(weights_version):
             return
         with self._argmax_lock:
-            self._next_argmax[key] = (int(weights_version), None if index is None else tuple(int(v) for v in index))
+            self._next_argmax[key] = (int(weights_version), None if index is None else
+                                      (int(index[0]), int(index[1]), int(index[2]), int(index[3])))
 
     def remembered_argmax(self) -> list[tuple[bytes, int, tuple[int, int, int, int] | None]]:
         """Every remembered a' as (state key, update count of the weights that found it, index or None): what a
@@ -277,6 +278,7 @@ class DQNUpdate:
             if hit is not None and self._argmax_age_ok(hit[0]):
                 self.argmax_reused += 1
                 return hit[1]
+        assert t.next_state is not None, "a' is searched only for a transition with a next state"
         height = np.nan_to_num(np.asarray(t.next_state.height, dtype=np.float32), nan=0.0)
         gmask, mmask = self._masks(height)
         q_next = q_maps(self.online, t.next_state, self.rotations).cpu().numpy()
@@ -312,6 +314,7 @@ class DQNUpdate:
             if cached is not None and cached[0] == index:
                 values[k] = cached[1]
             else:
+                assert t.next_state is not None, "a target value is read only for a transition with a next state"
                 misses.setdefault(tuple(np.asarray(t.next_state.height).shape), []).append(k)
         for (h_px, w_px), ks in misses.items():
             colors, heights, rots, owners = [], [], [], []
@@ -332,7 +335,9 @@ class DQNUpdate:
                 t, index = wanted[k]
                 if t.next_key is not None and self._caching():
                     self._next_value[t.next_key] = (index, value)
-        return [float(v) for v in values]
+        found = [v for v in values if v is not None]
+        assert len(found) == len(wanted), "every wanted value was cached or computed"
+        return found
 
     @torch.no_grad()
     def targets(self, transitions: Sequence[Transition]) -> np.ndarray:
@@ -427,7 +432,8 @@ class DQNUpdate:
         anchor = self._anchor
         if a <= 0.0 or not anchor:
             return None
-        total = sum(((p - anchor[k]) ** 2).sum() for k, p in self.online.named_parameters() if p.requires_grad)
+        total = torch.stack([((p - anchor[k]) ** 2).sum() for k, p in self.online.named_parameters()
+                             if p.requires_grad]).sum()
         return a * total
 
     def _prior_count(self, batch_size: int) -> int:
@@ -462,6 +468,7 @@ class DQNUpdate:
             from_prior = self._prior_count(size)
             indices, transitions, weights = self.replay.sample(size - from_prior)
             if from_prior:
+                assert self.prior is not None, "_prior_count draws from a prior sample only when there is one"
                 transitions = transitions + self.prior.draw(from_prior, self._prior_rng)
                 self.prior_drawn += from_prior
                 weights = np.concatenate([weights, np.full(from_prior, weights.mean(), dtype=np.float32)])

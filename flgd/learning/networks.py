@@ -178,36 +178,37 @@ class _DilatedContext(nn.Module):
         return F.relu(x + self.b(self.a(x)))
 
 
-def _add_fast_trunk(net: nn.Module, width: int) -> int:
-    """The stride-8 encoder and dilated context shared by ``fast`` and ``rho-fcn-fast``, so that their
-    comparison isolates the head.  Set as attributes (not a submodule) to keep the parameter names of
-    existing policy files."""
-    if not (isinstance(width, int) and 2 <= width <= 256):
-        raise ValueError(f"width: got {width!r}, expected an integer 2..256")
-    net.width = width
-    net.enc1 = _conv_bn_relu(4, width, stride=2)
-    net.enc2 = _conv_bn_relu(width, 2 * width, stride=2)
-    net.enc3 = _conv_bn_relu(2 * width, 4 * width, stride=2)
-    net.context = _DilatedContext(4 * width)
-    return width
+class _FastTrunkNetwork(QMapNetwork):
+    """The stride-8 encoder and dilated context shared by ``fast`` and ``rho-fcn-fast``, so that their comparison
+    isolates the head.  Its layers are attributes of the network itself, as policy files name their parameters."""
+
+    def __init__(self, rotations: int, width: int) -> None:
+        super().__init__(rotations)
+        if not (isinstance(width, int) and 2 <= width <= 256):
+            raise ValueError(f"width: got {width!r}, expected an integer 2..256")
+        self.width = width
+        self.enc1 = _conv_bn_relu(4, width, stride=2)
+        self.enc2 = _conv_bn_relu(width, 2 * width, stride=2)
+        self.enc3 = _conv_bn_relu(2 * width, 4 * width, stride=2)
+        self.context = _DilatedContext(4 * width)
+
+    def architecture(self) -> dict:
+        return {**super().architecture(), "width": self.width}
 
 
-class FastQNet(QMapNetwork):
+class FastQNet(_FastTrunkNetwork):
     """The CPU default: stride-8 encoder, dilated context, FLG-style skip head (see module doc)."""
 
     variant = "fast"
     stride = 8
 
     def __init__(self, rotations: int = 16, width: int = FAST_WIDTH) -> None:
-        super().__init__(rotations)
-        w = _add_fast_trunk(self, width)
+        super().__init__(rotations, width)
+        w = width
         self.squeeze = _conv_relu_bn(4 * w, 2 * w, 1)
         self.fuse = _conv_relu_bn(4 * w, 2 * w, 3)
         self.advantage = nn.Conv2d(2 * w, 2, 1)
         self.value = nn.Linear(4 * w, 1)
-
-    def architecture(self) -> dict:
-        return {**super().architecture(), "width": self.width}
 
     def features(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(dense stride-4 features [B,2w,h/4,w/4], bottleneck [B,4w,h/8,w/8]): what the Q-maps are read from,
@@ -222,23 +223,20 @@ class FastQNet(QMapNetwork):
         return self.advantage(dense), self.value(s8.mean(dim=(2, 3)))
 
 
-class RhoFcnFastQNet(QMapNetwork):
+class RhoFcnFastQNet(_FastTrunkNetwork):
     """The VPG head (x16 bilinear, no skip) on the fast trunk plus one stride-2 stage (see module doc)."""
 
     variant = "rho-fcn-fast"
     stride = 16
 
     def __init__(self, rotations: int = 16, width: int = FAST_WIDTH) -> None:
-        super().__init__(rotations)
-        w = _add_fast_trunk(self, width)
+        super().__init__(rotations, width)
+        w = width
         self.enc4 = _conv_bn_relu(4 * w, 8 * w, stride=2)
         self.advantage = nn.Sequential(
             nn.BatchNorm2d(8 * w), nn.ReLU(inplace=True), nn.Conv2d(8 * w, 2 * w, 1, bias=False),
             nn.BatchNorm2d(2 * w), nn.ReLU(inplace=True), nn.Conv2d(2 * w, 2, 1))
         self.value = nn.Linear(8 * w, 1)
-
-    def architecture(self) -> dict:
-        return {**super().architecture(), "width": self.width}
 
     def advantage_and_value(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         bottleneck = self.enc4(self.context(self.enc3(self.enc2(self.enc1(x)))))
@@ -262,7 +260,7 @@ class _DenseBlock(nn.Module):
     def __init__(self, layers: int, cin: int, growth: int, bottleneck: int) -> None:
         super().__init__()
         self.layers = nn.ModuleList(_DenseLayer(cin + i * growth, growth, bottleneck) for i in range(layers))
-        self.out_channels = cin + layers * growth
+        self.out_channels: int = cin + layers * growth
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         features = [x]
@@ -287,28 +285,32 @@ class DenseNet121Trunk(nn.Module):
             nn.ReLU(inplace=True), nn.MaxPool2d(3, 2, 1))
         c = init_features
         stages = []
+        skip_channels = c
         for i, n in enumerate(blocks):
             block = _DenseBlock(n, c, growth, bottleneck)
             c = block.out_channels
-            stage = [block]
+            if i == 1:
+                skip_channels = c  # dense block 2 output, stride 8
+            stage: list[nn.Module] = [block]
             if i < len(blocks) - 1:
                 stage.append(_transition(c, c // 2))
                 c //= 2
             stages.append(nn.ModuleList(stage))
         self.stages = nn.ModuleList(stages)
         self.norm = nn.BatchNorm2d(c)
-        self.out_channels = c
-        self.skip_channels = stages[1][0].out_channels  # dense block 2 output, stride 8
+        self.out_channels: int = c
+        self.skip_channels: int = skip_channels
 
     def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         x = self.stem(x)
         skip = x
         for i, stage in enumerate(self.stages):
-            x = stage[0](x)
+            parts = list(stage.children())
+            x = parts[0](x)
             if i == 1:
                 skip = x
-            if len(stage) > 1:
-                x = stage[1](x)
+            if len(parts) > 1:
+                x = parts[1](x)
         return skip, F.relu(self.norm(x))
 
 
@@ -325,6 +327,7 @@ class DenseNetQNet(QMapNetwork):
         self.variant = "densenet121" if head == "flg" else "rho-fcn"
         self.trunk = DenseNet121Trunk()
         c = self.trunk.out_channels
+        self.advantage: nn.Module
         if head == "flg":
             self.squeeze = _conv_relu_bn(c, 256, 1)
             self.fuse = _conv_relu_bn(256 + self.trunk.skip_channels, 128, 3)

@@ -29,6 +29,7 @@ import zipfile
 import zlib
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -94,7 +95,7 @@ def write_prior_sample(path: str | Path, transitions: list[Transition], source: 
     state = [put(t.state) for t in transitions]
     next_state = [-1 if t.next_state is None else put(t.next_state) for t in transitions]
     offsets = np.cumsum([0] + [len(b) for b in blobs]).astype(np.int64)
-    arrays = {
+    arrays: dict[str, Any] = {
         "format": np.array(FORMAT),
         "states": np.frombuffer(b"".join(blobs), dtype=np.uint8),
         "state_offsets": offsets,
