@@ -70,6 +70,12 @@ class FrameSource(abc.ABC):
         """Stop streaming; safe to call twice."""
 
 
+def _drain(queue: Any) -> None:
+    """Drop every frame set ``queue`` (a pipeline or a syncer) holds, without waiting."""
+    while queue.poll_for_frames():
+        pass
+
+
 def _has_depth_and_color(frames) -> bool:
     return bool(frames) and bool(frames.get_depth_frame()) and bool(frames.get_color_frame())
 
@@ -94,10 +100,7 @@ class PipelineSource(FrameSource):
         return None
 
     def drop_queued(self) -> None:
-        while True:
-            frames = self._pipeline.poll_for_frames()
-            if not frames:
-                return
+        _drain(self._pipeline)
 
     @property
     def device(self):
@@ -159,10 +162,7 @@ class SensorSource(FrameSource):
         return None
 
     def drop_queued(self) -> None:
-        while True:
-            frames = self._syncer.poll_for_frames()
-            if not frames:
-                return
+        _drain(self._syncer)
 
     @property
     def device(self):
