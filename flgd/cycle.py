@@ -69,7 +69,7 @@ from flgd.camera_view import tool_in_view
 from flgd.cell import STOPPED_ON_REQUEST, Cell, CellFault, ExecutionResult
 from flgd.clutter import grasp_mask, grasp_reward, judge_move
 from flgd.config import CellConfig
-from flgd.cycle_record import (UNSTABLE_MARK, CycleRecord, float_or_none, held_at_place, on_cell_clock,
+from flgd.cycle_record import (UNSTABLE_MARK, CycleOutcome, CycleRecord, float_or_none, held_at_place, on_cell_clock,
                                 unstable_failure, was_stopped)
 from flgd.perception import Heightmaps, frame_heightmaps
 from flgd.plans import plan_action, plan_home, plan_release
@@ -274,7 +274,7 @@ class CycleRunner:
     def _stopped(self, record: CycleRecord, why: str, finish: Callable[[], CycleRecord],
                  timer: _Timer) -> CycleRecord:
         """A stop request interrupted the action: log it, learn nothing, forget the (moved) scene."""
-        record.outcome = "stopped"
+        record.outcome = CycleOutcome.STOPPED
         record.failure = why if STOPPED_ON_REQUEST in why else f"{why}: {STOPPED_ON_REQUEST}"
         self.forget_state()
         self._commit(finish(), None, timer)
@@ -377,7 +377,7 @@ class CycleRunner:
         t_start = time.perf_counter()
         timings: dict[str, float] = {}
         timer = _Timer(timings, self.on_phase)
-        record = CycleRecord(outcome="empty", time=time.time(), backend=self.backend, timings=timings)
+        record = CycleRecord(outcome=CycleOutcome.EMPTY, time=time.time(), backend=self.backend, timings=timings)
 
         def finish() -> CycleRecord:
             record.duration = time.perf_counter() - t_start
@@ -389,7 +389,7 @@ class CycleRunner:
             with timer.phase("execute"):
                 home = on_cell_clock(record, self._run_checked(plan_home(self.config), "home before capture"))
             if was_stopped(home) or self._stop.is_set():
-                record.outcome = "stopped"
+                record.outcome = CycleOutcome.STOPPED
                 record.failure = home.failure or STOPPED_ON_REQUEST
                 return finish()
             if not home.completed and not unstable_failure(home):
@@ -407,7 +407,7 @@ class CycleRunner:
             with timer.phase("decide"):
                 decision, stuck = self._decide(state)
         if stuck:
-            record.outcome = "stuck"
+            record.outcome = CycleOutcome.STUCK
             record.failure = stuck
             if self.cell.can_reset_scene():
                 self._reset_scene(timer, record)
@@ -444,7 +444,7 @@ class CycleRunner:
                 # check_plan reports an empty refused plan as "no steps"; the builder's reason says more
                 record.refused = str(exc)
         if checked is None:
-            record.outcome = "refused"
+            record.outcome = CycleOutcome.REFUSED
             record.reward = 0.0
             if action.primitive == "grasp":
                 record.success = False
@@ -507,7 +507,7 @@ class CycleRunner:
                     if not home.completed and not unstable:
                         raise CellFault(f"could not return home after a failed {record.kind}: {home.failure}")
         except CellFault as exc:
-            record.outcome = "fault"
+            record.outcome = CycleOutcome.FAULT
             record.failure = str(exc)
             record.cell_time = record.gripper_time = None   # no time on the cell's clock: count the wall clock's
             self.forget_state()
@@ -519,7 +519,7 @@ class CycleRunner:
             raise
 
         if unstable:
-            record.outcome = "discarded"
+            record.outcome = CycleOutcome.DISCARDED
             record.failure = unstable
             self._reset_scene(timer, record)
             self._commit(finish(), None, timer)
@@ -541,7 +541,7 @@ class CycleRunner:
             if provisional is None:   # else recorded before deciding ahead, and the place confirmed it
                 _record_outcome(self.agent, action, record.success if action.primitive == "grasp" else None,
                                 bool(record.reward), after.height, record.kind)
-        record.outcome = "executed"
+        record.outcome = CycleOutcome.EXECUTED
         transition = _make_transition(state, action, float(record.reward),
                                       None if record.done else after, record.done)
         self._commit(finish(), transition, timer)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from enum import StrEnum
 from typing import Any
 
 import numpy as np
@@ -13,18 +14,30 @@ from flgd.cell import STOPPED_ON_REQUEST, ExecutionResult
 from flgd.clutter import grasp_reward
 from flgd.config import CellConfig
 
-__all__ = ["CycleRecord", "UNSTABLE_MARK", "on_cell_clock", "held_at_place", "was_stopped", "unstable_failure",
+__all__ = ["CycleOutcome", "CycleRecord", "UNSTABLE_MARK", "on_cell_clock", "held_at_place", "was_stopped", "unstable_failure",
            "float_or_none"]
 
 # ExecutionResult.failure containing this word means the simulation blew up: never learn from it.
 UNSTABLE_MARK = "unstable"
 
 
+class CycleOutcome(StrEnum):
+    """How a cycle ended; the value is what the action log's ``outcome`` column holds."""
+
+    EXECUTED = "executed"    # the action ran (it may have failed: ``success``, ``failure``)
+    REFUSED = "refused"      # the safety envelope refused its plan: nothing moved
+    FAULT = "fault"          # the cell faulted during it
+    DISCARDED = "discarded"  # the simulation blew up: nothing learned, a new scene
+    STOPPED = "stopped"      # a stop request interrupted it
+    STUCK = "stuck"          # the agent gave up on the scene
+    EMPTY = "empty"          # nothing to act on: the workspace is clear
+
+
 @dataclass
 class CycleRecord:
     """What one cycle did; ``row()`` is its action-log row."""
 
-    outcome: str
+    outcome: CycleOutcome
     step: int | None = None
     time: float = 0.0
     backend: str = ""
@@ -58,7 +71,7 @@ class CycleRecord:
     def row(self) -> dict[str, Any]:
         a = self.action
         out: dict[str, Any] = {
-            "step": self.step, "time": self.time, "backend": self.backend, "outcome": self.outcome,
+            "step": self.step, "time": self.time, "backend": self.backend, "outcome": str(self.outcome),
             "primitive": None if a is None else a.primitive, "kind": self.kind,
             "row": None if a is None else a.row, "col": None if a is None else a.col,
             "rotation": None if a is None else a.rotation, "reward": self.reward,

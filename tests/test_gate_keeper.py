@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 import torch
 
+from flgd.cycle_record import CycleOutcome
 from flgd.gate.keeper import GateError
 from flgd.learning.agent import Agent
 from flgd.perception import Heightmaps
@@ -115,7 +116,7 @@ def test_a_restart_acts_with_the_champion_and_keeps_the_tallies(tmp_path):
     for k in range(30):
         c.act(2 if k % 3 == 0 else 1, k % 2 == 0)
     c.act(None, True)  # epsilon: credited to neither
-    c.act(1, True, outcome="discarded")  # the simulator gave up: not the policy's doing
+    c.act(1, True, outcome=CycleOutcome.DISCARDED)  # the simulator gave up: not the policy's doing
     before = c.gate.status()
     c.reopen()  # a restart (the same store and files; nothing else kept)
     after = c.gate.status()

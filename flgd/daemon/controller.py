@@ -38,6 +38,7 @@ from flgd.calibration_watch import CalibrationWatch
 from flgd.cell import Cell, CellFault, StopPending, make_cell
 from flgd.config import CellConfig, fine_tunes
 from flgd.cycle import CycleRecord, CycleRunner
+from flgd.cycle_record import CycleOutcome
 from flgd.daemon import commands
 from flgd.daemon.notify import Notifier
 from flgd.daemon.protocol import ProtocolError, Request
@@ -382,13 +383,13 @@ class Controller:
                 log.exception("the gate failed")
                 self.fault(f"internal error in the gate: {type(exc).__name__}: {exc}")
                 return
-        if record.outcome == "empty" and record.refill_needed:
+        if record.outcome == CycleOutcome.EMPTY and record.refill_needed:
             self._wait_for_refill()
-        elif record.outcome == "empty":
+        elif record.outcome == CycleOutcome.EMPTY:
             self.record_event("scene", "workspace empty: new scene")
-        elif record.outcome == "discarded":
+        elif record.outcome == CycleOutcome.DISCARDED:
             self.record_event("discarded", f"step {record.step}: {record.failure}")
-        elif record.outcome == "stuck":
+        elif record.outcome == CycleOutcome.STUCK:
             self._on_stuck(record)
         self.notifier.status(self.status_text())
         trim_heap()  # what the cycle and the learner freed goes back to the system (flgd/memory.py)

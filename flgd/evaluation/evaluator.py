@@ -57,6 +57,7 @@ from typing import Any, Callable
 from flgd.cell import Cell, CellFault, Frame
 from flgd.config import CellConfig
 from flgd.cycle import CycleRecord, CycleRunner
+from flgd.cycle_record import CycleOutcome
 from flgd.evaluation.metrics import FAILURE_LIMIT, ActionEntry, RunLog
 from flgd.evaluation.scene_sets import SceneSpec
 from flgd.safety import CheckedPlan
@@ -148,7 +149,7 @@ def _describe(exc: BaseException) -> str:
 
 
 def _result_text(record: CycleRecord) -> str:
-    if record.outcome == "refused":
+    if record.outcome == CycleOutcome.REFUSED:
         return f"refused ({record.refused})"
     if record.kind == "grasp":
         return "held an object" if record.success else "missed"
@@ -310,21 +311,21 @@ class Evaluator:
                 except CellFault as exc2:
                     raise EvaluationError(f"the simulated cell cannot recover from a fault: {exc2}") from None
                 break
-            if record.outcome in ("executed", "refused"):
+            if record.outcome in (CycleOutcome.EXECUTED, CycleOutcome.REFUSED):
                 entry = ActionEntry(kind=record.kind or record.primitive or "grasp",
                                     success=bool(record.reward and record.reward > 0),
-                                    refused=record.outcome == "refused")
+                                    refused=record.outcome == CycleOutcome.REFUSED)
                 actions.append(entry)
                 streak = 0 if entry.success else streak + 1
                 if self.options.save_qmaps is not None:
                     self._save_qmap(spec, number, len(actions), record)
-            if record.outcome == "stuck":
+            if record.outcome == CycleOutcome.STUCK:
                 end, note = "stuck", record.failure
-            elif record.outcome == "discarded":
+            elif record.outcome == CycleOutcome.DISCARDED:
                 end, note = "unstable", record.failure
-            elif record.outcome == "stopped":
+            elif record.outcome == CycleOutcome.STOPPED:
                 end, note = "fault", record.failure
-            elif record.outcome == "empty" or record.done or self.episode.scene_ended:
+            elif record.outcome == CycleOutcome.EMPTY or record.done or self.episode.scene_ended:
                 end = "cleared" if cell.object_count == 0 else "nothing-graspable"
             elif streak > self.options.failure_limit:
                 end = "failures"

@@ -37,6 +37,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 from flgd.config import CellConfig
+from flgd.cycle_record import CycleOutcome
 from flgd.gate.storage import (KEEP_UNUSABLE, READ_RETRY_DELAYS, GateDirUnwritable,
                                GateError, GateFileUnreadable, GateStorage, PolicyRecord, insert_record, tally_json,
                                write_event)
@@ -50,7 +51,7 @@ log = logging.getLogger("flgd")
 
 # Outcomes that are the deciding policy's doing: a refused plan is its failure too; an unstable simulation,
 # a stop or a cell fault is not.
-CREDITED_OUTCOMES = ("executed", "refused")
+CREDITED_OUTCOMES = (CycleOutcome.EXECUTED, CycleOutcome.REFUSED)
 # events that make a policy the champion, and whether a champion made so is rolled back automatically
 _CROWNING = {"initial": False, "promote": True, "manual-promote": True, "rollback": False,
              "manual-rollback": False, "load": False, "fallback": False}

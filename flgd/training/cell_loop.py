@@ -21,6 +21,7 @@ from typing import Any, Callable
 import numpy as np
 
 from flgd.config import CellConfig
+from flgd.cycle_record import CycleOutcome
 
 __all__ = ["TrainingCycle", "TrainingCell", "MAX_CONSECUTIVE_FAULTS"]
 
@@ -109,16 +110,16 @@ class TrainingCell:
             self.scene += 1
             return None
         self.consecutive_faults = 0
-        if record.outcome == "empty" or record.step is None:
+        if record.outcome == CycleOutcome.EMPTY or record.step is None:
             self.scene += 1
             return None
         objects, kind = self._cycle_scene
         # a discarded action's scene blew up and was replaced: its object count means nothing
-        out = TrainingCycle(record, None if record.outcome == "discarded" else objects, self.scene, kind)
-        if record.done or record.outcome == "discarded":  # the runner has started a new scene
+        out = TrainingCycle(record, None if record.outcome == CycleOutcome.DISCARDED else objects, self.scene, kind)
+        if record.done or record.outcome == CycleOutcome.DISCARDED:  # the runner has started a new scene
             self.scene += 1
             self.actions_without_grasp = 0
-        elif record.outcome == "executed":
+        elif record.outcome == CycleOutcome.EXECUTED:
             self._maybe_give_up(record)
         return out
 

@@ -32,6 +32,7 @@ from typing import Any
 
 import numpy as np
 
+from flgd.cycle_record import CycleOutcome
 from flgd.training.run import CURVE_FILE, EXIT_INTERRUPTED, EXIT_OK, LOG_FILE, TrainingRun, next_scene_id
 
 __all__ = ["DistributedTrainingRun", "MAX_REPLACEMENTS"]
@@ -239,7 +240,7 @@ class DistributedTrainingRun(TrainingRun):
         updates = self.learner.update_pending()
         t_update = time.perf_counter() - t_update
         for slot, cycle, row, t_store in stored:
-            if cycle.outcome == "fault":
+            if cycle.outcome == CycleOutcome.FAULT:
                 slot.scene = None
                 continue
             slot.cycles += 1

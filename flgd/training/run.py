@@ -49,6 +49,7 @@ from typing import Any
 
 from flgd.atomic_file import write_atomically
 from flgd.config import CellConfig, dump_config
+from flgd.cycle_record import CycleOutcome
 from flgd.learning_stack import CheckpointMeta, LearningStack
 from flgd.store import CheckpointDir
 from flgd.training.actions_csv import ActionsCsv
@@ -317,7 +318,7 @@ class TrainingRun:
 
     def _log_step(self, record: Any, cycle: Any, updates: list, t_update: float, t_store: float | None) -> None:
         """One step's row in actions.csv and its grasp in the rolling success."""
-        if record.outcome == "executed" and record.primitive == "grasp" and record.success is not None:
+        if record.outcome == CycleOutcome.EXECUTED and record.primitive == "grasp" and record.success is not None:
             self.grasps.append(int(record.success))
         row = {k: v for k, v in record.row().items() if k in _LOG_KEYS}
         row.update({"objects_left": cycle.objects_left, "scene": cycle.scene, "scene_kind": cycle.scene_kind,

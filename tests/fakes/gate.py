@@ -10,6 +10,7 @@ import torch
 
 from flgd.config import CellConfig
 from flgd.cycle import CycleRecord
+from flgd.cycle_record import CycleOutcome
 from flgd.gate.keeper import Gatekeeper
 from flgd.learning.agent import Agent
 from flgd.learning.networks import build_network
@@ -63,7 +64,8 @@ class GateCell:
         self.gate.handovers.post(network.state_dict(), version=100 + self.step)
         assert self.gate.take_handover(self.step)
 
-    def act(self, policy: int | None, success: bool, primitive: str = "grasp", outcome: str = "executed"):
+    def act(self, policy: int | None, success: bool, primitive: str = "grasp",
+            outcome: CycleOutcome = CycleOutcome.EXECUTED):
         """One cycle credited to ``policy``: committed to the store, then shown to the gate (as the daemon does)."""
         rec = CycleRecord(outcome=outcome, step=self.step, time=time.time(), backend="sim", kind=primitive,
                           success=success if primitive == "grasp" else None, reward=float(success),
