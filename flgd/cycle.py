@@ -73,10 +73,12 @@ from flgd.cycle_record import (UNSTABLE_MARK, CycleOutcome, CycleRecord, float_o
                                 unstable_failure, was_stopped)
 from flgd.perception import Heightmaps, frame_heightmaps
 from flgd.plans import plan_action, plan_home, plan_release
+from flgd.cycle_parts import CycleAgent, CycleLearner, CycleStore
 from flgd.safety import PlanRefused, check_plan
 
 if TYPE_CHECKING:
     from flgd.learning.agent import Decision, OutcomeState
+    from flgd.learning.replay import PrioritizedReplay, Transition
 
 __all__ = ["CycleRecord", "CycleRunner", "ToolInView", "UNSTABLE_MARK"]
 
@@ -138,16 +140,17 @@ class _Ahead:
 class CycleRunner:
     """Runs cycles on one cell with one agent; optional store, replay and learner.
 
-    ``store``   -- a ``flgd.store.Store`` (anything with ``commit_cycle``,
-                   ``note_store_time``, ``forget_last_state``; ``check_space``
-                   and ``record_intent`` where it has them); None = not persisted.
+    ``agent``   -- decides and learns outcomes (``flgd.cycle_parts.CycleAgent``).
+    ``store``   -- records each cycle (``CycleStore``: a ``flgd.store.Store``, or a
+                   training worker's collecting stand-in); None = not persisted.
     ``replay``  -- gets every stored transition (``add``); None = no learning.
-    ``learner`` -- told about each new transition (``notify_new_transition``).
+    ``learner`` -- told about each new transition and decision (``CycleLearner``).
     ``on_phase``-- called after each phase (the daemon pings its watchdog there).
     """
 
-    def __init__(self, config: CellConfig, cell: Cell, agent: Any, *, store: Any = None, replay: Any = None,
-                 learner: Any = None, step: int = 0, backend: str | None = None,
+    def __init__(self, config: CellConfig, cell: Cell, agent: CycleAgent, *, store: CycleStore | None = None,
+                 replay: PrioritizedReplay | None = None, learner: CycleLearner | None = None, step: int = 0,
+                 backend: str | None = None,
                  on_phase: Callable[[str], None] | None = None, decide_while_placing: bool | None = None):
         self.config = config
         self.cell = cell
@@ -162,7 +165,7 @@ class CycleRunner:
         self.last_frame: Any = None  # the newest captured frame (the calibration watch fits the table in it)
         # (heightmaps, decision, step) of the newest decision, replaced as one object so another
         # thread (a snapshot request) never pairs a decision with the wrong heightmaps
-        self.last_decided: tuple[Heightmaps, Any, int] | None = None
+        self.last_decided: tuple[Heightmaps, Decision, int] | None = None
         self._stop = threading.Event()
         self.decide_while_placing = (config.robot.decide_while_placing if decide_while_placing is None
                                      else bool(decide_while_placing))
@@ -244,20 +247,18 @@ class CycleRunner:
 
     def _check_space(self) -> None:
         """Before any motion of a cycle: StoreError if the state directory cannot take the cycle's writes."""
-        check = getattr(self.store, "check_space", None)
-        if check is not None:
-            check()
+        if self.store is not None:
+            self.store.check_space()
 
     def _record_intent(self, record: CycleRecord) -> None:
         """Write-ahead: the decided action is in the action log before the cell is told to move.
 
         Its time is in the cycle's duration and no phase's (``t_store`` is the outcome's commit), so the
         controller's own time (flgctl stats: the cycle minus execution) includes it once."""
-        write = getattr(self.store, "record_intent", None)
-        if write is not None:
-            write(record.row())
+        if self.store is not None:
+            self.store.record_intent(record.row())
 
-    def _commit(self, record: CycleRecord, transition: Any, timer: _Timer) -> None:
+    def _commit(self, record: CycleRecord, transition: Transition | None, timer: _Timer) -> None:
         t0 = time.perf_counter()
         if self.store is not None:
             record.transition_id = self.store.commit_cycle(record.row(), transition)
@@ -266,7 +267,7 @@ class CycleRunner:
             if self.learner is not None:
                 self.learner.notify_new_transition()
         record.timings["store"] = time.perf_counter() - t0
-        if self.store is not None:
+        if self.store is not None and record.step is not None:
             self.store.note_store_time(record.step, record.timings["store"])
         if timer.on_phase is not None:
             timer.on_phase("store")
@@ -286,17 +287,16 @@ class CycleRunner:
         The time a real cell's slow cycle gives the learner.  Called before each decision, and by the daemon
         before the gate takes a hand-over, so that which weights act and when a challenger comes depend on
         the number of updates, never on thread timing (a paced run is reproducible from its seeds)."""
-        if self.learner is not None and self.config.learning.wait_for_updates and hasattr(self.learner, "wait_idle"):
+        if self.learner is not None and self.config.learning.wait_for_updates:
             self.learner.wait_idle(LEARNER_WAIT_LIMIT)
 
     def _decide(self, state: Heightmaps) -> tuple[Decision | None, str]:
         """The agent's decision on ``state`` (None when it found nothing), and its reason to give up ('' = none)."""
-        if hasattr(self.agent, "maybe_swap_weights"):
-            self.agent.maybe_swap_weights()
-        stuck = _stuck_reason(self.agent)
+        self.agent.maybe_swap_weights()
+        stuck = self.agent.stuck_reason()
         decision = None if stuck else self.agent.decide(state, self.step)
         if decision is None and not stuck:
-            stuck = _stuck_reason(self.agent)  # the decision found nothing left to try
+            stuck = self.agent.stuck_reason()  # the decision found nothing left to try
         return decision, stuck
 
     def _capture_at_home(self, timer: _Timer) -> Heightmaps | None:
@@ -423,15 +423,15 @@ class CycleRunner:
                 self._new_scene()  # after the refill the next cycle starts with a fresh picture
             return finish()
         self.last_decided = (state, decision, self.step)
-        if self.learner is not None and hasattr(self.learner, "note_decision"):
-            self.learner.note_decision(state, decision, getattr(decision, "weights_version", -1))
+        if self.learner is not None:
+            self.learner.note_decision(state, decision, decision.weights_version)
         action: Action = decision.action
         record.step = self.step
         record.action = action
-        record.rule = str(getattr(decision, "rule", "") or "")
-        record.epsilon = float_or_none(getattr(decision, "epsilon", None))
-        record.q_value = float_or_none(getattr(decision, "q_value", None))
-        record.policy = getattr(decision, "policy_id", None)
+        record.rule = decision.rule
+        record.epsilon = float_or_none(decision.epsilon)
+        record.q_value = float_or_none(decision.q_value)
+        record.policy = decision.policy_id
         self.step += 1
 
         with timer.phase("plan"):
@@ -474,7 +474,7 @@ class CycleRunner:
                     width = float(result.widths[-1]) if result.widths else math.nan
                     held = grasp_reward(width, self.config.gripper) > 0
                 unstable = unstable_failure(result)
-            if held and not unstable and self.decide_while_placing and hasattr(self.agent, "outcome_state"):
+            if held and not unstable and self.decide_while_placing:
                 after = self._capture_at_home(timer)
             with timer.phase("execute"):
                 if not unstable and action.primitive == "grasp":
@@ -552,13 +552,7 @@ class CycleRunner:
         return finish()
 
 
-def _stuck_reason(agent: Any) -> str:
-    """The agent's reason to give up on this scene ('' = none; agents without a ladder never give up)."""
-    reason = getattr(agent, "stuck_reason", None)
-    return str(reason() or "") if callable(reason) else ""
-
-
-def _record_outcome(agent: Any, action: Action, grasp_success: bool | None, move_changed: bool,
+def _record_outcome(agent: CycleAgent, action: Action, grasp_success: bool | None, move_changed: bool,
                     height_after: np.ndarray, kind: str | None) -> None:
     """Tell the agent what its action did, and the heightmap that was judged (for its failure memory)."""
     agent.record_outcome(action, grasp_success, move_changed=move_changed, height_after=height_after, kind=kind)

@@ -175,6 +175,15 @@ class SlowStore:
     def forget_last_state(self):
         pass
 
+    def check_space(self):
+        pass
+
+    def record_intent(self, row):
+        pass
+
+    def record_event(self, kind, message):
+        pass
+
 
 def test_controller_time_counts_the_store_commit_once():
     """The controller time of a cycle can never exceed its wall time less the motions, whatever the store

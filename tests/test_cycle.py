@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import dataclasses
-from types import SimpleNamespace
 
 import pybullet as p
 import pytest
@@ -13,24 +12,19 @@ from flgd.cycle import CycleRunner
 from flgd.perception import base_to_pixel
 from flgd.store import Store
 from sim_cell.cell import SimCell
+from tests.fakes.agents import ScriptedAgentBase, scripted_decision
 from tests.fakes.sim import cube_at, make_config, state
 
 
-class _GraspAt:
+class _GraspAt(ScriptedAgentBase):
     """An agent that grasps at one pixel, closing along base x, and keeps what it was told."""
 
     def __init__(self, action: Action):
+        super().__init__()
         self.action = action
-        self.outcomes: list[bool | None] = []
 
     def decide(self, heightmaps, step):
-        return SimpleNamespace(action=self.action, rule="scripted", epsilon=0.0, q_value=None, policy_id=None)
-
-    def record_outcome(self, action, grasp_success, **outcome):
-        self.outcomes.append(grasp_success)
-
-    def reset_episode(self):
-        pass
+        return scripted_decision(self.action, heightmaps)
 
 
 class _GripGivesWay(SimCell):

@@ -21,15 +21,16 @@ from flgd.plans import MoveL, Plan
 from flgd.safety import check_plan
 from flgd.store import Store
 from sim_cell.cell import SimCell
+from tests.fakes.agents import ScriptedAgentBase, scripted_decision
 from tests.fakes.sim import cube_at, make_config
 
 
-class _Scripted:
+class _Scripted(ScriptedAgentBase):
     """Grasps at the given pixels in turn; can take a provisional outcome back, as the real agent can."""
 
     def __init__(self, actions: list[Action]):
+        super().__init__()
         self.actions = actions
-        self.outcomes: list[bool | None] = []
         self.decisions: list[tuple[float, object]] = []   # (when, heightmaps decided on)
         self.taken = 0
 
@@ -37,19 +38,13 @@ class _Scripted:
         self.decisions.append((time.perf_counter(), heightmaps))
         action = self.actions[min(self.taken, len(self.actions) - 1)]
         self.taken += 1
-        return SimpleNamespace(action=action, rule="scripted", epsilon=0.0, q_value=None, policy_id=None)
-
-    def record_outcome(self, action, grasp_success, **outcome):
-        self.outcomes.append(grasp_success)
+        return scripted_decision(action, heightmaps)
 
     def outcome_state(self):
         return list(self.outcomes), self.taken
 
     def restore_outcome_state(self, saved):
         self.outcomes, self.taken = list(saved[0]), saved[1]
-
-    def reset_episode(self):
-        pass
 
 
 class _Watched(SimCell):
@@ -323,7 +318,7 @@ def test_a_snapshot_asked_for_with_the_arm_in_view_is_refused_without_faulting_t
     def in_view():
         raise ToolInView("frame refused: the tool stands between the camera and the workspace")
 
-    ctl = SimpleNamespace(runner=SimpleNamespace(perceive_now=in_view), _fault=faults.append)
+    ctl = SimpleNamespace(runner=SimpleNamespace(perceive_now=in_view), fault=faults.append)
     with pytest.raises(ProtocolError, match="stands between the camera"):
         fresh_snapshot(ctl)
     assert faults == []   # the arm standing in view is no cell fault

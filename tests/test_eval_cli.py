@@ -21,10 +21,10 @@ from flgd.config import load_config
 from flgd.evaluation.evaluator import EvalOptions, Evaluator, evaluation_config
 from flgd.evaluation.metrics import run_result
 from flgd.evaluation.scene_sets import named_set, scene_from_argument
-from flgd.learning.agent import Decision
 from flgd.learning.networks import build_network
 from flgd.learning.policy_file import save_policy
 from flgd.actions import Action
+from tests.fakes.agents import ScriptedAgentBase, scripted_decision
 from sim_cell.scenes import load_vpg_test_case
 
 REPO = Path(__file__).resolve().parents[1]
@@ -121,10 +121,11 @@ def test_named_sets_resolve_without_simulating(tmp_path):
 
 # ----------------------------------------------------------------------------- run-ending rules
 
-class _GraspTheEmptyCorner:
+class _GraspTheEmptyCorner(ScriptedAgentBase):
     """A scripted agent that always grasps the same empty table pixel: every action fails."""
 
     def __init__(self, rotations: int = 16) -> None:
+        super().__init__()
         self.rotations = rotations
         self.decisions = 0
 
@@ -132,16 +133,7 @@ class _GraspTheEmptyCorner:
 
     def decide(self, heightmaps, step):
         self.decisions += 1
-        h, w = heightmaps.height.shape
-        q = np.zeros((self.rotations, 2, h, w), np.float32)
-        ones = np.ones((h, w), np.uint8)
-        return Decision(Action("grasp", *self.pixel, 0, self.rotations), q, ones, ones, 0.0, "greedy", 0.0)
-
-    def record_outcome(self, action, success, **outcome) -> None:
-        pass
-
-    def reset_episode(self) -> None:
-        pass
+        return scripted_decision(Action("grasp", *self.pixel, 0, self.rotations), heightmaps, rule="greedy")
 
 
 class _GraspAt(_GraspTheEmptyCorner):

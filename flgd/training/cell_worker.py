@@ -16,11 +16,15 @@ import dataclasses
 import os
 import time
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any, Callable
 
 import numpy as np
 
 from flgd.config import CellConfig
+
+if TYPE_CHECKING:
+    from flgd.learning.agent import Decision
+    from flgd.perception import Heightmaps
 
 __all__ = ["CollectedCycle", "WorkerReport", "CollectingStore", "CellWorker", "worker_seed"]
 
@@ -64,16 +68,24 @@ class WorkerReport:
 
 
 class DecisionNotes:
-    """The worker's stand-in for the learner: the cycle runner tells it each decision (``note_decision``)."""
+    """The worker's stand-in for the learner (a ``CycleLearner``): the cycle runner tells it each decision
+    (``note_decision``); the learner that trains on the worker's transitions is in the driver's process, so a new
+    transition schedules nothing here and nothing is waited for."""
 
     def __init__(self) -> None:
         self.notes: list[tuple[bytes, int, Any]] = []
 
-    def note_decision(self, state: Any, decision: Any, weights_version: int) -> None:
+    def note_decision(self, state: Heightmaps, decision: Decision, weights_version: int) -> None:
         from flgd.learning.replay import state_key
 
-        if getattr(decision, "greedy", None) is not None and weights_version >= 0:
+        if decision.greedy is not None and weights_version >= 0:
             self.notes.append((state_key(state), int(weights_version), tuple(int(v) for v in decision.greedy)))
+
+    def notify_new_transition(self) -> None:
+        pass
+
+    def wait_idle(self, timeout: float | None = None) -> bool:
+        return True
 
     def take(self) -> list[tuple[bytes, int, Any]]:
         out, self.notes = self.notes, []
@@ -81,13 +93,25 @@ class DecisionNotes:
 
 
 class CollectingStore:
-    """The worker's stand-in for the store: the cycle's rows and transitions are kept for the learner.
+    """The worker's stand-in for the store (a ``CycleStore``): the cycle's rows and transitions are kept for the
+    learner.
 
     The cycle runner writes through ``commit_cycle`` (and a fault's row with no transition); the write-ahead
-    intent and the space check are the learner's store's business, so this has neither."""
+    intent and the space check are the learner's store's business, so they do nothing here; an event goes to the
+    worker's notes (``on_event``), which the learner records in its store."""
 
-    def __init__(self) -> None:
+    def __init__(self, on_event: Callable[[str, str, str], None]) -> None:
         self.committed: list[tuple[dict[str, Any], Any]] = []
+        self._on_event = on_event
+
+    def check_space(self) -> None:
+        pass
+
+    def record_intent(self, row: dict) -> None:
+        pass
+
+    def record_event(self, kind: str, message: str) -> None:
+        self._on_event(kind, message, message)
 
     def commit_cycle(self, row: dict, transition: Any | None = None, priority: float | None = None) -> None:
         self.committed.append((dict(row), transition))
@@ -126,7 +150,7 @@ class CellWorker:
         network.load_state_dict(weights)
         self.agent = make_agent(config, network, worker_seed(seed, segment, index, incarnation, 4))
         self.agent.weights_version = version
-        self.store = CollectingStore()
+        self.store = CollectingStore(self._note)
         self.decisions = DecisionNotes()
         # the run's step: the curriculum's first scene and the exploration schedule follow it
         self.loop = TrainingCell(config, settings, self.agent, step=step, scene=0,
