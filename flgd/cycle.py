@@ -77,7 +77,7 @@ from flgd.cycle_parts import CycleAgent, CycleLearner, CycleStore
 from flgd.safety import PlanRefused, check_plan
 
 if TYPE_CHECKING:
-    from flgd.learning.agent import Decision, OutcomeState
+    from flgd.learning.agent import Decision
     from flgd.learning.replay import PrioritizedReplay, Transition
 
 __all__ = ["CycleRecord", "CycleRunner", "ToolInView", "UNSTABLE_MARK"]
@@ -311,7 +311,7 @@ class CycleRunner:
         return after if self.last_frame is not None and self.last_frame.tool_position is not None else None
 
     def _place_and_decide(self, record: CycleRecord, action: Action, after: Heightmaps,
-                          timer: _Timer) -> tuple[ExecutionResult, OutcomeState | None]:
+                          timer: _Timer) -> tuple[ExecutionResult, object | None]:
         """Place the picked object in a thread of its own while the next decision is made on ``after``.
 
         The decision rests on the outcome measured at home (held), recorded first; the agent as it was before is
@@ -335,7 +335,7 @@ class CycleRunner:
 
         mover = threading.Thread(target=place, name="flgd-place", daemon=True)
         mover.start()
-        provisional: OutcomeState | None = None
+        provisional: object | None = None  # the agent's outcome state, opaque here
         decided: tuple[Any, ...] | None = None
         failed: BaseException | None = None
         try:

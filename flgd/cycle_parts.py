@@ -8,7 +8,7 @@ stand-in with no use for a call does nothing in it), so the cycle never asks whe
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any, Protocol
+from typing import TYPE_CHECKING, Protocol
 
 if TYPE_CHECKING:
     import numpy as np
@@ -44,11 +44,11 @@ class CycleAgent(Protocol):
         """Why the cell should give up on this scene ('' = it should not)."""
         ...
 
-    def outcome_state(self) -> Any:
+    def outcome_state(self) -> object:
         """What ``record_outcome`` changes, copied, so that a provisional outcome can be taken back."""
         ...
 
-    def restore_outcome_state(self, state: Any) -> None:
+    def restore_outcome_state(self, state: object) -> None:
         ...
 
 

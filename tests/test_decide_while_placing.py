@@ -168,6 +168,22 @@ def test_a_frame_taken_with_the_tool_over_the_workspace_is_refused(tmp_path):
         cell.close()
 
 
+def test_a_training_worker_s_refused_frame_goes_to_its_notes_for_the_learner_s_store(tmp_path):
+    from flgd.training.cell_worker import CollectingStore
+
+    cfg, cell, agent = _cell_and_agent(tmp_path)
+    notes = []
+    try:
+        over = MoveL(ToolPose.top_down(-0.50, 0.0, 0.30, 0.0), 0.25, 0.8, "over the table")
+        assert cell.execute(check_plan(Plan("jog", (over,)), cfg)).completed
+        runner = CycleRunner(cfg, cell, agent, store=CollectingStore(lambda *note: notes.append(note)))
+        with pytest.raises(ToolInView):
+            runner.perceive_now()
+        assert [n[0] for n in notes] == ["frame_refused"] and "camera" in notes[0][2]
+    finally:
+        cell.close()
+
+
 def test_a_picture_at_home_that_shows_the_tool_is_not_decided_on_the_arm_places_first(tmp_path):
     """A cell that reports its tool in view at the home capture: the cycle does not decide on that picture; it
     places, goes home and takes the picture after, as it does without the overlap."""

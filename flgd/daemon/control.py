@@ -21,6 +21,7 @@ if TYPE_CHECKING:
     from flgd.gate.keeper import Gatekeeper
     from flgd.learning.agent import Agent
     from flgd.learning.learner import Learner
+    from flgd.learning.networks import QMapNetwork
     from flgd.learning_stack import LearningStack
     from flgd.store import Store
 
@@ -77,7 +78,7 @@ class DaemonControl(Protocol):
     def reset(self) -> dict:
         ...
 
-    def write_checkpoint(self, network: Any, updates: int) -> None:
+    def write_checkpoint(self, network: QMapNetwork, updates: int) -> None:
         ...
 
     def cell_config_at(self, step: int) -> CellConfig:
