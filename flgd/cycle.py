@@ -187,6 +187,11 @@ class CycleRunner:
         self.cell, self.backend = cell, backend
         self.forget_state()
 
+    def use_learning(self, agent: CycleAgent, store: CycleStore | None, replay: PrioritizedReplay | None,
+                     learner: CycleLearner | None) -> None:
+        """Act and learn with these parts from the next cycle on (a learning stack rebuilt on a reopened store)."""
+        self.agent, self.store, self.replay, self.learner = agent, store, replay, learner
+
     def forget_state(self) -> None:
         """The next cycle starts from a fresh capture (after a reset, a swap of cell or agent)."""
         self.current = None

@@ -15,12 +15,24 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from enum import StrEnum
+from typing import TYPE_CHECKING, Any, Callable
 
 from flgd.config import CellConfig, learner_settings
 from flgd.store import CheckpointDir, Store
 
-__all__ = ["LearningStack", "CheckpointMeta", "TrainerStateRestore", "learning_config", "LEARNER_QUIET_TIMEOUT"]
+if TYPE_CHECKING:
+    from flgd.cycle import CycleRunner
+    from flgd.cycle_record import CycleRecord
+    from flgd.gate.keeper import Gatekeeper
+    from flgd.learning.agent import Agent
+    from flgd.learning.learner import Learner
+    from flgd.learning.networks import QMapNetwork
+    from flgd.learning.prior_sample import PriorSample
+    from flgd.learning.replay import PrioritizedReplay
+
+__all__ = ["LearningStack", "LearningParts", "GateStart", "Handover", "CheckpointMeta", "TrainerStateRestore",
+           "learning_config", "LEARNER_QUIET_TIMEOUT"]
 
 LEARNER_QUIET_TIMEOUT = 60.0  # seconds a restart of the learner (or a policy load) waits for its update in progress
 
@@ -70,18 +82,54 @@ class TrainerStateRestore:
         return self.why if self.restored else f"fresh ({self.why})"
 
 
-class LearningStack:
-    """Replay, agent, learner, gate and prior sample of one run, built the one way (module doc).
+class Handover(StrEnum):
+    """Where the learner hands its weights: what acts on them decides how they are vetted."""
 
-    Build order: ``start_from`` (the start network), ``load_prior``, ``build``, ``restore_trainer_state``, then
-    ``attach_gate`` where there is a store.  ``config`` is what agent and learner run with (``learning_config``);
-    ``priorities_in_store`` says where the replay priorities live across a restart: the store (the daemon,
-    written as they are set) or the trainer state (``flgd train``, written with each checkpoint).
+    GATE = "gate"      # the daemon and ``flgd eval --learn``: the champion/challenger gate tests them first
+    AGENT = "agent"    # ``flgd train`` in one process: they act as they are handed over
+    NOBODY = "nobody"  # ``flgd train --workers``: nobody acts in this process, the workers get them otherwise
+
+
+@dataclass(frozen=True)
+class GateStart:
+    """What the gate restores its champion from on a build with a gate (``flgd.gate.keeper.Gatekeeper.restore``):
+    the configured policy, else a fresh network; ``reset_learner`` is what the gate calls after a rollback or a
+    drop as worse (None: ``LearningStack.restart_learner_from``; the daemon wraps that with its lock and an event).
+    """
+
+    step: int
+    configured: Callable[[], tuple[QMapNetwork, dict, str] | None]
+    fresh: Callable[[], tuple[QMapNetwork, dict, str]]
+    reset_learner: Callable[[QMapNetwork], object] | None = None
+
+
+@dataclass(frozen=True)
+class LearningParts:
+    """The fully built learning of one run, as ``LearningStack.build`` made it; a rebuild makes a new record.
+
+    ``gate`` is None without a store, or in a run whose learner hands its weights to the agent or to nobody;
+    ``replay_problem`` is the store error that stopped the replay's rebuild part-way ('' when none)."""
+
+    replay: PrioritizedReplay
+    agent: Agent
+    learner: Learner
+    gate: Gatekeeper | None = None
+    gate_note: str = ""
+    replay_problem: str = ""
+
+
+class LearningStack:
+    """The learning of one run, built the one way (module doc): ``start_from`` (the start network),
+    ``load_prior``, ``build`` (replay, agent, learner and gate, a ``LearningParts``), ``restore_trainer_state``.
+
+    ``config`` is what agent and learner run with (``learning_config``); ``priorities_in_store`` says where the
+    replay priorities live across a restart: the store (the daemon, written as they are set) or the trainer
+    state (``flgd train``, written with each checkpoint).
     """
 
     def __init__(self, config: CellConfig, *, fine_tune: bool, state_dir: str | Path, store: Store | None = None,
                  checkpoints: CheckpointDir | None = None,
-                 checkpoint_callback: Callable[[Any, int], None] | None = None,
+                 checkpoint_callback: Callable[[QMapNetwork, int], None] | None = None,
                  few_moves: bool = False, priorities_in_store: bool = True) -> None:
         self.config = learning_config(config, fine_tune, few_moves=few_moves)
         self.fine_tune = fine_tune
@@ -90,19 +138,41 @@ class LearningStack:
         self.checkpoints = checkpoints
         self.checkpoint_callback = checkpoint_callback
         self.priorities_in_store = priorities_in_store
-        self.prior: Any = None  # the fine-tune's prior sample (finetune.prior_sample), loaded once
-        self.replay: Any = None
-        self.agent: Any = None
-        self.learner: Any = None
-        self.gate: Any = None  # the Gatekeeper, once attached
-        self.gate_note = ""
+        self.prior: PriorSample | None = None  # the fine-tune's prior sample (finetune.prior_sample), loaded once
+        self.parts: LearningParts | None = None
         self.source = ""  # what the learner started from (status lines, checkpoint metadata)
         self.resumed_from_updates = 0
         self.last_checkpoint = ""  # the newest checkpoint resumed from or written
         self.trainer_state = "fresh"  # what the learner's target network and Adam moments started from
 
+    # ------------------------------------------------------------------ the parts
+    def _built(self) -> LearningParts:
+        if self.parts is None:
+            raise RuntimeError("the learning stack is not built yet (LearningStack.build)")
+        return self.parts
+
+    @property
+    def agent(self) -> Agent:
+        return self._built().agent
+
+    @property
+    def learner(self) -> Learner:
+        return self._built().learner
+
+    @property
+    def replay(self) -> PrioritizedReplay:
+        return self._built().replay
+
+    @property
+    def gate(self) -> Gatekeeper | None:
+        return None if self.parts is None else self.parts.gate
+
+    @property
+    def gate_note(self) -> str:
+        return "" if self.parts is None else self.parts.gate_note
+
     # ------------------------------------------------------------------ building
-    def start_from(self, policy: str | None) -> Any:
+    def start_from(self, policy: str | None) -> QMapNetwork:
         """The start network: the newest readable checkpoint, else ``policy``, else a fresh one
         (``flgd.wiring.starting_network``; PolicyFileError / TrunkFileError for a file that cannot be used)."""
         from flgd.wiring import starting_network
@@ -121,56 +191,86 @@ class LearningStack:
 
         self.prior = configured_prior(self.config, rotations, self.fine_tune)
 
-    def build(self, network: Any, step: int = 0, *, replay_seed: int | None = None,
-              agent_seed: int | None = None) -> str:
-        """Replay (from the store), agent and learner for a run at action ``step``; the store's problem or ''.
+    def build(self, network: QMapNetwork, step: int = 0, *, handover: Handover, gate: GateStart | None = None,
+              updates: int | None = None, replay_seed: int | None = None,
+              agent_seed: int | None = None) -> LearningParts:
+        """Replay (from the store), agent, learner and -- with ``gate`` and a store -- the gate, for a run at
+        action ``step``, each constructed whole; the record is kept in ``parts`` and returned.
 
         Their random draws continue from seeds drawn for that action (``flgd.wiring.continuing_config``); a
         caller with seeds of its own (``flgd train``'s segments) gives ``replay_seed`` and ``agent_seed``.  The
-        learner hands nothing over before a gate is attached (``attach_gate``) or, in a run without one,
-        ``hand_to_agent``."""
-        from flgd.wiring import build_agent_and_learner, continuing_config, rebuild_replay
+        learner counts on from ``updates`` (default: the checkpoint resumed from).  With ``handover`` GATE and no
+        gate built, the learner posts to a mailbox nobody reads: nothing acts before a gate has vetted it.  The
+        gate raises GateError / PolicyFileError when there is no policy to act with, StoreError / OSError on
+        storage; then nothing is kept.
+        """
+        from flgd.gate.keeper import Gatekeeper
+        from flgd.learning.agent import WeightsMailbox
+        from flgd.learning.learner import Learner
+        from flgd.wiring import continuing_config, make_agent, rebuild_replay
 
         config = continuing_config(self.config, step)
-        self.replay, problem = rebuild_replay(config, self.store, seed=replay_seed)
-        self.agent, self.learner = build_agent_and_learner(
-            config, network, self.replay, checkpoint_callback=self.checkpoint_callback,
-            updates=self.resumed_from_updates, agent_seed=agent_seed,
-            store=self.store if self.priorities_in_store else None, fine_tune=self.fine_tune, prior=self.prior)
-        self.learner.mailbox = None
-        return problem
+        updates = self.resumed_from_updates if updates is None else int(updates)
+        replay, problem = rebuild_replay(config, self.store, seed=replay_seed)
+        agent = make_agent(config, network, config.learning.seed if agent_seed is None else agent_seed,
+                           self.fine_tune)
+        with_gate = gate is not None and self.store is not None
+        if with_gate and handover != Handover.GATE:
+            raise ValueError(f"a gate vets the learner's weights: handover must be gate, got {handover}")
+        handovers = WeightsMailbox()
+        mailbox: WeightsMailbox | None = None
+        if handover == Handover.GATE:  # with the gate switched off (gate.enabled false) they act as handed over
+            mailbox = agent.mailbox if with_gate and not self.config.gate.enabled else handovers
+        elif handover == Handover.AGENT:
+            mailbox = agent.mailbox
+        store = self.store if self.priorities_in_store else None
+        learner = Learner(config, network, replay, mailbox=mailbox, checkpoint_callback=self.checkpoint_callback,
+                          priority_sink=None if store is None else store.save_priorities, prior=self.prior,
+                          prior_share=config.finetune.prior_share if self.prior is not None else 0.0,
+                          updates=updates)
+        replay.resume_annealing(updates)  # one batch per update: beta goes on where the run left it
+        keeper: Gatekeeper | None = None
+        note = ""
+        if gate is not None and self.store is not None:
+            keeper = Gatekeeper(self.config, self.store, agent, self.state_dir, handovers=handovers,
+                                on_champion=learner.set_anchor,   # the learner's L2-SP anchor is what acts
+                                reset_learner=gate.reset_learner or self.restart_learner_from)
+            note = keeper.restore(gate.step, gate.configured, gate.fresh)
+            agent.continue_exploration_from(self._exploration_offset(keeper, gate.step))
+        self.parts = LearningParts(replay, agent, learner, keeper, note, problem)
+        return self.parts
 
-    def hand_to_agent(self) -> None:
-        """No gate (``flgd train``): the learner's weights go straight to the agent as they are handed over."""
-        self.learner.mailbox = self.agent.mailbox
+    def _exploration_offset(self, gate: Gatekeeper, step: int) -> int:
+        """The stored offset; on a first start, fine-tuning, the champion's recorded training steps less ``step``
+        (exploration continues from them), else 0 -- then stored."""
+        assert self.store is not None and gate.champion is not None
+        offset = self.store.counter("exploration_offset", -1)
+        if offset < 0:
+            offset = gate.champion.training_steps - step if self.fine_tune else 0
+            self.store.set_counter("exploration_offset", offset)
+        return offset
 
-    def rebuild(self, step: int) -> str:
-        """Replay, agent and learner built again on the store (after it came back): the learner goes on from its
-        own weights and update count, and is started; it hands nothing over until a gate is attached."""
+    def rebuild(self, step: int, gate: GateStart | None = None) -> LearningParts:
+        """Everything built again on the store (after it came back, or to attach a gate): the learner goes on from
+        its own weights and update count, and is started.  When the gate cannot be built, the parts are built
+        without one (the learner hands nothing over) and the gate's error is raised."""
         old = self.learner
-        old.stop(timeout=30.0, why="rebuilt after the store was reopened")
-        problem = self.build(old.snapshot(), step)
-        self.learner.updates = old.updates  # checkpoints keep counting on
-        self.gate = None
+        old.stop(timeout=30.0, why="rebuilt on the store")
+        network, updates = old.snapshot(), old.updates
+        try:
+            parts = self.build(network, step, handover=Handover.GATE, gate=gate, updates=updates)
+        except BaseException:
+            self.build(network, step, handover=Handover.GATE, updates=updates)
+            self.learner.start()
+            raise
         self.learner.start()
-        return problem
+        return parts
 
-    def connect(self, runner: Any) -> None:
+    def connect(self, runner: CycleRunner) -> None:
         """Point a cycle runner at this stack's agent, store, replay and learner (after ``rebuild``)."""
-        runner.agent, runner.store, runner.replay, runner.learner = self.agent, self.store, self.replay, self.learner
+        runner.use_learning(self.agent, self.store, self.replay, self.learner)
 
-    def attach_gate(self, step: int, *, configured: Callable[[], tuple[Any, dict, str] | None],
-                    fresh: Callable[[], tuple[Any, dict, str]]) -> None:
-        """The champion/challenger gate on the store (``flgd.wiring.attach_gate``): GateError / PolicyFileError
-        when there is no policy to act with, StoreError / OSError on storage."""
-        from flgd.wiring import attach_gate
-
-        assert self.store is not None, "the gate keeps its records in the store"
-        self.gate, self.gate_note = attach_gate(self.config, self.store, self.agent, self.learner, self.state_dir,
-                                                step, fine_tune=self.fine_tune, configured=configured, fresh=fresh)
-        self.gate.reset_learner = self.restart_learner_from  # the daemon wraps it with its lock and an event
-
-    def restart_learner_from(self, network: Any, quiet_timeout: float = LEARNER_QUIET_TIMEOUT) -> int:
+    def restart_learner_from(self, network: QMapNetwork, quiet_timeout: float = LEARNER_QUIET_TIMEOUT) -> int:
         """The gate, after a rollback or a drop as worse: the learner starts again from ``network`` (its weights,
         a fresh trainer state, the owed updates dropped; their number returned).  LearnerBusy when the update in
         progress does not end within ``quiet_timeout`` seconds."""
@@ -180,7 +280,7 @@ class LearningStack:
             return self.learner.drop_backlog()
 
     # ------------------------------------------------------------------ running
-    def after_cycle(self, record: Any, runner: Any) -> None:
+    def after_cycle(self, record: CycleRecord, runner: CycleRunner) -> None:
         """Between cycles: the gate takes the hand-over this cycle's updates made (paced runs wait for them,
         ``CycleRunner.wait_for_learner``) and judges champion and challenger."""
         if self.gate is None:
@@ -193,8 +293,9 @@ class LearningStack:
         the gate, and what the learner resumed from."""
         from flgd.learning.learner import no_learner_status
 
-        return {"replay_size": len(self.replay) if self.replay is not None else 0,
-                **(self.learner.status() if self.learner is not None else no_learner_status()),
+        parts = self.parts
+        return {"replay_size": len(parts.replay) if parts is not None else 0,
+                **(parts.learner.status() if parts is not None else no_learner_status()),
                 "gate": None if self.gate is None else self.gate.status(),
                 "resumed_from_updates": self.resumed_from_updates, "trainer_state": self.trainer_state,
                 "last_checkpoint": self.last_checkpoint}
@@ -206,7 +307,7 @@ class LearningStack:
 
     def owes_checkpoint(self) -> bool:
         """The learner ran updates since the newest checkpoint (a clean exit writes one)."""
-        return self.learner is not None and self.learner.updates > max(0, self.checkpointed_updates())
+        return self.parts is not None and self.parts.learner.updates > max(0, self.checkpointed_updates())
 
     def write_checkpoint(self, network: Any, updates: int, meta: CheckpointMeta) -> Path:
         """The policy file of update ``updates`` (StoreError / OSError), and the store's count of updates."""

@@ -1,4 +1,5 @@
-"""How a cell's learning parts are made: network, replay, agent, learner, gate, and a continued run's seeds.
+"""How a cell's learning parts start: the start network, the replay from the store, the agent, the prior sample,
+and the seeds of a continued run.
 
 ``flgd.learning_stack.LearningStack`` puts them together, the one way for the
 daemon (``flgd run``), ``flgd eval --learn``, ``flgd train`` and the benches, so
@@ -13,14 +14,19 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable
+from typing import TYPE_CHECKING
 
 from flgd.config import CellConfig
 from flgd.store import CheckpointDir, Store, StoreError
 
+if TYPE_CHECKING:
+    from flgd.learning.agent import Agent
+    from flgd.learning.networks import QMapNetwork
+    from flgd.learning.prior_sample import PriorSample
+    from flgd.learning.replay import PrioritizedReplay
+
 __all__ = ["StartingNetwork", "starting_network", "fresh_network", "rebuild_replay", "configured_prior",
-           "build_agent_and_learner", "make_agent",
-           "attach_gate", "resume_seed", "continuing_config"]
+           "make_agent", "resume_seed", "continuing_config"]
 
 log = logging.getLogger("flgd")
 
@@ -57,7 +63,7 @@ def continuing_config(config: CellConfig, step: int) -> CellConfig:
 
 @dataclass(frozen=True)
 class StartingNetwork:
-    network: Any
+    network: QMapNetwork
     source: str                  # what it is, for status lines and policy metadata
     resumed_from_updates: int    # learner update count to continue from (0 = not resumed)
     checkpoint: Path | None      # the checkpoint loaded, if any
@@ -92,7 +98,7 @@ def starting_network(config: CellConfig, checkpoints: CheckpointDir, policy_path
     return StartingNetwork(network, source, resumed, None)
 
 
-def fresh_network(config: CellConfig, seed: int | None) -> tuple[Any, str]:
+def fresh_network(config: CellConfig, seed: int | None) -> tuple[QMapNetwork, str]:
     """(network, description): a new network of the config's variant, its perception layers taken from
     ``learning.init_trunk`` when one is set (``TrunkFileError`` naming the file when it does not fit)."""
     from flgd.learning.networks import build_network
@@ -108,7 +114,8 @@ def fresh_network(config: CellConfig, seed: int | None) -> tuple[Any, str]:
     return network, source
 
 
-def rebuild_replay(config: CellConfig, store: Store | None, seed: int | None = None) -> tuple[Any, str]:
+def rebuild_replay(config: CellConfig, store: Store | None,
+                   seed: int | None = None) -> tuple[PrioritizedReplay, str]:
     """(replay, problem): a replay holding the store's newest ``replay_capacity`` transitions.
 
     ``problem`` is '' or the store error that stopped the rebuild part-way.
@@ -129,7 +136,7 @@ def rebuild_replay(config: CellConfig, store: Store | None, seed: int | None = N
     return replay, problem
 
 
-def configured_prior(config: CellConfig, rotations: int, fine_tune: bool) -> Any:
+def configured_prior(config: CellConfig, rotations: int, fine_tune: bool) -> PriorSample | None:
     """The prior sample a fine-tune mixes into its batches (``finetune.prior_sample`` at ``prior_share``), or
     None.  Loaded once, at start: raises PriorSampleError naming the file when it cannot be used."""
     if not fine_tune or config.finetune.prior_share <= 0.0:
@@ -142,61 +149,14 @@ def configured_prior(config: CellConfig, rotations: int, fine_tune: bool) -> Any
     return prior
 
 
-def build_agent_and_learner(config: CellConfig, network: Any, replay: Any, *,
-                            checkpoint_callback: Callable[[Any, int], None] | None, updates: int = 0,
-                            agent_seed: int | None = None, store: Store | None = None,
-                            fine_tune: bool = False, prior: Any = None) -> tuple[Any, Any]:
-    """The acting agent and its learner (which trains a copy of ``network`` and posts to the agent).
-
-    With ``store`` the learner writes the replay priorities it sets back to it.  ``config`` is the one the
-    learner runs with (``config.learner_settings`` applied); with ``fine_tune`` the agent explores at most
-    ``finetune.max_epsilon``, and with no updates per action it does not explore at all.  ``prior``
-    (``configured_prior``) is mixed into the learner's batches at ``finetune.prior_share``.
-    """
-    from flgd.learning.learner import Learner
-
-    agent = make_agent(config, network, config.learning.seed if agent_seed is None else agent_seed, fine_tune)
-    learner = Learner(config, network, replay, mailbox=agent.mailbox, checkpoint_callback=checkpoint_callback,
-                      priority_sink=None if store is None else store.save_priorities, prior=prior,
-                      prior_share=config.finetune.prior_share if prior is not None else 0.0)
-    learner.updates = int(updates)
-    replay.resume_annealing(int(updates))  # one batch per update: beta goes on where the run left it
-    return agent, learner
-
-
-def make_agent(config: CellConfig, network: Any, seed: int, fine_tune: bool = False) -> Any:
+def make_agent(config: CellConfig, network: QMapNetwork, seed: int, fine_tune: bool = False) -> Agent:
     """The acting agent with the daemon's exploration rules: a fine-tune explores at most
     ``finetune.max_epsilon``, a cell that does not learn not at all.  ``flgd train --workers`` builds its
     workers' agents here too."""
     from flgd.learning.agent import Agent
 
-    agent = Agent(config, network, seed=seed)
-    if fine_tune:
-        agent.max_epsilon = config.finetune.max_epsilon
     if config.learning.updates_per_action == 0:
-        agent.max_epsilon = 0.0  # learning is off: exploring would only cost picks
-    return agent
-
-
-def attach_gate(config: CellConfig, store: Store, agent: Any, learner: Any, state_dir: str | Path, step: int, *,
-                fine_tune: bool, configured: Callable[[], tuple[Any, dict, str] | None],
-                fresh: Callable[[], tuple[Any, dict, str]]) -> tuple[Any, str]:
-    """(gatekeeper, note): the agent acts with the stored champion (on a first start the configured policy, or
-    without one ``fresh``), exploration continues from the policy's recorded training steps when fine-tuning,
-    and the learner hands its weights to the gate -- or, with ``gate.enabled`` false, straight to the agent.
-
-    The daemon and ``flgd eval --learn`` both call this, so that what the evaluation measures is what the
-    daemon does.  Raises GateError / PolicyFileError when there is no usable policy, StoreError on storage.
-    """
-    from flgd.gate.keeper import Gatekeeper
-
-    gate = Gatekeeper(config, store, agent, state_dir)
-    gate.on_champion = learner.set_anchor  # the learner's L2-SP anchor is what acts
-    note = gate.restore(step, configured, fresh)
-    offset = store.counter("exploration_offset", -1)
-    if offset < 0:  # first start: exploration continues from the policy's recorded training steps
-        offset = gate.champion.training_steps - step if fine_tune else 0
-        store.set_counter("exploration_offset", offset)
-    agent.exploration_offset = offset
-    learner.mailbox = gate.handovers if gate.enabled else agent.mailbox
-    return gate, note
+        max_epsilon = 0.0  # learning is off: exploring would only cost picks
+    else:
+        max_epsilon = config.finetune.max_epsilon if fine_tune else 1.0
+    return Agent(config, network, seed=seed, max_epsilon=max_epsilon)

@@ -329,11 +329,11 @@ def test_a_fault_while_homing_is_raised_before_anything_is_captured(tmp_path):
 
 @pytest.mark.slow
 def test_learned_priorities_are_written_to_the_store_and_come_back_after_a_restart(tmp_path):
-    from flgd.wiring import build_agent_and_learner, rebuild_replay
+    from flgd.learning.learner import Learner
+    from flgd.wiring import rebuild_replay
 
     cfg, cell, store, replay, runner = _setup(tmp_path)
-    agent, learner = build_agent_and_learner(cfg, runner.agent.agent.network, replay, checkpoint_callback=None,
-                                             store=store)
+    learner = Learner(cfg, runner.agent.agent.network, replay, priority_sink=store.save_priorities)
     runner.learner = learner
     try:
         for _ in range(4):

@@ -15,7 +15,6 @@ import torch
 
 from flgd.cycle_record import CycleOutcome
 from flgd.gate.keeper import GateError
-from flgd.learning.agent import Agent
 from flgd.perception import Heightmaps
 from flgd.store import Store
 from tests.fakes.gate import GateCell, gate_config, make_network, same_weights
@@ -202,9 +201,9 @@ def test_the_gate_off_never_takes_hand_overs_or_credits(tmp_path):
 
 
 def test_a_rollback_is_checked_on_every_cycle_even_while_new_challengers_are_tested(tmp_path):
-    c = GateCell(tmp_path, gate_config(min_attempts=500, max_attempts=500, drop_min_attempts=500))
-    resets = []
-    c.gate.reset_learner = resets.append
+    resets: list = []
+    c = GateCell(tmp_path, gate_config(min_attempts=500, max_attempts=500, drop_min_attempts=500),
+                 reset_learner=resets.append)
     for k in range(40):
         c.act(1, k % 5 != 0)  # the first champion's tenure: 80 %
     c.hand_over(make_network(20))
@@ -222,9 +221,8 @@ def test_a_rollback_is_checked_on_every_cycle_even_while_new_challengers_are_tes
 
 
 def test_a_challenger_dropped_as_worse_sends_the_learner_back_to_the_champion(tmp_path):
-    c = GateCell(tmp_path, gate_config())
-    resets = []
-    c.gate.reset_learner = resets.append
+    resets: list = []
+    c = GateCell(tmp_path, gate_config(), reset_learner=resets.append)
     c.hand_over(make_network(22))
     c.gate.handovers.post(make_network(23).state_dict(), version=7)  # of the rejected line: discarded with it
     for k in range(400):
@@ -265,19 +263,18 @@ def test_a_challenger_doing_better_gets_a_rising_share_of_the_decisions(tmp_path
 
 
 def test_the_learners_anchor_is_the_champion_from_the_start_and_follows_a_promotion(tmp_path):
-    from flgd.learning.learner import Learner
-    from flgd.learning.replay import PrioritizedReplay
-    from flgd.wiring import attach_gate
+    from flgd.learning_stack import GateStart, Handover, LearningStack
 
     config = gate_config()
     config = dataclasses.replace(config, learning=dataclasses.replace(config.learning, anchor_weight=1.0))
     store = Store(tmp_path)
-    agent = Agent(config, make_network(99), seed=0)
-    learner = Learner(config, make_network(98), PrioritizedReplay.from_config(config.learning))
     policy = make_network(1)
-    gate, _ = attach_gate(config, store, agent, learner, tmp_path, 0, fine_tune=True,
-                          configured=lambda: (policy, {"training_steps": 4000}, "policy P"),
-                          fresh=lambda: (make_network(7), {"training_steps": 0}, "fresh network"))
+    stack = LearningStack(config, fine_tune=False, state_dir=tmp_path, store=store)  # the learning section's anchor
+    parts = stack.build(make_network(98), handover=Handover.GATE, gate=GateStart(
+        0, configured=lambda: (policy, {"training_steps": 4000}, "policy P"),
+        fresh=lambda: (make_network(7), {"training_steps": 0}, "fresh network")))
+    agent, learner, gate = parts.agent, parts.learner, parts.gate
+    assert gate is not None and learner.mailbox is gate.handovers
 
     def anchored_to(net) -> bool:
         return all(torch.equal(learner._anchor[k], p.detach()) for k, p in net.named_parameters())

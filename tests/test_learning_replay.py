@@ -208,15 +208,17 @@ def test_a_resumed_learner_continues_the_beta_schedule():
     """beta anneals over sampled batches, one per update; a resumed run must not restart at beta_start."""
     from flgd.config import load_config
     from flgd.learning.networks import build_network
-    from flgd.wiring import build_agent_and_learner
+    from flgd.learning_stack import Handover, LearningStack
 
     cfg = load_config(REPO / "cell_config" / "sim.yaml")
     lc = cfg.learning
     replay = PrioritizedReplay.from_config(lc)
     assert replay.beta == pytest.approx(lc.priority_beta_start)
     half = lc.priority_beta_steps // 2
-    build_agent_and_learner(cfg, build_network(lc.network, rotations=16, seed=0), replay,
-                            checkpoint_callback=None, updates=half)
+    stack = LearningStack(cfg, fine_tune=False, state_dir=REPO)
+    parts = stack.build(build_network(lc.network, rotations=16, seed=0), handover=Handover.AGENT, updates=half)
+    replay = parts.replay
+    assert parts.learner.updates == half  # and the learner counts on from there
     assert replay.beta == pytest.approx(lc.priority_beta_start + (1 - lc.priority_beta_start) * half / lc.priority_beta_steps)
     replay.resume_annealing(10 * lc.priority_beta_steps)
     assert replay.beta == pytest.approx(1.0)

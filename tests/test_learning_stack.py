@@ -93,3 +93,70 @@ def test_overrides_are_checked_as_a_config_is():
         apply_overrides(cfg, {"nosection.x": 1}, source="test")
     with pytest.raises(ValueError, match="learning_rate"):
         apply_overrides(cfg, {"finetune.learning_rate": -1.0}, source="test")
+
+
+LEARNING_PARTS = {"agent", "learner", "replay", "gate", "keeper"}
+
+
+def part_assignments(source: str) -> list[str]:
+    """``x.agent.attr = ...`` or ``learner.attr = ...``: an attribute of a learning part set from outside its class."""
+    import ast
+
+    found = []
+    for node in ast.walk(ast.parse(source)):
+        targets = node.targets if isinstance(node, ast.Assign) else (
+            [node.target] if isinstance(node, (ast.AugAssign, ast.AnnAssign)) else [])
+        for target in targets:
+            for t in (target.elts if isinstance(target, ast.Tuple) else [target]):
+                if not isinstance(t, ast.Attribute):
+                    continue
+                owner = t.value
+                name = owner.id if isinstance(owner, ast.Name) else owner.attr if isinstance(owner, ast.Attribute) else ""
+                if name in LEARNING_PARTS:
+                    found.append(f"line {t.lineno}: {ast.unparse(t)}")
+    return found
+
+
+def test_no_attribute_of_a_learning_part_is_set_from_outside_its_class():
+    """Agent, learner, replay and gate are built whole (``LearningStack.build``); nothing in the package sets one
+    of their attributes afterwards (their own methods change their state)."""
+    offenders = {str(path.relative_to(REPO)): hits for root in ("flgd", "sim_cell", "benchmarks")
+                 for path in sorted((REPO / root).rglob("*.py"))
+                 if (hits := part_assignments(path.read_text()))}
+    assert offenders == {}
+
+
+def test_the_scan_finds_a_part_patched_from_outside():
+    assert part_assignments("learner.mailbox = None\nctl.agent.exploration_offset = 3\n"
+                            "a, self.gate.reset_learner = 1, f\nself.updates = 0\n") == [
+        "line 1: learner.mailbox", "line 2: ctl.agent.exploration_offset", "line 3: self.gate.reset_learner"]
+
+
+def test_the_builder_connects_learner_gate_and_agent_as_the_daemon_runs_them(tmp_path):
+    """Gate on: the learner posts to the gate's mailbox, the gate moves the learner's anchor and resets it; gate
+    off: the learner posts to the agent; no store: to a mailbox nobody reads (nothing acts unvetted)."""
+    from flgd.learning.networks import build_network
+    from flgd.learning_stack import GateStart, Handover, LearningStack
+    from flgd.store import Store
+
+    cfg = dataclasses.replace(load_config(SIM), state_dir=str(tmp_path / "state"))
+    net = build_network(cfg.learning.network, rotations=cfg.learning.rotations, seed=0)
+    start = GateStart(0, configured=lambda: (net, {"training_steps": 4000}, "policy P"),
+                      fresh=lambda: (net, {"training_steps": 0}, "fresh"))
+    stack = LearningStack(cfg, fine_tune=True, state_dir=tmp_path / "on", store=Store(tmp_path / "on"))
+    on = stack.build(net, handover=Handover.GATE, gate=start)
+    assert on.gate is not None and on.learner.mailbox is on.gate.handovers is not on.agent.mailbox
+    assert on.gate.on_champion == on.learner.set_anchor and on.gate.reset_learner == stack.restart_learner_from
+    assert on.agent.exploration_offset == 4000 and on.agent.max_epsilon == cfg.finetune.max_epsilon
+
+    off_cfg = dataclasses.replace(cfg, gate=dataclasses.replace(cfg.gate, enabled=False))
+    off = LearningStack(off_cfg, fine_tune=True, state_dir=tmp_path / "off", store=Store(tmp_path / "off")).build(
+        net, handover=Handover.GATE, gate=start)
+    assert off.gate is not None and off.learner.mailbox is off.agent.mailbox
+
+    unvetted = LearningStack(cfg, fine_tune=True, state_dir=tmp_path / "none").build(
+        net, handover=Handover.GATE, gate=start)
+    assert unvetted.gate is None and unvetted.learner.mailbox not in (None, unvetted.agent.mailbox)
+    with pytest.raises(ValueError, match="handover must be gate"):
+        LearningStack(cfg, fine_tune=True, state_dir=tmp_path / "on", store=Store(tmp_path / "x")).build(
+            net, handover=Handover.AGENT, gate=start)

@@ -252,7 +252,7 @@ def swap_in_policy(ctl: DaemonControl, path: str, loaded: Any, who: str) -> dict
                 if owed:
                     log.info("policy load: %d owed learner updates dropped", owed)
                 offset = int(loaded.metadata.get("training_steps", 0)) - step  # ε goes on from its steps
-                ctl.agent.exploration_offset = offset
+                ctl.agent.continue_exploration_from(offset)
                 ctl.policy_source = f"policy {path} (loaded at step {step} by {who})"
                 try:
                     if ctl.store is not None:

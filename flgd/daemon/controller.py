@@ -43,7 +43,7 @@ from flgd.daemon import commands
 from flgd.daemon.notify import Notifier
 from flgd.daemon.protocol import ProtocolError, Request
 from flgd.daemon.state import IllegalTransition, State, StateChange, StateMachine
-from flgd.learning_stack import LEARNER_QUIET_TIMEOUT, CheckpointMeta, LearningStack
+from flgd.learning_stack import LEARNER_QUIET_TIMEOUT, CheckpointMeta, GateStart, Handover, LearningStack
 from flgd.safety import PlanRefused
 from flgd.store import CheckpointDir, Store, StoreError
 
@@ -61,10 +61,24 @@ class StartupError(RuntimeError):
     """The daemon cannot start (bad policy, cell does not connect, state dir locked ...)."""
 
 
-def _learning_part(name: str, doc: str) -> property:
-    """A part of the controller's learning stack (``Controller.learning``), read and set under its old name."""
+def _stack_field(name: str, doc: str) -> property:
+    """A field the controller's learning stack keeps about its run (``Controller.learning``)."""
     return property(lambda self: getattr(self.learning, name), lambda self, value: setattr(self.learning, name, value),
                     doc=doc)
+
+
+def _learning_part(name: str, doc: str) -> property:
+    """A part of the controller's learning stack (``Controller.learning``), read-only: a part changes only by a
+    rebuild of the stack."""
+    return property(lambda self: getattr(self.learning, name) if self.learning.parts is not None else None, doc=doc)
+
+
+def _gate_errors() -> tuple[type[Exception], ...]:
+    """What building the gate raises when it cannot restore a policy to act with, or its records cannot be used."""
+    from flgd.gate.keeper import GateError
+    from flgd.learning.policy_file import PolicyFileError
+
+    return (GateError, PolicyFileError, StoreError, OSError)
 
 
 class Controller:
@@ -73,13 +87,13 @@ class Controller:
     agent = _learning_part("agent", "the acting agent")
     learner = _learning_part("learner", "the background learner")
     replay = _learning_part("replay", "the learner's replay")
-    prior = _learning_part("prior", "the fine-tune's prior sample (finetune.prior_sample), loaded in setup")
+    prior = _stack_field("prior", "the fine-tune's prior sample (finetune.prior_sample), loaded in setup")
     gate = _learning_part("gate", "the Gatekeeper (None while the store is unusable)")
     gate_note = _learning_part("gate_note", "what the acting policy is, as the gate restored it")
-    policy_source = _learning_part("source", "what the learner started from")
-    resumed_from_updates = _learning_part("resumed_from_updates", "the update count the learner continued from")
-    trainer_state = _learning_part("trainer_state", "what the learner's target network and Adam moments started from")
-    last_checkpoint = _learning_part("last_checkpoint", "the newest checkpoint resumed from or written")
+    policy_source = _stack_field("source", "what the learner started from")
+    resumed_from_updates = _stack_field("resumed_from_updates", "the update count the learner continued from")
+    trainer_state = _stack_field("trainer_state", "what the learner's target network and Adam moments started from")
+    last_checkpoint = _stack_field("last_checkpoint", "the newest checkpoint resumed from or written")
 
     def __init__(self, config: CellConfig, *, policy_path: str | None = None, autostart: bool = False,
                  notifier: Notifier | None = None, checkpoint_keep: int = 3,
@@ -136,7 +150,6 @@ class Controller:
         self._load_prior(network)
         self._build_learning(network, step)
         self._restore_trainer_state()
-        self._build_gate()
         try:
             self.cell = make_cell(self.cell_config_at(step))
         except CellFault as exc:
@@ -226,29 +239,30 @@ class Controller:
             raise StartupError(f"finetune.prior_sample: {exc}") from exc
 
     def _build_learning(self, network: Any, step: int) -> None:
-        """Replay, agent and learner for a run at action ``step``: their random draws (exploration, replay
-        sampling, mirroring) continue from seeds drawn for that action, not from the run's first ones."""
-        problem = self.learning.build(network, step)
-        if problem:
-            self.store_problem = problem
+        """Replay, agent, learner and, on an open store, the gate, for a run at action ``step``: their random draws
+        (exploration, replay sampling, mirroring) continue from seeds drawn for that action, not from the run's
+        first ones.  The agent acts with the gate's champion (or the configured policy on a first start), and the
+        learner hands its weights to the gate -- or, with the gate off, to the agent."""
+        try:
+            parts = self.learning.build(network, step, handover=Handover.GATE,
+                                        gate=self._gate_start() if self.store is not None else None)
+        except _gate_errors() as exc:
+            raise StartupError(self._gate_problem(exc)) from exc
+        if parts.replay_problem:
+            self.store_problem = parts.replay_problem
+        if parts.gate is not None:
+            log.info("acting policy: %s; gate %s", parts.gate_note, "on" if parts.gate.enabled else "OFF")
 
-    def _build_gate(self) -> None:
-        """The gatekeeper on the store: the agent acts with the stored champion (or the configured policy on a
-        first start), and the learner hands its weights to the gate -- or, with the gate off, to the agent."""
+    def _gate_start(self) -> GateStart:
+        return GateStart(self._next_step(), self._configured_policy, self._fresh_policy, self._reset_learner_to)
+
+    def _gate_problem(self, exc: BaseException) -> str:
         from flgd.gate.keeper import GateError
         from flgd.learning.policy_file import PolicyFileError
 
-        if self.store is None:
-            self.gate = None
-            return
-        try:
-            self.learning.attach_gate(self._next_step(), configured=self._configured_policy, fresh=self._fresh_policy)
-        except (GateError, PolicyFileError) as exc:
-            raise StartupError(f"no policy to act with: {exc}") from exc
-        except (StoreError, OSError) as exc:
-            raise StartupError(f"the gate's records in {self.state_dir} cannot be used: {exc}") from exc
-        self.gate.reset_learner = self._reset_learner_to
-        log.info("acting policy: %s; gate %s", self.gate_note, "on" if self.gate.enabled else "OFF")
+        if isinstance(exc, (GateError, PolicyFileError)):
+            return f"no policy to act with: {exc}"
+        return f"the gate's records in {self.state_dir} cannot be used: {exc}"
 
     def _reset_learner_to(self, network: Any) -> None:
         """Run loop (the gate, after a rollback or a drop as worse): the learner starts again from ``network``,
@@ -293,7 +307,8 @@ class Controller:
     def write_checkpoint(self, network: Any, updates: int) -> None:
         """Learner thread: write a checkpoint; a storage failure puts the daemon in FAULT."""
         step = self.runner.step if self.runner is not None else 0
-        step += int(getattr(self.agent, "exploration_offset", 0) or 0)  # the policy's own count, not the daemon's
+        if self.learning.parts is not None:  # the policy's own count, not the daemon's
+            step += self.learning.agent.exploration_offset
         meta = CheckpointMeta(step, self.config.name or self.backend, updates, self.policy_source)
         try:
             path = self.learning.write_checkpoint(network, updates, meta)
@@ -616,18 +631,22 @@ class Controller:
             if not self._open_store():
                 self.fault(self.store_problem)
                 raise ProtocolError("failed", f"reset: {self.store_problem}")
-            with self.learning_lock:  # the learner goes on from its weights; nothing handed over until the gate
-                problem = self.learning.rebuild(self._next_step())
-                if problem:
-                    self.store_problem = problem
+        if self.gate is None:  # the store came back (now or at an earlier reset whose gate failed)
+            gate_problem = ""
+            with self.learning_lock:  # the learner goes on from its weights; nothing handed over without a gate
+                try:
+                    self.learning.rebuild(self._next_step(), gate=self._gate_start())
+                except _gate_errors() as exc:
+                    gate_problem = self._gate_problem(exc)
+                if self.learning.parts is not None and self.learning.parts.replay_problem:
+                    self.store_problem = self.learning.parts.replay_problem
                 self.learning.connect(self.runner)
                 self.runner.step = self._next_step()
-        if self.gate is None:  # the store came back (now or at an earlier reset whose gate failed)
-            try:
-                self._build_gate()
-            except StartupError as exc:
-                self.fault(str(exc))
-                raise ProtocolError("failed", f"reset: {exc}") from None
+            if gate_problem:
+                self.fault(gate_problem)
+                raise ProtocolError("failed", f"reset: {gate_problem}")
+            assert self.gate is not None
+            log.info("acting policy: %s; gate %s", self.gate_note, "on" if self.gate.enabled else "OFF")
         assert self.store is not None  # opened above, or it was open
         disk = self.store.space_problem()
         if disk:  # the recovery moves the arm, and nothing may move that cannot be recorded

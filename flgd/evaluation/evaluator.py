@@ -195,7 +195,7 @@ class Evaluator:
     def _start_learning(self, network: Any, training_steps: int) -> None:
         """The daemon's learning stack for a given policy (flgd.learning_stack, its learner settings and curriculum
         rule included), on a store in a temporary directory."""
-        from flgd.learning_stack import LearningStack
+        from flgd.learning_stack import GateStart, Handover, LearningStack
         from flgd.store import Store
 
         self._learn_dir = tempfile.TemporaryDirectory(prefix="flgd-eval-learn-")
@@ -203,11 +203,11 @@ class Evaluator:
         self.config = stack.config
         self.store = stack.store = Store(self._learn_dir.name, keep_transitions=self.config.learning.replay_capacity)
         stack.load_prior(network.rotations)
-        stack.build(network, agent_seed=self.options.seed)
         policy = (network, {"training_steps": int(training_steps)}, "the evaluated policy")
-        stack.attach_gate(0, configured=lambda: policy, fresh=lambda: policy)
+        parts = stack.build(network, handover=Handover.GATE, agent_seed=self.options.seed,
+                            gate=GateStart(0, configured=lambda: policy, fresh=lambda: policy))
         self.learning = stack
-        self.replay, self.agent, self.learner, self.gate = stack.replay, stack.agent, stack.learner, stack.gate
+        self.replay, self.agent, self.learner, self.gate = parts.replay, parts.agent, parts.learner, parts.gate
         self.learner.start()
 
     # ------------------------------------------------------------------ cells

@@ -67,7 +67,9 @@ class Gatekeeper:
 
     def __init__(self, config: CellConfig, store: Store, agent: Any, state_dir: str | Path,
                  keep_champions: int | None = None, keep_unusable: int = KEEP_UNUSABLE,
-                 read_retry_delays: tuple[float, ...] = READ_RETRY_DELAYS) -> None:
+                 read_retry_delays: tuple[float, ...] = READ_RETRY_DELAYS, *,
+                 handovers: WeightsMailbox | None = None, on_champion: Callable[[Any], None] | None = None,
+                 reset_learner: Callable[[Any], object] | None = None) -> None:
         self.config = config
         self.settings = gate_settings(config)
         self.enabled = bool(config.gate.enabled)
@@ -75,7 +77,8 @@ class Gatekeeper:
         self.store = store
         self.agent = agent
         self.state_dir = Path(state_dir)
-        self.handovers = WeightsMailbox()  # the learner posts here when the gate is on
+        # the learner posts here when the gate is on (the learning stack gives the learner this mailbox)
+        self.handovers = WeightsMailbox() if handovers is None else handovers
         self.champion: PolicyRecord | None = None
         self.challenger: PolicyRecord | None = None
         self.champion_live = Tally()   # the champion's actions since it became champion
@@ -86,10 +89,10 @@ class Gatekeeper:
         self.champion_verdict: Verdict | None = None  # on a promoted champion (rollback or keep)
         # called with the champion's network after a rollback or a drop as worse: the learner starts again
         # from what acts, instead of going on along the line of weights just rejected
-        self.reset_learner: Callable[[Any], None] | None = None
+        self.reset_learner = reset_learner
         # called with the champion's network whenever the acting policy changes (restore, promotion, rollback,
         # load): the learner's L2-SP anchor (``learning.anchor_weight``) follows what acts
-        self.on_champion: Callable[[Any], None] | None = None
+        self.on_champion = on_champion
         self.files = GateStorage(config, store, state_dir, keep_unusable=keep_unusable,
                                  read_retry_delays=read_retry_delays)
         self._lock = threading.RLock()
@@ -154,6 +157,7 @@ class Gatekeeper:
                 if tried:
                     note = f"fell back to the configured policy ({'; '.join(tried)})"
             self.files.prune_unusable()
+            assert cur is not None and network is not None  # found, or registered from the configured policy
             self._act_with_champion(cur, network)
             self._restore_challenger(step)
             self._recount()
@@ -198,17 +202,15 @@ class Gatekeeper:
     def _set_share(self) -> None:
         """The challenger under test makes its share of the next decisions (rising with ``gate.max_share``)."""
         if self.enabled and self.challenger is not None and self.verdict is not None and self.verdict.kind == "testing":
-            self.agent.challenger_share = challenger_share(self.champion_during_test, self.challenger_tally,
-                                                           self.settings)
+            self.agent.set_challenger_share(challenger_share(self.champion_during_test, self.challenger_tally,
+                                                             self.settings))
 
     # ------------------------------------------------------------------ changes of the acting policy
     def _act_with_champion(self, record: PolicyRecord, network: Any) -> None:
         self.champion = record
-        self.agent.network.load_state_dict(network.state_dict())
-        self.agent.network.eval()
-        self.agent.champion_id = record.id if self.enabled else None
         # a learner update count for the cached double-DQN argmax; only the learner's own weights have one
-        self.agent.weights_version = record.learner_updates if record.learner_updates is not None else -1
+        self.agent.act_with(network.state_dict(), record.id if self.enabled else None,
+                            record.learner_updates if record.learner_updates is not None else -1)
         if self.on_champion is not None:
             try:
                 self.on_champion(self.agent.network)
@@ -238,6 +240,12 @@ class Gatekeeper:
         log.info("gate: policy #%d is the champion (%s: %s)", pid, kind, origin)
         self.by_promotion = False
         return record
+
+    def _crowned(self) -> PolicyRecord:
+        """The champion just crowned (``_crown`` always sets one)."""
+        if self.champion is None:
+            raise GateError("no champion after a crowning: the gate's records are inconsistent")
+        return self.champion
 
     def _crown(self, record: PolicyRecord, step: int, kind: str, who: str, message: str, evidence: dict,
                retire_as: str = "retired", also: Callable[[Any], None] | None = None) -> None:
@@ -305,11 +313,12 @@ class Gatekeeper:
             self._crown(ch, step, kind, who, f"challenger #{ch.id} promoted: {reason}", evidence)
             self.challenger = None
             self.agent.set_challenger(None)
-            self._act_with_champion(self.champion, network)
+            champion = self._crowned()
+            self._act_with_champion(champion, network)
             self.champion_live, self.challenger_tally, self.champion_during_test = Tally(), Tally(), Tally()
-            self.files.prune_retired(self.champion, self.keep_champions)
+            self.files.prune_retired(champion, self.keep_champions)
             self.verdict = None
-            return {"champion": self.champion.id, "reason": reason}
+            return {"champion": champion.id, "reason": reason}
 
     def reject(self, step: int, who: str) -> dict:
         with self._lock:
@@ -341,7 +350,7 @@ class Gatekeeper:
             self._crown(pred, step, kind, who, f"champion #{ch.id} rolled back to #{pred.id}: {reason}", evidence,
                         retire_as="rolled_back")
             self.files.remove_file(ch)
-            self._act_with_champion(self.champion, network)
+            self._act_with_champion(self._crowned(), network)
             self.champion_live = Tally()
             self.verdict = None
             return {"champion": pred.id, "rolled_back": ch.id, "reason": reason}
@@ -485,9 +494,9 @@ class Gatekeeper:
             except GateError as exc:
                 log.error("gate: rollback not possible: %s", exc)
                 self.by_promotion = False  # do not retry every cycle; the operator sees the event
-                why = str(exc)
+                why, champion_id = str(exc), None if self.champion is None else self.champion.id
                 self.store.transaction(lambda db: write_event(
-                    db, "rollback-failed", step, self.champion.id, None, "gate", f"rollback not possible: {why}",
+                    db, "rollback-failed", step, champion_id, None, "gate", f"rollback not possible: {why}",
                     {"verdict": rv.reason}))
                 return None
             self._restart_learner_from_champion("rollback")

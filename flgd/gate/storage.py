@@ -44,6 +44,7 @@ import logging
 import os
 import time
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 from typing import Any, Callable
 
@@ -170,6 +171,10 @@ def insert_record(db: Any, r: PolicyRecord) -> None:
                "training_steps, since_step, record) VALUES(?,?,?,?,?,?,?,?,?,?,NULL)",
                (r.id, time.time(), r.role, r.file, r.sha256, r.origin, r.predecessor, r.learner_updates,
                 r.training_steps, r.since_step))
+
+
+def _set_file(db: Any, path: str, policy_id: int) -> None:
+    db.execute("UPDATE policies SET file=? WHERE id=?", (path, policy_id))
 
 
 def write_event(db: Any, kind: str, step: int, policy: int | None, other: int | None, who: str, message: str,
@@ -375,8 +380,7 @@ class GateStorage:
             if self.path(record).is_file():
                 rel = self.move_aside(record)
                 if rel is not None:
-                    self.store.transaction(lambda db, r=rel, i=record.id: db.execute(
-                        "UPDATE policies SET file=? WHERE id=?", (r, i)))
+                    self.store.transaction(partial(_set_file, path=rel, policy_id=record.id))
 
     def prune_unusable(self) -> None:
         """Keep the newest ``keep_unusable`` files in ``gate/unusable/``; older ones are deleted."""

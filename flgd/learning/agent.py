@@ -185,7 +185,10 @@ class OutcomeState:
 class Agent:
     """Chooses actions from Q-maps; holds the exploration state (failure streak, previous action)."""
 
-    def __init__(self, config: CellConfig, network: QMapNetwork, seed: int = 0) -> None:
+    def __init__(self, config: CellConfig, network: QMapNetwork, seed: int = 0, *, max_epsilon: float = 1.0,
+                 exploration_offset: int = 0) -> None:
+        if not 0.0 <= max_epsilon <= 1.0:
+            raise ValueError(f"max_epsilon: got {max_epsilon!r}, expected 0..1")
         self.config = config
         self.network = network
         self.rotations = network.rotations
@@ -201,8 +204,8 @@ class Agent:
         self.challenger_version = -1
         self.challenger_share = 0.0
         self._assign_rng = np.random.default_rng([int(seed), 0x6761])
-        self.exploration_offset = 0
-        self.max_epsilon = 1.0
+        self.exploration_offset = int(exploration_offset)
+        self.max_epsilon = float(max_epsilon)
         ex = config.exploration
         self.memory = FailureMemory(self.rotations, ex.failure_radius / config.workspace.resolution,
                                     ex.failure_rotations, config.rewards.delta, ex.failure_retries)
@@ -222,6 +225,20 @@ class Agent:
         self.weights_version = version
         return True
 
+    def act_with(self, weights: Mapping[str, torch.Tensor], policy_id: int | None, version: int) -> None:
+        """Decide with ``weights`` from the next decision on: the acting policy ``policy_id`` (None: not one the
+        gate keeps), whose learner update count is ``version`` (-1 unknown; the cached double-DQN a' needs it)."""
+        self.network.load_state_dict(dict(weights))
+        self.network.eval()
+        self.champion_id = policy_id
+        self.weights_version = int(version)
+
+    def set_challenger_share(self, share: float) -> None:
+        """The share of greedy decisions the challenger makes, as the gate's evidence earned it."""
+        if not 0.0 <= share <= 1.0:
+            raise ValueError(f"challenger share: got {share!r}, expected 0..1")
+        self.challenger_share = float(share) if self.challenger is not None else 0.0
+
     def set_challenger(self, network: QMapNetwork | None, policy_id: int | None = None, version: int = -1,
                        share: float = 0.0) -> None:
         """The network that makes a ``share`` of the greedy decisions (None: the champion makes them all)."""
@@ -230,6 +247,11 @@ class Agent:
         self.challenger, self.challenger_id = network, (policy_id if network is not None else None)
         self.challenger_version = version if network is not None else -1
         self.challenger_share = float(share) if network is not None else 0.0
+
+    def continue_exploration_from(self, offset: int) -> None:
+        """Exploration goes on at ``step + offset`` from now: a loaded policy's recorded training steps less the
+        step it starts acting at, so that a trained policy does not explore like a fresh one."""
+        self.exploration_offset = int(offset)
 
     def epsilon(self, step: int) -> float:
         """Exploration rate at ``step``: the schedule at ``step + exploration_offset``, capped at ``max_epsilon``."""
@@ -390,7 +412,10 @@ class Agent:
         return OutcomeState(self.failed_grasps, self.forced_moves, self.previous, copy.deepcopy(self.memory),
                             self.rng.bit_generator.state, self._assign_rng.bit_generator.state, self._exhausted)
 
-    def restore_outcome_state(self, state: "OutcomeState") -> None:
+    def restore_outcome_state(self, state: object) -> None:
+        """Back to what ``outcome_state`` copied (the cycle keeps it without looking inside)."""
+        if not isinstance(state, OutcomeState):
+            raise TypeError(f"restore_outcome_state: expected what outcome_state() returned, got {type(state).__name__}")
         self.failed_grasps, self.forced_moves, self.previous = state.failed_grasps, state.forced_moves, state.previous
         self.memory = copy.deepcopy(state.memory)
         self.rng.bit_generator.state = state.rng

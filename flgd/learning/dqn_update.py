@@ -160,8 +160,10 @@ class DQNUpdate:
     def __init__(self, config: CellConfig, network: QMapNetwork, replay: PrioritizedReplay,
                  device: str | torch.device | None = None, checkpoint_callback: CheckpointCallback | None = None,
                  priority_sink: PrioritySink | None = None, prior: PriorSample | None = None,
-                 prior_share: float = 0.0) -> None:
+                 prior_share: float = 0.0, updates: int = 0) -> None:
         lc = config.learning
+        if updates < 0:
+            raise ValueError(f"updates: got {updates!r}, expected the update count to go on from (>= 0)")
         if not 0.0 <= prior_share < 1.0:
             raise ValueError(f"prior_share: got {prior_share!r}, expected 0 <= share < 1")
         if prior_share > 0.0 and prior is None:
@@ -187,7 +189,7 @@ class DQNUpdate:
         self.prior_drawn = 0  # transitions drawn from the prior sample into updates so far
         self.checkpoint_callback = checkpoint_callback
         self.priority_sink = priority_sink
-        self.updates = 0
+        self.updates = int(updates)  # a resumed learner counts on from its checkpoint's update
         self.skipped_updates = 0  # updates not applied because the loss, TD errors or gradients were not finite
         self.last_error: str | None = None
         self.last_stats: UpdateStats | None = None

@@ -56,9 +56,9 @@ class Learner(DQNUpdate):
                  device: str | torch.device | None = None, mailbox: WeightsMailbox | None = None,
                  checkpoint_callback: CheckpointCallback | None = None, thread_nice: int = 10,
                  priority_sink: PrioritySink | None = None, prior: PriorSample | None = None,
-                 prior_share: float = 0.0) -> None:
+                 prior_share: float = 0.0, updates: int = 0) -> None:
         super().__init__(config, network, replay, device=device, checkpoint_callback=checkpoint_callback,
-                         priority_sink=priority_sink, prior=prior, prior_share=prior_share)
+                         priority_sink=priority_sink, prior=prior, prior_share=prior_share, updates=updates)
         self.mailbox = mailbox
         self.thread_nice = thread_nice
         self.handover_every = config.gate.handover_every

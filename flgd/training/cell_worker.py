@@ -147,9 +147,8 @@ class CellWorker:
             config, sim=dataclasses.replace(config.sim, seed=worker_seed(seed, segment, index, incarnation, 2)))
         lc = config.learning
         network = build_network(lc.network, rotations=lc.rotations, seed=0)
-        network.load_state_dict(weights)
         self.agent = make_agent(config, network, worker_seed(seed, segment, index, incarnation, 4))
-        self.agent.weights_version = version
+        self.agent.act_with(weights, None, version)
         self.store = CollectingStore(self._note)
         self.decisions = DecisionNotes()
         # the run's step: the curriculum's first scene and the exploration schedule follow it

@@ -33,6 +33,7 @@ from typing import Any
 import numpy as np
 
 from flgd.cycle_record import CycleOutcome
+from flgd.learning_stack import Handover
 from flgd.training.run import CURVE_FILE, EXIT_INTERRUPTED, EXIT_OK, LOG_FILE, TrainingRun, next_scene_id
 
 __all__ = ["DistributedTrainingRun", "MAX_REPLACEMENTS"]
@@ -62,6 +63,8 @@ class _WorkerSlot:
 class DistributedTrainingRun(TrainingRun):
     """A training run whose cells are Ray actors (module doc)."""
 
+    learner_hands_to = Handover.NOBODY  # nobody acts in this process: the weights go to the workers (``_weights``)
+
     def __init__(self, *args: Any, workers: int, address: str | None = None, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
         if workers < 1:
@@ -88,7 +91,6 @@ class DistributedTrainingRun(TrainingRun):
 
         self.engine = start_engine(self.address, self.workers)
         super().setup()
-        self.learner.mailbox = None  # nobody acts in this process: the weights go to the workers (``_weights``)
 
     def _setup_cell(self, step: int) -> None:
         """Instead of a cell here: N workers."""

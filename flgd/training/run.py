@@ -50,7 +50,7 @@ from typing import Any
 from flgd.atomic_file import write_atomically
 from flgd.config import CellConfig, dump_config
 from flgd.cycle_record import CycleOutcome
-from flgd.learning_stack import CheckpointMeta, LearningStack
+from flgd.learning_stack import CheckpointMeta, Handover, LearningStack
 from flgd.store import CheckpointDir
 from flgd.training.actions_csv import ActionsCsv
 from flgd.training.progress import BarProgress, LineProgress
@@ -82,6 +82,9 @@ def rolling(outcomes: deque, window: int) -> float | None:
 
 class TrainingRun:
     """One run directory: set up (fresh or resumed), train to ``settings.steps``, stop cleanly."""
+
+    # no gate in a training run: the learner's weights act as they are handed over
+    learner_hands_to: Handover = Handover.AGENT
 
     def __init__(self, out: Path, settings: RunSettings, base_config: CellConfig,
                  progress: LineProgress | BarProgress,
@@ -166,12 +169,12 @@ class TrainingRun:
         remove_trainer_state_temporaries(self.out)
         learning = self.learning
         network = learning.start_from(self.settings.init_policy or None)
-        problem = learning.build(network, replay_seed=resume_seed(self.settings.seed, self.segment, 3),
-                                 agent_seed=resume_seed(self.settings.seed, self.segment, 4))
-        if problem:
-            raise RuntimeError(problem)
-        learning.hand_to_agent()  # no gate: the learner's weights act as they are handed over
-        self.replay, self.agent, self.learner = learning.replay, learning.agent, learning.learner
+        parts = learning.build(network, handover=self.learner_hands_to,
+                               replay_seed=resume_seed(self.settings.seed, self.segment, 3),
+                               agent_seed=resume_seed(self.settings.seed, self.segment, 4))
+        if parts.replay_problem:
+            raise RuntimeError(parts.replay_problem)
+        self.replay, self.agent, self.learner = parts.replay, parts.agent, parts.learner
         self._restore_trainer_state()
 
         self.actions = ActionsCsv(self.out / LOG_FILE)
