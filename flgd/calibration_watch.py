@@ -31,13 +31,16 @@ import math
 import time
 from collections import deque
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import cv2
 import numpy as np
 
 from flgd.clutter import min_region_pixels, object_mask
 from flgd.config import CalibrationWatchConfig, RewardConfig, WorkspaceConfig
+
+if TYPE_CHECKING:
+    from flgd.cell import Frame
 
 __all__ = ["TablePlane", "WatchEvent", "CalibrationWatch", "table_points", "fit_table_plane", "REMEDY",
            "CLEAR_FRACTION"]
@@ -221,7 +224,7 @@ class CalibrationWatch:
         # connection, a scrape) never iterates the window while the run loop appends to it
         self.latest: tuple[float, float] | None = None
 
-    def observe_frame(self, frame: Any, now: float | None = None) -> WatchEvent | None:
+    def observe_frame(self, frame: Frame, now: float | None = None) -> WatchEvent | None:
         """Fit the table in a ``flgd.cell.Frame`` and judge it (``observe``)."""
         points = table_points(frame.depth, frame.depth_scale, frame.intrinsics, frame.camera_pose, self.workspace,
                               self.depth_range)

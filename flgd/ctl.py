@@ -19,7 +19,7 @@ import socket
 import sys
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, TextIO
 
 __all__ = ["main", "Client", "call", "DaemonUnreachable", "EXIT_OK", "EXIT_FAILED", "EXIT_USAGE", "EXIT_NOT_RUNNING",
            "EXIT_FORBIDDEN"]
@@ -108,7 +108,7 @@ class Client:
     def __enter__(self) -> "Client":
         return self
 
-    def __exit__(self, *exc: Any) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.close()
 
 
@@ -194,7 +194,7 @@ def _parser() -> argparse.ArgumentParser:
     return p
 
 
-def _pct(v: Any) -> str:
+def _pct(v: float | None) -> str:
     return "-" if v is None else f"{100 * v:.1f}%"
 
 
@@ -347,7 +347,7 @@ class _OutputFailed(Exception):
         self.error = error
 
 
-def _say(text: str, stream: Any = None) -> None:
+def _say(text: str, stream: TextIO | None = None) -> None:
     """Write one line and flush it, so a write error shows here rather than in a traceback at exit.
 
     A failed write to stdout raises _OutputFailed; one to stderr is dropped (there is nowhere left to say it).

@@ -66,7 +66,7 @@ import numpy as np
 
 from flgd.actions import Action
 from flgd.camera_view import tool_in_view
-from flgd.cell import STOPPED_ON_REQUEST, Cell, CellFault, ExecutionResult
+from flgd.cell import STOPPED_ON_REQUEST, Cell, CellFault, ExecutionResult, Frame
 from flgd.clutter import grasp_mask, grasp_reward, judge_move
 from flgd.config import CellConfig
 from flgd.cycle_record import (UNSTABLE_MARK, CycleOutcome, CycleRecord, float_or_none, held_at_place, on_cell_clock,
@@ -77,6 +77,7 @@ from flgd.cycle_parts import CycleAgent, CycleLearner, CycleStore
 from flgd.safety import PlanRefused, check_plan
 
 if TYPE_CHECKING:
+    from flgd.plans import Plan
     from flgd.learning.agent import Decision
     from flgd.learning.replay import PrioritizedReplay, Transition
 
@@ -109,7 +110,7 @@ class _Phase:
     def __enter__(self) -> None:
         self.t0 = time.perf_counter()
 
-    def __exit__(self, *exc: Any) -> None:
+    def __exit__(self, *exc: object) -> None:
         t = self.timer.timings
         t[self.name] = t.get(self.name, 0.0) + time.perf_counter() - self.t0
         if self.timer.on_phase is not None:
@@ -162,7 +163,7 @@ class CycleRunner:
         self.backend = backend or config.backend
         self.on_phase = on_phase
         self.current: Heightmaps | None = None
-        self.last_frame: Any = None  # the newest captured frame (the calibration watch fits the table in it)
+        self.last_frame: Frame | None = None  # the newest captured frame (the calibration watch fits the table in it)
         # (heightmaps, decision, step) of the newest decision, replaced as one object so another
         # thread (a snapshot request) never pairs a decision with the wrong heightmaps
         self.last_decided: tuple[Heightmaps, Decision, int] | None = None
@@ -234,7 +235,7 @@ class CycleRunner:
         self.forget_state()
         self.agent.reset_episode()
 
-    def _run_checked(self, plan: Any, what: str) -> ExecutionResult:
+    def _run_checked(self, plan: Plan, what: str) -> ExecutionResult:
         """Check and run a follow-up plan (release, home); a refusal here is a cell fault."""
         if self._stop.is_set():
             return ExecutionResult(False, [], f"{what}: {STOPPED_ON_REQUEST}")

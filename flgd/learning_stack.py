@@ -309,7 +309,7 @@ class LearningStack:
         """The learner ran updates since the newest checkpoint (a clean exit writes one)."""
         return self.parts is not None and self.parts.learner.updates > max(0, self.checkpointed_updates())
 
-    def write_checkpoint(self, network: Any, updates: int, meta: CheckpointMeta) -> Path:
+    def write_checkpoint(self, network: QMapNetwork, updates: int, meta: CheckpointMeta) -> Path:
         """The policy file of update ``updates`` (StoreError / OSError), and the store's count of updates."""
         from flgd.learning.policy_file import save_policy
 

@@ -31,13 +31,16 @@ import math
 import os
 import stat
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
 
 from flgd.actions import Action, move_kind_at
 from flgd.atomic_file import write_atomically
+
+if TYPE_CHECKING:
+    from flgd.config import CellConfig
 
 __all__ = ["ActionGlyph", "QmapFigure", "qmap_figure", "qmap_picture", "encode_png", "write_png",
            "output_mode", "greedy_action", "ACTION_COLORS", "heat_color"]
@@ -59,7 +62,7 @@ class ActionGlyph:
     shift_px: float = 30.0     # shift travel 0.06 m
 
     @classmethod
-    def from_config(cls, config: Any) -> "ActionGlyph":
+    def from_config(cls, config: CellConfig) -> "ActionGlyph":
         """Sizes of ``config`` (a CellConfig): gripper opening, push and shift travel over the resolution."""
         res = float(config.workspace.resolution)
         return cls(opening_px=config.gripper.open_width / res, push_px=config.robot.push_distance / res,

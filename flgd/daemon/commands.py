@@ -28,6 +28,7 @@ from flgd.store import StoreError
 
 if TYPE_CHECKING:
     from flgd.daemon.control import DaemonControl
+    from flgd.learning.policy_file import LoadedPolicy
 
 __all__ = ["Command", "HANDLERS", "status", "status_text", "summary", "policy_load"]
 
@@ -212,7 +213,7 @@ def _load_policy(ctl: DaemonControl, path: str, who: str) -> dict:
     return ctl.run_on_loop(lambda: swap_in_policy(ctl, path, loaded, who or "operator"))
 
 
-def swap_in_policy(ctl: DaemonControl, path: str, loaded: Any, who: str) -> dict:
+def swap_in_policy(ctl: DaemonControl, path: str, loaded: LoadedPolicy, who: str) -> dict:
     """Run loop: the loaded policy becomes the champion and the learner's weights, checkpointed at once.
 
     Why a checkpoint: a restart resumes learning from the newest checkpoint, which would otherwise

@@ -31,7 +31,7 @@ import queue
 import threading
 import time
 from pathlib import Path
-from typing import Any, Callable
+from typing import TYPE_CHECKING, Any, Callable
 
 from flgd.memory import trim_heap
 from flgd.calibration_watch import CalibrationWatch
@@ -46,6 +46,10 @@ from flgd.daemon.state import IllegalTransition, State, StateChange, StateMachin
 from flgd.learning_stack import LEARNER_QUIET_TIMEOUT, CheckpointMeta, GateStart, Handover, LearningStack
 from flgd.safety import PlanRefused
 from flgd.store import CheckpointDir, Store, StoreError
+
+if TYPE_CHECKING:
+    from flgd.cell import Frame
+    from flgd.learning.networks import QMapNetwork
 
 __all__ = ["Controller", "StartupError"]
 
@@ -114,14 +118,14 @@ class Controller:
         self.store_problem = ""
         self.cell: Cell | None = None
         self.backend = config.backend
-        self._start_network: Any = None
+        self._start_network: QMapNetwork | None = None
         self.runner: CycleRunner | None = None
         self.last_record: CycleRecord | None = None
         self.last_stuck: dict[str, Any] | None = None  # the newest time the cell declared itself stuck
         cw = config.calibration_watch
         self.calibration_watch = (CalibrationWatch(cw, config.workspace, config.rewards, config.camera.depth_range)
                                   if cw.enabled else None)
-        self._watched_frame: Any = None  # the frame the calibration watch judged last
+        self._watched_frame: Frame | None = None  # the frame the calibration watch judged last
         self.cycle_in_flight = False
         self._learning_problem = ""
         self.learning_lock = threading.Lock()  # a policy load and a learner rebuild never interleave
@@ -229,7 +233,7 @@ class Controller:
         except (PolicyFileError, TrunkFileError) as exc:
             raise StartupError(str(exc)) from exc
 
-    def _load_prior(self, network: Any) -> None:
+    def _load_prior(self, network: QMapNetwork) -> None:
         """The fine-tune's prior sample (``finetune.prior_sample``), loaded once for every learner built."""
         from flgd.learning.prior_sample import PriorSampleError
 
@@ -238,7 +242,7 @@ class Controller:
         except PriorSampleError as exc:
             raise StartupError(f"finetune.prior_sample: {exc}") from exc
 
-    def _build_learning(self, network: Any, step: int) -> None:
+    def _build_learning(self, network: QMapNetwork, step: int) -> None:
         """Replay, agent, learner and, on an open store, the gate, for a run at action ``step``: their random draws
         (exploration, replay sampling, mirroring) continue from seeds drawn for that action, not from the run's
         first ones.  The agent acts with the gate's champion (or the configured policy on a first start), and the
@@ -264,7 +268,7 @@ class Controller:
             return f"no policy to act with: {exc}"
         return f"the gate's records in {self.state_dir} cannot be used: {exc}"
 
-    def _reset_learner_to(self, network: Any) -> None:
+    def _reset_learner_to(self, network: QMapNetwork) -> None:
         """Run loop (the gate, after a rollback or a drop as worse): the learner starts again from ``network``,
         under the learning lock, with an event either way."""
         from flgd.learning.learner import LearnerBusy
@@ -304,7 +308,7 @@ class Controller:
             log.info("trainer state: %s", self.trainer_state)
 
     # ================================================================== checkpoints
-    def write_checkpoint(self, network: Any, updates: int) -> None:
+    def write_checkpoint(self, network: QMapNetwork, updates: int) -> None:
         """Learner thread: write a checkpoint; a storage failure puts the daemon in FAULT."""
         step = self.runner.step if self.runner is not None else 0
         if self.learning.parts is not None:  # the policy's own count, not the daemon's
@@ -409,7 +413,7 @@ class Controller:
         self.notifier.status(self.status_text())
         trim_heap()  # what the cycle and the learner freed goes back to the system (flgd/memory.py)
 
-    def _on_stuck(self, record: Any) -> None:
+    def _on_stuck(self, record: CycleRecord) -> None:
         """The agent gave up on this scene: say so (event, status, metric), and on a cell that cannot re-lay
         its own scene pause for a person unless ``exploration.stuck_action`` is ``continue``."""
         if record.relaid:
@@ -431,7 +435,7 @@ class Controller:
 
     def _watch_calibration(self) -> None:
         """The cycle's newest frame to the calibration watch; a drift (or its end) is logged and recorded."""
-        frame = getattr(self.runner, "last_frame", None)
+        frame = self.runner.last_frame if self.runner is not None else None
         if self.calibration_watch is None or frame is None or frame is self._watched_frame:
             return
         self._watched_frame = frame

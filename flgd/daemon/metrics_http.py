@@ -25,7 +25,7 @@ import socket
 import socketserver
 import threading
 import time
-from typing import Any, cast
+from typing import cast
 
 from prometheus_client.exposition import MetricsHandler
 from prometheus_client.registry import CollectorRegistry
@@ -145,7 +145,7 @@ class MetricsHTTPServer:
                 _shutdown(conn)
 
 
-def _shutdown(conn: Any) -> None:
+def _shutdown(conn: socket.socket) -> None:
     try:
         conn.shutdown(socket.SHUT_RDWR)
     except OSError:

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import logging
 import time
-from typing import Any, Callable, Iterator
+from typing import TYPE_CHECKING, Callable, Iterator
 
 from prometheus_client import CollectorRegistry
 from prometheus_client.core import (CounterMetricFamily, GaugeMetricFamily, HistogramMetricFamily,
@@ -29,6 +29,9 @@ from flgd.daemon.metrics import PhaseHistograms, compute_stats, fault_counts
 from flgd.daemon.metrics_http import MetricsHTTPServer
 from flgd.daemon.state import State
 from flgd.store import StoreError
+
+if TYPE_CHECKING:
+    from flgd.daemon.controller import Controller
 
 __all__ = ["MetricsServer", "CellCollector", "cell_metric_families", "STATES"]
 
@@ -92,7 +95,7 @@ def _calibration_families(watch: dict | None) -> Iterator[Metric]:
                             "camera.pose (remedy: flgd calibrate)", value=1.0 if watch.get("drift") else 0.0)
 
 
-def cell_metric_families(controller: Any, state_name: Callable[[], str],
+def cell_metric_families(controller: Controller, state_name: Callable[[], str],
                          histograms: PhaseHistograms) -> Iterator[Metric]:
     """Every metric of one scrape, read from the controller's status and the store's statistics."""
     state = state_name()
@@ -194,7 +197,7 @@ def cell_metric_families(controller: Any, state_name: Callable[[], str],
 class CellCollector(Collector):
     """The daemon's metrics, read from the controller at every scrape."""
 
-    def __init__(self, controller: Any, state_name: Callable[[], str] | None = None):
+    def __init__(self, controller: Controller, state_name: Callable[[], str] | None = None):
         self.controller = controller
         self.state_name = state_name or (lambda: controller.state.state.value)
         self.histograms = PhaseHistograms()
@@ -216,7 +219,7 @@ class MetricsServer:
     slow or half-sent scrapes can take the descriptors the control socket needs.
     """
 
-    def __init__(self, controller: Any, host: str, port: int, state_name: Callable[[], str] | None = None):
+    def __init__(self, controller: Controller, host: str, port: int, state_name: Callable[[], str] | None = None):
         self.host = host
         self.port = port
         self.registry = CollectorRegistry()

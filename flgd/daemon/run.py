@@ -31,7 +31,8 @@ import signal
 import sys
 import threading
 from pathlib import Path
-from typing import Any, Callable
+from types import FrameType
+from typing import TYPE_CHECKING, Callable
 
 from flgd.config import ConfigError, load_config, parse_metrics_address
 from flgd.log_limit import RepeatLimit
@@ -41,6 +42,9 @@ from flgd.daemon.protocol import ProtocolError, Request
 from flgd.daemon.state import State
 from flgd.daemon.server import ControlServer, PeerPolicy, SocketInUse
 from flgd.daemon.socket_path import default_socket_path, socket_candidates
+
+if TYPE_CHECKING:
+    from flgd.daemon.controller import Controller
 
 __all__ = ["main", "default_socket_path", "socket_candidates"]
 
@@ -94,12 +98,12 @@ def _terminal_width() -> int:
 class _SignalStop:
     """SIGTERM/SIGINT: a flag and an immediate motion halt in the handler; the state change later, in the loop."""
 
-    def __init__(self, controller: Any) -> None:
+    def __init__(self, controller: Controller) -> None:
         self.controller = controller
         self.seen: list[int] = []  # list.append is safe in a handler; read by the loop
         self.halt_errors: list[str] = []
 
-    def on_signal(self, signum: int, _frame: Any = None) -> None:
+    def on_signal(self, signum: int, _frame: FrameType | None = None) -> None:
         """The handler: nothing here may take a lock the interrupted main thread could hold (no logging, no
         state transition, no notifier, no store)."""
         self.seen.append(signum)

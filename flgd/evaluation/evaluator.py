@@ -52,7 +52,7 @@ import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable
+from typing import TYPE_CHECKING, Any, Callable
 
 from flgd.cell import Cell, CellFault, Frame
 from flgd.config import CellConfig
@@ -61,6 +61,11 @@ from flgd.cycle_record import CycleOutcome
 from flgd.evaluation.metrics import FAILURE_LIMIT, ActionEntry, RunLog
 from flgd.evaluation.scene_sets import SceneSpec
 from flgd.safety import CheckedPlan
+
+if TYPE_CHECKING:
+    from sim_cell.cell import SimCell
+    from flgd.learning.networks import QMapNetwork
+    from flgd.learning_stack import LearningStack
 
 __all__ = ["EvalOptions", "EvaluationError", "EpisodeCell", "Evaluator", "evaluation_config",
            "DEFAULT_ACTIONS_PER_OBJECT", "MIN_DEFAULT_ACTIONS"]
@@ -106,12 +111,12 @@ class EpisodeCell(Cell):
 
     name = "sim"
 
-    def __init__(self, config: CellConfig, inner: Any) -> None:
+    def __init__(self, config: CellConfig, inner: SimCell) -> None:
         super().__init__(config)
         self.inner = inner
         self.scene_ended = False
 
-    def use(self, inner: Any) -> None:
+    def use(self, inner: SimCell) -> None:
         self.inner = inner
         self.scene_ended = False
 
@@ -160,7 +165,7 @@ def _result_text(record: CycleRecord) -> str:
 class Evaluator:
     """Runs ``options.runs`` runs of each scene with one policy; ``close`` releases the cells and learner."""
 
-    def __init__(self, config: CellConfig, network: Any, options: EvalOptions, *, training_steps: int = 0,
+    def __init__(self, config: CellConfig, network: QMapNetwork, options: EvalOptions, *, training_steps: int = 0,
                  progress: Callable[[SceneSpec, RunLog], None] | None = None) -> None:
         import torch
 
@@ -179,7 +184,7 @@ class Evaluator:
         if self.config.learning.threads > 0:
             torch.set_num_threads(self.config.learning.threads)
         self.replay = self.learner = self.gate = self.store = None
-        self.learning: Any = None  # the learning stack (flgd.learning_stack) with ``learn``
+        self.learning: LearningStack | None = None  # with ``learn``
         self._learn_dir: tempfile.TemporaryDirectory | None = None
         if options.learn:
             self._start_learning(network, training_steps)
@@ -192,7 +197,7 @@ class Evaluator:
                                   store=self.store, step=0, backend="sim",
                                   decide_while_placing=False)   # the harness every earlier result was measured on
 
-    def _start_learning(self, network: Any, training_steps: int) -> None:
+    def _start_learning(self, network: QMapNetwork, training_steps: int) -> None:
         """The daemon's learning stack for a given policy (flgd.learning_stack, its learner settings and curriculum
         rule included), on a store in a temporary directory."""
         from flgd.learning_stack import GateStart, Handover, LearningStack
@@ -244,7 +249,7 @@ class Evaluator:
     def __enter__(self) -> "Evaluator":
         return self
 
-    def __exit__(self, *exc: Any) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.close()
 
     # ------------------------------------------------------------------ running
@@ -272,7 +277,7 @@ class Evaluator:
                     self.progress(spec, log)
         return self.results
 
-    def _set_scene(self, cell: Any, spec: SceneSpec) -> int:
+    def _set_scene(self, cell: SimCell, spec: SceneSpec) -> int:
         from sim_cell.scenes import SceneError
 
         if spec.packed:

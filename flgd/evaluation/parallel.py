@@ -15,7 +15,7 @@ process.  Online learning (``--learn``) is sequential by nature and stays single
 from __future__ import annotations
 
 import dataclasses
-from typing import Any, Callable
+from typing import TYPE_CHECKING, Any, Callable
 
 import numpy as np
 
@@ -23,6 +23,9 @@ from flgd.config import CellConfig
 from flgd.evaluation.evaluator import EvalOptions, EvaluationError
 from flgd.evaluation.metrics import RunLog
 from flgd.evaluation.scene_sets import SceneSpec
+
+if TYPE_CHECKING:
+    from flgd.learning.networks import QMapNetwork
 
 __all__ = ["ParallelEvaluator", "EvalWorker", "run_seed", "MAX_RETRIES"]
 
@@ -37,7 +40,7 @@ def run_seed(seed: int, scene_index: int, run: int) -> int:
 class EvalWorker:
     """A Ray worker of ``flgd eval --workers``: the policy loaded once, one fresh ``Evaluator`` per run."""
 
-    def __init__(self, config: CellConfig, network: Any, options: EvalOptions, training_steps: int,
+    def __init__(self, config: CellConfig, network: QMapNetwork, options: EvalOptions, training_steps: int,
                  threads: int = 1) -> None:
         import torch
 
@@ -62,7 +65,7 @@ class EvalWorker:
 class ParallelEvaluator:
     """The ``Evaluator`` interface (``results``, ``progress``, ``evaluate``, ``close``) over Ray workers."""
 
-    def __init__(self, config: CellConfig, network: Any, options: EvalOptions, *, training_steps: int = 0,
+    def __init__(self, config: CellConfig, network: QMapNetwork, options: EvalOptions, *, training_steps: int = 0,
                  workers: int, address: str | None = None,
                  progress: Callable[[SceneSpec, RunLog], None] | None = None) -> None:
         if options.learn:

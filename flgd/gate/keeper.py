@@ -34,7 +34,8 @@ import json
 import logging
 import threading
 from pathlib import Path
-from typing import Any, Callable
+import sqlite3
+from typing import TYPE_CHECKING, Any, Callable
 
 from flgd.config import CellConfig
 from flgd.cycle_record import CycleOutcome
@@ -44,6 +45,11 @@ from flgd.gate.storage import (KEEP_UNUSABLE, READ_RETRY_DELAYS, GateDirUnwritab
 from flgd.learning.agent import WeightsMailbox
 from flgd.gate.statistics import GateSettings, Tally, Verdict, challenger_share, challenger_verdict, rollback_verdict
 from flgd.store import Store
+
+if TYPE_CHECKING:
+    from flgd.cycle_record import CycleRecord
+    from flgd.learning.agent import Agent
+    from flgd.learning.networks import QMapNetwork
 
 __all__ = ["Gatekeeper", "GateError", "GateFileUnreadable", "PolicyRecord", "gate_settings", "CREDITED_OUTCOMES"]
 
@@ -65,11 +71,11 @@ def gate_settings(config: CellConfig) -> GateSettings:
 class Gatekeeper:
     """The gate's state: champion, challenger, their tallies; the agent's networks follow it."""
 
-    def __init__(self, config: CellConfig, store: Store, agent: Any, state_dir: str | Path,
+    def __init__(self, config: CellConfig, store: Store, agent: Agent, state_dir: str | Path,
                  keep_champions: int | None = None, keep_unusable: int = KEEP_UNUSABLE,
                  read_retry_delays: tuple[float, ...] = READ_RETRY_DELAYS, *,
-                 handovers: WeightsMailbox | None = None, on_champion: Callable[[Any], None] | None = None,
-                 reset_learner: Callable[[Any], object] | None = None) -> None:
+                 handovers: WeightsMailbox | None = None, on_champion: Callable[[QMapNetwork], None] | None = None,
+                 reset_learner: Callable[[QMapNetwork], object] | None = None) -> None:
         self.config = config
         self.settings = gate_settings(config)
         self.enabled = bool(config.gate.enabled)
@@ -206,7 +212,7 @@ class Gatekeeper:
                                                              self.settings))
 
     # ------------------------------------------------------------------ changes of the acting policy
-    def _act_with_champion(self, record: PolicyRecord, network: Any) -> None:
+    def _act_with_champion(self, record: PolicyRecord, network: QMapNetwork) -> None:
         self.champion = record
         # a learner update count for the cached double-DQN argmax; only the learner's own weights have one
         self.agent.act_with(network.state_dict(), record.id if self.enabled else None,
@@ -217,7 +223,7 @@ class Gatekeeper:
             except Exception as exc:  # the anchor is a hint to the learner: acting goes on without it
                 log.warning("gate: the learner's anchor did not follow champion #%d: %s", record.id, exc)
 
-    def _register_champion(self, network: Any, meta: dict, origin: str, step: int, kind: str, who: str,
+    def _register_champion(self, network: QMapNetwork, meta: dict, origin: str, step: int, kind: str, who: str,
                            evidence: dict, also: Callable[[Any], None] | None = None) -> PolicyRecord:
         pid = self.files.next_id()
         steps = int(meta.get("training_steps", 0) or 0)
@@ -227,7 +233,7 @@ class Gatekeeper:
         record = PolicyRecord(pid, "champion", rel, sha, origin, None if old is None else old.id, None, steps,
                               int(step), None)
 
-        def write(db: Any) -> None:
+        def write(db: sqlite3.Connection) -> None:
             if also is not None:
                 also(db)
             if old is not None:
@@ -253,7 +259,7 @@ class Gatekeeper:
         ``also`` writes more in the same transaction."""
         old = self.champion
 
-        def write(db: Any) -> None:
+        def write(db: sqlite3.Connection) -> None:
             if also is not None:
                 also(db)
             if old is not None and old.id != record.id:
@@ -278,7 +284,7 @@ class Gatekeeper:
         if ch is None:
             return
 
-        def write(db: Any) -> None:
+        def write(db: sqlite3.Connection) -> None:
             if also is not None:
                 also(db)
             db.execute("UPDATE policies SET role='dropped', record=? WHERE id=?",
@@ -307,6 +313,8 @@ class Gatekeeper:
             ch = self.challenger
             if ch is None:
                 raise GateError("no challenger to promote")
+            if self.agent.challenger is None:
+                raise GateError(f"challenger #{ch.id} is not loaded in the agent")
             network = copy.deepcopy(self.agent.challenger)
             kind = "promote" if who == "gate" else "manual-promote"
             evidence = self._evidence()
@@ -355,7 +363,7 @@ class Gatekeeper:
             self.verdict = None
             return {"champion": pred.id, "rolled_back": ch.id, "reason": reason}
 
-    def load_champion(self, network: Any, meta: dict, origin: str, step: int, who: str) -> dict:
+    def load_champion(self, network: QMapNetwork, meta: dict, origin: str, step: int, who: str) -> dict:
         """A policy file loaded by the operator becomes the champion (any challenger is dropped)."""
         with self._lock:
             if self.challenger is not None:
@@ -413,7 +421,7 @@ class Gatekeeper:
             rec = PolicyRecord(pid, "challenger", rel, sha, origin, None, int(version), steps, int(step), None)
             champion = self.champion
 
-            def write(db: Any) -> None:
+            def write(db: sqlite3.Connection) -> None:
                 insert_record(db, rec)
                 write_event(db, "challenger", step, pid, None if champion is None else champion.id, "gate",
                             f"policy #{pid} ({origin}) is the challenger", {"share": self.settings.share,
@@ -426,16 +434,16 @@ class Gatekeeper:
             self.verdict = None
             return True
 
-    def after_cycle(self, record: Any) -> Verdict | None:
+    def after_cycle(self, record: CycleRecord) -> Verdict | None:
         """Credit the cycle's outcome to the policy that decided it, apply the gate's verdict, take a hand-over.
 
         Returns the verdict that changed something (promote, drop, rollback), else None.
         """
         if not self.enabled:
             return None
-        step = int(record.step) + 1 if getattr(record, "step", None) is not None else self._step_now()
+        step = int(record.step) + 1 if record.step is not None else self._step_now()
         with self._lock:
-            pid = getattr(record, "policy", None)
+            pid = record.policy
             if pid is not None and record.outcome in CREDITED_OUTCOMES:
                 success = bool(record.success) if record.primitive == "grasp" else False
                 grasp = record.primitive == "grasp"

@@ -46,11 +46,16 @@ import time
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
-from typing import Any, Callable
+import sqlite3
+from typing import TYPE_CHECKING, Any, Callable
 
 from flgd.config import CellConfig
 from flgd.gate.statistics import Tally
 from flgd.store import Store
+
+if TYPE_CHECKING:
+    from flgd.learning.networks import QMapNetwork
+    from flgd.learning.policy_file import PolicyFileUnreadable
 
 __all__ = ["GateStorage", "GateError", "GateFileUnreadable", "GateDirUnwritable", "PolicyRecord", "insert_record", "tally_json",
            "write_event", "GATE_DIR", "UNUSABLE_DIR", "KEEP_UNUSABLE", "READ_RETRY_DELAYS"]
@@ -104,7 +109,7 @@ def _write_advice(directory: Path, exc: OSError) -> str:
     return f"Check the disk that holds it (an {errno.errorcode.get(exc.errno or 0, 'OS')} error: see `dmesg`)."
 
 
-def _os_problem(exc: Any) -> str:
+def _os_problem(exc: PolicyFileUnreadable) -> str:
     """A PolicyFileUnreadable's OS error in words, without the loader's advice for files outside the state
     directory (which does not fit a gate file)."""
     return exc.problem if exc.os_error is None else str(exc.os_error.strerror or exc.os_error)
@@ -165,7 +170,7 @@ def _record_from_row(row: tuple) -> PolicyRecord:
                         training_steps=int(d["training_steps"]), since_step=int(d["since_step"]), record=rec)
 
 
-def insert_record(db: Any, r: PolicyRecord) -> None:
+def insert_record(db: sqlite3.Connection, r: PolicyRecord) -> None:
     """A new ``policies`` row for ``r`` (in the caller's transaction)."""
     db.execute("INSERT INTO policies(id, created, role, file, sha256, origin, predecessor, learner_updates, "
                "training_steps, since_step, record) VALUES(?,?,?,?,?,?,?,?,?,?,NULL)",
@@ -173,11 +178,11 @@ def insert_record(db: Any, r: PolicyRecord) -> None:
                 r.training_steps, r.since_step))
 
 
-def _set_file(db: Any, path: str, policy_id: int) -> None:
+def _set_file(db: sqlite3.Connection, path: str, policy_id: int) -> None:
     db.execute("UPDATE policies SET file=? WHERE id=?", (path, policy_id))
 
 
-def write_event(db: Any, kind: str, step: int, policy: int | None, other: int | None, who: str, message: str,
+def write_event(db: sqlite3.Connection, kind: str, step: int, policy: int | None, other: int | None, who: str, message: str,
                 evidence: dict) -> None:
     """A ``gate_events`` row: a change of the acting policy (or a file found unusable), with its evidence."""
     db.execute("INSERT INTO gate_events(time, step, kind, policy, other, who, message, evidence) "
@@ -203,7 +208,7 @@ class GateStorage:
         """Where the record's file is (its ``file`` is relative to the state directory)."""
         return self.state_dir / record.file
 
-    def write_file(self, policy_id: int, network: Any, meta: dict) -> tuple[str, str]:
+    def write_file(self, policy_id: int, network: QMapNetwork, meta: dict) -> tuple[str, str]:
         """Write the policy's file (atomically); its path relative to the state directory and its weights' sha256.
 
         A write the OS refuses is tried again (``read_retry_delays``); GateDirUnwritable if every try fails.
@@ -274,7 +279,7 @@ class GateStorage:
             raise PolicyFileError(path, "weights differ from the ones the gate recorded for it")
         return loaded.network
 
-    def _refused(self, record: PolicyRecord, exc: Any, tries: int, seconds: float) -> Exception:
+    def _refused(self, record: PolicyRecord, exc: PolicyFileUnreadable, tries: int, seconds: float) -> Exception:
         """The error for a read refused on every try: a missing file in a gate directory that can be listed
         is gone for good (PolicyFileError: content); anything else is GateFileUnreadable."""
         from flgd.learning.policy_file import PolicyFileError
@@ -355,7 +360,7 @@ class GateStorage:
         its PolicyFileError)."""
         moved = [(record, exc.problem, self.move_aside(record)) for record, exc in unusable]
 
-        def write(db: Any) -> None:
+        def write(db: sqlite3.Connection) -> None:
             for record, why, rel in moved:
                 where = (f"; moved to {self.state_dir / rel} for inspection (the newest {self.keep_unusable} "
                          "unusable files are kept)" if rel is not None else

@@ -179,7 +179,7 @@ class URArm:
             except Exception as exc:  # ur_rtde raises RuntimeError and friends from C++
                 raise CellFault(f"UR {self.host}: {method} failed: {type(exc).__name__}: {exc}") from exc
 
-    def _require(self, ok: Any, what: str) -> None:
+    def _require(self, ok: object, what: str) -> None:
         """ur_rtde signals failure by returning False: turn that into a latched fault."""
         if ok is not True:
             reason = self.fault_reason()

@@ -14,7 +14,7 @@ import sqlite3
 import threading
 import time
 from pathlib import Path
-from typing import Any, Callable, Iterator
+from typing import TYPE_CHECKING, Any, Callable, Iterator
 
 import numpy as np
 
@@ -26,6 +26,9 @@ from flgd.store.action_log import INTENT_OUTCOME
 from flgd.store.errors import StoreError, explain
 from flgd.store.replay_rows import StoredTransition
 from flgd.store.schema import ACTION_COLUMNS, DB_NAME
+
+if TYPE_CHECKING:
+    from flgd.learning.replay import Transition
 
 log = logging.getLogger("flgd")
 
@@ -180,7 +183,7 @@ class Store:
         self._pending_store_time = None
         self._open_intent = step
 
-    def commit_cycle(self, row: dict, transition: Any | None = None,
+    def commit_cycle(self, row: dict, transition: Transition | None = None,
                      priority: float | None = None) -> int | None:
         """Write one cycle: its action-log ``row`` and, if any, its transition.
 

@@ -9,12 +9,15 @@ from __future__ import annotations
 import sqlite3
 import zlib
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from flgd.actions import Action
 from flgd.perception import Heightmaps
+
+if TYPE_CHECKING:
+    from flgd.learning.replay import Transition
 
 HEIGHT_QUANTUM = 1e-4  # metres per stored height unit
 
@@ -51,7 +54,7 @@ def decode_heightmaps(rows: int, cols: int, color: bytes, height: bytes) -> Heig
 
 
 def insert_transition(db: sqlite3.Connection, step: int, state_id: int, next_state_id: int | None,
-                      transition: Any, priority: float | None) -> int:
+                      transition: Transition, priority: float | None) -> int:
     """Write ``transition`` (``action``, ``reward``, ``done``) of ``step`` between stored states; returns its id."""
     a = transition.action
     cur = db.execute(

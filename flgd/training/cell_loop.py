@@ -16,12 +16,19 @@ from __future__ import annotations
 import sys
 import traceback
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 
 from flgd.config import CellConfig
 from flgd.cycle_record import CycleOutcome
+
+if TYPE_CHECKING:
+    from flgd.cell import Cell
+    from flgd.cycle_parts import CycleAgent, CycleLearner, CycleStore
+    from flgd.cycle_record import CycleRecord
+    from flgd.learning.replay import PrioritizedReplay
+    from flgd.training.settings import RunSettings
 
 __all__ = ["TrainingCycle", "TrainingCell", "MAX_CONSECUTIVE_FAULTS"]
 
@@ -36,7 +43,7 @@ Note = Callable[[str, str, str], None]
 class TrainingCycle:
     """One step of a training run: the cycle's record and the scene it acted on."""
 
-    record: Any  # flgd.cycle.CycleRecord
+    record: CycleRecord
     objects_left: int | None  # after the action, in its scene (None for a discarded action)
     scene: int
     scene_kind: str
@@ -45,8 +52,9 @@ class TrainingCycle:
 class TrainingCell:
     """A simulated cell, its cycle runner and the scene bookkeeping of a training run (module doc)."""
 
-    def __init__(self, config: CellConfig, settings: Any, agent: Any, *, step: int, scene: int, curriculum_seed: int,
-                 note: Note, store: Any = None, replay: Any = None, learner: Any = None) -> None:
+    def __init__(self, config: CellConfig, settings: RunSettings, agent: CycleAgent, *, step: int, scene: int,
+                 curriculum_seed: int, note: Note, store: CycleStore | None = None,
+                 replay: PrioritizedReplay | None = None, learner: CycleLearner | None = None) -> None:
         from flgd.cell import make_cell
         from flgd.cycle import CycleRunner
 
@@ -75,7 +83,7 @@ class TrainingCell:
                                   decide_while_placing=False)   # each decision after the updates its action owes
 
     @property
-    def cell(self) -> Any:
+    def cell(self) -> Cell:
         """The cell the runner acts on (a caller may wrap it, e.g. to inject faults)."""
         return self.runner.cell
 
@@ -158,7 +166,7 @@ class TrainingCell:
                 self.note("fault", "", what)
         self._new_scene_state()
 
-    def _maybe_give_up(self, record: Any) -> None:
+    def _maybe_give_up(self, record: CycleRecord) -> None:
         """A new scene after ``give_up_after`` actions in a row without a successful grasp.
 
         Why: a scene the policy cannot clear is otherwise kept for ever, and

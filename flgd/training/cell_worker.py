@@ -23,6 +23,8 @@ import numpy as np
 from flgd.config import CellConfig
 
 if TYPE_CHECKING:
+    from flgd.learning.replay import Transition
+    from flgd.training.settings import RunSettings
     from flgd.learning.agent import Decision
     from flgd.perception import Heightmaps
 
@@ -42,7 +44,7 @@ class CollectedCycle:
     """One step as the worker saw it; the learner gives it its global step when it stores it."""
 
     row: dict[str, Any]  # CycleRecord.row()
-    transition: Any  # flgd.learning.replay.Transition, or None (nothing to learn: refused is kept, faults not)
+    transition: Transition | None  # None: nothing to learn (a refused action is kept, faults not)
     outcome: str
     primitive: str | None
     success: bool | None
@@ -113,7 +115,7 @@ class CollectingStore:
     def record_event(self, kind: str, message: str) -> None:
         self._on_event(kind, message, message)
 
-    def commit_cycle(self, row: dict, transition: Any | None = None, priority: float | None = None) -> None:
+    def commit_cycle(self, row: dict, transition: Transition | None = None, priority: float | None = None) -> None:
         self.committed.append((dict(row), transition))
         return None
 
@@ -131,7 +133,7 @@ class CollectingStore:
 class CellWorker:
     """One simulated cell of a multi-worker run (module doc); made a Ray actor by the driver."""
 
-    def __init__(self, config: CellConfig, settings: Any, index: int, incarnation: int, segment: int,
+    def __init__(self, config: CellConfig, settings: RunSettings, index: int, incarnation: int, segment: int,
                  weights: dict[str, Any], version: int, step: int = 0, threads: int = 1) -> None:
         import torch
 

@@ -28,13 +28,17 @@ import dataclasses
 import math
 import os
 import time
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from flgd.cycle_record import CycleOutcome
 from flgd.learning_stack import Handover
 from flgd.training.run import CURVE_FILE, EXIT_INTERRUPTED, EXIT_OK, LOG_FILE, TrainingRun, next_scene_id
+
+if TYPE_CHECKING:
+    from flgd.learning.replay import Transition
+    from flgd.training.cell_worker import CollectedCycle, WorkerReport
 
 __all__ = ["DistributedTrainingRun", "MAX_REPLACEMENTS"]
 
@@ -192,7 +196,7 @@ class DistributedTrainingRun(TrainingRun):
                               + f"; log {self.out / LOG_FILE}, curve {self.out / CURVE_FILE}")
         return EXIT_INTERRUPTED if interrupted else EXIT_OK
 
-    def _take(self, slot: _WorkerSlot, report: Any) -> list[tuple[_WorkerSlot, Any, dict, float]]:
+    def _take(self, slot: _WorkerSlot, report: WorkerReport) -> list[tuple[_WorkerSlot, Any, dict, float]]:
         """Store a worker's cycle under the run's next step (``_learn`` learns from it and logs it); a cycle that
         raised in the worker stops the run after its rows are stored and learned from, as it does in one
         process."""
@@ -216,7 +220,7 @@ class DistributedTrainingRun(TrainingRun):
             raise RuntimeError(f"worker {slot.index}: {report.error}")
         return stored
 
-    def _store_cycle(self, slot: _WorkerSlot, cycle: Any) -> tuple[_WorkerSlot, Any, dict, float]:
+    def _store_cycle(self, slot: _WorkerSlot, cycle: CollectedCycle) -> tuple[_WorkerSlot, Any, dict, float]:
         """Commit one collected cycle under the run's next step; its transition goes to the replay and
         schedules the learner's updates (``notify_new_transition``), which ``_learn`` runs."""
         row = dict(cycle.row, step=self._next_step)
@@ -252,7 +256,7 @@ class DistributedTrainingRun(TrainingRun):
             self._log_step(_RowRecord(row, cycle), _SceneOf(cycle.objects_left, slot.scene[1], cycle.scene_kind),
                            updates, t_update, t_store)
 
-    def _relinked(self, slot: _WorkerSlot, transition: Any) -> Any:
+    def _relinked(self, slot: _WorkerSlot, transition: Transition) -> Transition:
         """The transition with its state replaced by the very object stored as this worker's last next state,
         when it is that state (same pixels): the store, which remembers one recent next state per worker, then
         keeps it once, as in one process, instead of a second copy per action -- also when other workers'
@@ -318,7 +322,7 @@ class DistributedTrainingRun(TrainingRun):
 class _RowRecord:
     """A stored worker row seen as the CycleRecord fields ``TrainingRun._log_step`` reads."""
 
-    def __init__(self, row: dict, cycle: Any) -> None:
+    def __init__(self, row: dict, cycle: CollectedCycle) -> None:
         self._row = row
         self.outcome = cycle.outcome
         self.primitive = cycle.primitive

@@ -27,9 +27,13 @@ import signal
 import sys
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from flgd.config import WorkspaceConfig
+    from sim_cell.cell import SimCell
 
 __all__ = ["collect_frames", "PretrainSettings", "PretrainFileError", "pretrain", "main"]
 
@@ -45,7 +49,7 @@ class PretrainFileError(ValueError):
     """A damaged file in the output directory; the message names it and says what to do."""
 
 
-def collect_frames(cell: Any, workspace: Any, depth_range: tuple[float, float], frames: int,
+def collect_frames(cell: SimCell, workspace: WorkspaceConfig, depth_range: tuple[float, float], frames: int,
                    objects: tuple[int, int], per_scene: int, rng: np.random.Generator,
                    progress=None, stop=lambda: False) -> dict[str, np.ndarray] | None:
     """``frames`` labelled heightmaps (colour, height, labels 0..k) from a cell that has ground truth;

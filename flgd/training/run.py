@@ -45,7 +45,7 @@ import os
 import time
 from collections import deque
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from flgd.atomic_file import write_atomically
 from flgd.config import CellConfig, dump_config
@@ -57,6 +57,16 @@ from flgd.training.progress import BarProgress, LineProgress
 from flgd.training.settings import (RUN_FILE, TRAIN_VARIANTS, TRUNK_NETWORKS, RunFileError, RunSettings,
                                     effective_config, read_run_info, variant_network)
 from flgd.wiring import resume_seed
+
+if TYPE_CHECKING:
+    from flgd.cell import Cell
+    from flgd.cycle import CycleRunner
+    from flgd.learning.agent import Agent
+    from flgd.learning.learner import Learner
+    from flgd.learning.networks import QMapNetwork
+    from flgd.learning.replay import PrioritizedReplay
+    from flgd.store import Store
+    from flgd.training.cell_loop import TrainingCell
 
 __all__ = ["TRAIN_VARIANTS", "TRUNK_NETWORKS", "variant_network", "RunSettings", "RunFileError", "TrainingRun",
            "effective_config", "read_run_info", "next_scene_id", "EXIT_OK", "EXIT_ERROR", "EXIT_USAGE",
@@ -107,14 +117,14 @@ class TrainingRun:
                                       checkpoints=CheckpointDir(out / "checkpoints", keep=1_000_000),
                                       checkpoint_callback=self._checkpoint, priorities_in_store=False)
         # built by ``setup``
-        self.store: Any = None
-        self.replay: Any = None
-        self.agent: Any = None
-        self.learner: Any = None
+        self.store: Store | None = None
+        self.replay: PrioritizedReplay | None = None
+        self.agent: Agent | None = None
+        self.learner: Learner | None = None
         self.actions: ActionsCsv | None = None  # actions.csv
-        self.cell_loop: Any = None  # the TrainingCell (its cell and cycle runner below)
-        self.cell: Any = None
-        self.runner: Any = None
+        self.cell_loop: TrainingCell | None = None  # its cell and cycle runner below
+        self.cell: Cell | None = None
+        self.runner: CycleRunner | None = None
 
     # ------------------------------------------------------------------ setup
     def _load_run_info(self) -> dict:
@@ -252,7 +262,7 @@ class TrainingRun:
         write_atomically(path, data, mode=0o644)
 
     # ------------------------------------------------------------------ checkpoints
-    def _checkpoint(self, network: Any, updates: int) -> None:
+    def _checkpoint(self, network: QMapNetwork, updates: int) -> None:
         """Learner callback (inside an update): policy file + trainer state + curve."""
         r50, r200 = rolling(self.grasps, 50), rolling(self.grasps, 200)
         run = {"rolling_success": r200 if r200 is not None else r50,
@@ -329,7 +339,7 @@ class TrainingRun:
                     "t_update": t_update, "t_store": t_store})
         self.actions.append(row)
 
-    def _status(self, rate: float | None, eta: float | None, objects: Any = None) -> dict[str, str]:
+    def _status(self, rate: float | None, eta: float | None, objects: str | None = None) -> dict[str, str]:
         """The progress fields: rolling grasp success, objects on the table, learner updates, actions/s, ETA."""
         r50, r200 = rolling(self.grasps, 50), rolling(self.grasps, 200)
         pct = lambda v: "-" if v is None else f"{100 * v:.0f}%"  # noqa: E731
