@@ -39,7 +39,7 @@ log = logging.getLogger("flgd")
 class Command:
     """One operator command: what serves it, and whether it is served in every state (STOPPING included)."""
 
-    run: Callable[["DaemonControl", Request], dict]
+    run: Callable[["DaemonControl", Request], dict[str, Any]]
     any_state: bool = False
 
 
@@ -129,7 +129,7 @@ def _acting_policy(ctl: DaemonControl) -> str:
 
 
 # ================================================================== state changes
-def change_state(ctl: DaemonControl, new: State, cause: str, allowed: set[State], cmd: str) -> dict:
+def change_state(ctl: DaemonControl, new: State, cause: str, allowed: set[State], cmd: str) -> dict[str, Any]:
     """The operator's state change, refused with the states it is allowed in."""
     try:
         ctl.state.transition(new, cause, allowed_from=frozenset(allowed))
@@ -142,22 +142,22 @@ def change_state(ctl: DaemonControl, new: State, cause: str, allowed: set[State]
     return {"state": new.value}
 
 
-def _start(ctl: DaemonControl, req: Request) -> dict:
+def _start(ctl: DaemonControl, req: Request) -> dict[str, Any]:
     if not ctl.clear_stop_latch():
         raise ProtocolError("wrong_state", f"start: the daemon is stopping ({ctl.state.cause})")
     return change_state(ctl, State.RUNNING, "start by operator", {State.IDLE, State.PAUSED}, req.cmd)
 
 
-def _pause(ctl: DaemonControl, req: Request) -> dict:
+def _pause(ctl: DaemonControl, req: Request) -> dict[str, Any]:
     return change_state(ctl, State.PAUSED, "pause by operator", {State.RUNNING}, req.cmd)
 
 
-def _stop(ctl: DaemonControl, req: Request) -> dict:
+def _stop(ctl: DaemonControl, req: Request) -> dict[str, Any]:
     ctl.request_stop("stop by operator")
     return {"stopping": True}
 
 
-def _reset(ctl: DaemonControl, req: Request) -> dict:
+def _reset(ctl: DaemonControl, req: Request) -> dict[str, Any]:
     st = ctl.state.state
     if st not in (State.IDLE, State.PAUSED, State.FAULT):
         raise ProtocolError("wrong_state", f"reset: not allowed while {st.value}; pause first")
@@ -165,7 +165,7 @@ def _reset(ctl: DaemonControl, req: Request) -> dict:
 
 
 # ================================================================== what the store says
-def _stats(ctl: DaemonControl, req: Request) -> dict:
+def _stats(ctl: DaemonControl, req: Request) -> dict[str, Any]:
     if ctl.store is None:
         raise ProtocolError("failed", f"no statistics: {ctl.store_problem}")
     try:
@@ -174,7 +174,7 @@ def _stats(ctl: DaemonControl, req: Request) -> dict:
         raise ProtocolError("failed", str(exc)) from None
 
 
-def _policy_history(ctl: DaemonControl, req: Request) -> dict:
+def _policy_history(ctl: DaemonControl, req: Request) -> dict[str, Any]:
     limit = req.args.get("limit", 50)
     if isinstance(limit, bool) or not 1 <= limit <= 10000:
         raise ProtocolError("bad_request", f"policy_history: limit must be 1..10000, got {limit!r}")
@@ -187,7 +187,7 @@ def _policy_history(ctl: DaemonControl, req: Request) -> dict:
 
 
 # ================================================================== policies, backend, snapshot
-def policy_load(ctl: DaemonControl, path: str, who: str = "") -> dict:
+def policy_load(ctl: DaemonControl, path: str, who: str = "") -> dict[str, Any]:
     """Validate the file here, then make it the champion between cycles (see ``swap_in_policy``); a refusal is
     logged and recorded as an event with its reason."""
     try:
@@ -198,7 +198,7 @@ def policy_load(ctl: DaemonControl, path: str, who: str = "") -> dict:
         raise
 
 
-def _load_policy(ctl: DaemonControl, path: str, who: str) -> dict:
+def _load_policy(ctl: DaemonControl, path: str, who: str) -> dict[str, Any]:
     from flgd.learning.policy_file import PolicyFileError, load_policy
     from flgd.policy_header import check_policy_header
 
@@ -213,7 +213,7 @@ def _load_policy(ctl: DaemonControl, path: str, who: str) -> dict:
     return ctl.run_on_loop(lambda: swap_in_policy(ctl, path, loaded, who or "operator"))
 
 
-def swap_in_policy(ctl: DaemonControl, path: str, loaded: LoadedPolicy, who: str) -> dict:
+def swap_in_policy(ctl: DaemonControl, path: str, loaded: LoadedPolicy, who: str) -> dict[str, Any]:
     """Run loop: the loaded policy becomes the champion and the learner's weights, checkpointed at once.
 
     Why a checkpoint: a restart resumes learning from the newest checkpoint, which would otherwise
@@ -276,7 +276,7 @@ def swap_in_policy(ctl: DaemonControl, path: str, loaded: LoadedPolicy, who: str
                          if isinstance(v, (str, int, float, bool, type(None)))}}
 
 
-def gate_command(ctl: DaemonControl, cmd: str, who: str) -> dict:
+def gate_command(ctl: DaemonControl, cmd: str, who: str) -> dict[str, Any]:
     """Run loop: a manual promote, reject or rollback, recorded with who asked."""
     from flgd.gate.keeper import GateError
     from flgd.learning.policy_file import PolicyFileError
@@ -299,7 +299,7 @@ def gate_command(ctl: DaemonControl, cmd: str, who: str) -> dict:
     return out
 
 
-def policy_save(ctl: DaemonControl, path: str | None) -> dict:
+def policy_save(ctl: DaemonControl, path: str | None) -> dict[str, Any]:
     from flgd.learning.policy_file import PolicyFileError, save_policy
 
     # The daemon writes only inside its state directory: a client of another uid must not be able
@@ -333,7 +333,7 @@ def policy_save(ctl: DaemonControl, path: str | None) -> dict:
             "champion": None if champion is None else champion.id}
 
 
-def swap_backend(ctl: DaemonControl, name: str) -> dict:
+def swap_backend(ctl: DaemonControl, name: str) -> dict[str, Any]:
     """Run loop: connect the new cell first; keep the old one if that fails."""
     assert ctl.runner is not None
     try:
@@ -352,7 +352,7 @@ def swap_backend(ctl: DaemonControl, name: str) -> dict:
     return {"backend": name, "previous": old_name}
 
 
-def snapshot(ctl: DaemonControl) -> dict:
+def snapshot(ctl: DaemonControl) -> dict[str, Any]:
     from flgd.visualize import ActionGlyph, encode_png, qmap_picture
 
     runner = ctl.runner
@@ -373,7 +373,7 @@ def snapshot(ctl: DaemonControl) -> dict:
             "action": dataclasses.asdict(decision.action), "q_value": decision.q_value}
 
 
-def fresh_snapshot(ctl: DaemonControl) -> dict:
+def fresh_snapshot(ctl: DaemonControl) -> dict[str, Any]:
     """Run loop: capture and evaluate the network without acting (no decision state changes)."""
     from flgd.visualize import ActionGlyph, encode_png, greedy_action, qmap_picture
 
@@ -402,7 +402,7 @@ def fresh_snapshot(ctl: DaemonControl) -> dict:
 
 
 # ================================================================== the table
-def _gate_override(ctl: DaemonControl, req: Request) -> dict:
+def _gate_override(ctl: DaemonControl, req: Request) -> dict[str, Any]:
     return ctl.run_on_loop(lambda: gate_command(ctl, req.cmd, req.peer or "operator"))
 
 

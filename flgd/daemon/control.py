@@ -56,7 +56,7 @@ class DaemonControl(Protocol):
     learning_lock: threading.Lock
     learner_quiet_timeout: float
 
-    def run_on_loop(self, fn: Callable[[], dict], timeout: float = ...) -> dict:
+    def run_on_loop(self, fn: Callable[[], dict[str, Any]], timeout: float = ...) -> dict[str, Any]:
         """Run ``fn`` on the run loop between cycles; its result."""
         ...
 
@@ -75,7 +75,7 @@ class DaemonControl(Protocol):
     def clear_stop_latch(self) -> bool:
         ...
 
-    def reset(self) -> dict:
+    def reset(self) -> dict[str, Any]:
         ...
 
     def write_checkpoint(self, network: QMapNetwork, updates: int) -> None:

@@ -131,7 +131,7 @@ class Controller:
         self.learning_lock = threading.Lock()  # a policy load and a learner rebuild never interleave
         # how long a policy load or a learner restart waits for the learner's update in progress
         self.learner_quiet_timeout = learner_quiet_timeout
-        self._inbox: "queue.Queue[tuple[Callable[[], dict], concurrent.futures.Future]]" = queue.Queue()
+        self._inbox: "queue.Queue[tuple[Callable[[], dict[str, Any]], concurrent.futures.Future[dict[str, Any]]]]" = queue.Queue()
         self._wake = threading.Event()
         self._lock_fd: int | None = None
         self.started_at = time.time()
@@ -281,7 +281,7 @@ class Controller:
             raise
         self.record_event("learner", f"learner restarted from the champion ({owed} owed updates dropped)")
 
-    def _configured_policy(self) -> tuple[Any, dict, str] | None:
+    def _configured_policy(self) -> tuple[Any, dict[str, Any], str] | None:
         from flgd.learning.policy_file import load_policy
 
         if not self.policy_arg:
@@ -289,7 +289,7 @@ class Controller:
         loaded = load_policy(self.policy_arg, expected_variant=self.config.learning.network)
         return loaded.network, loaded.metadata, f"policy {self.policy_arg}"
 
-    def _fresh_policy(self) -> tuple[Any, dict, str]:
+    def _fresh_policy(self) -> tuple[Any, dict[str, Any], str]:
         return self._start_network, {"training_steps": 0}, self.policy_source
 
     def _restore_trainer_state(self) -> None:
@@ -506,10 +506,10 @@ class Controller:
         """Let the run loop look at its inbox and state now instead of at its next poll."""
         self._wake.set()
 
-    def run_on_loop(self, fn: Callable[[], dict], timeout: float = COMMAND_TIMEOUT) -> dict:
+    def run_on_loop(self, fn: Callable[[], dict[str, Any]], timeout: float = COMMAND_TIMEOUT) -> dict[str, Any]:
         """Run ``fn`` on the run loop between cycles and return its result (ProtocolError "busy" if the loop does
         not take it within ``timeout``)."""
-        fut: concurrent.futures.Future = concurrent.futures.Future()
+        fut: concurrent.futures.Future[dict[str, Any]] = concurrent.futures.Future[dict[str, Any]]()
         self._inbox.put((fn, fut))
         self.wake()
         try:
@@ -581,7 +581,7 @@ class Controller:
         """What ``flgctl status`` shows, assembled in flgd/daemon/commands.py."""
         return commands.status(self)
 
-    def handle(self, req: Request) -> dict:
+    def handle(self, req: Request) -> dict[str, Any]:
         """Serve one validated request (control thread) from the command table; ProtocolError for error replies."""
         command = commands.HANDLERS.get(req.cmd)
         if command is None:
@@ -618,7 +618,7 @@ class Controller:
         return ProtocolError("failed", f"reset interrupted by a stop ({self.state.cause}) {when}: the arm was not "
                                        f"homed and the daemon is stopping; start flgd again, then flgctl reset")
 
-    def reset(self) -> dict:
+    def reset(self) -> dict[str, Any]:
         """Run loop: clear a fault, home the arm (the cell's recovery does), new scene (simulation).
 
         A stop requested before, during or after the recovery wins: nothing more

@@ -39,7 +39,7 @@ __all__ = ["compute_stats", "status_summary", "TIMING_WINDOW", "format_stats", "
 TIMING_WINDOW = 200
 
 
-def _rate(rows: list[tuple]) -> float | None:
+def _rate(rows: list[tuple[Any, ...]]) -> float | None:
     return (sum(1 for (s,) in rows if s) / len(rows)) if rows else None
 
 
@@ -145,13 +145,13 @@ def status_summary(store: Store) -> dict[str, Any]:
 def _actions_since_pick(store: Store) -> int:
     """Decided actions (executed or refused) logged after the newest successful grasp: the loop a person
     should hear about when it grows (docs/metrics.md's alert)."""
-    return store.query("SELECT COUNT(*) FROM actions WHERE outcome IN ('executed', 'refused') AND step > "
-                       "(SELECT COALESCE(MAX(step), -1) FROM actions WHERE success=1)")[0][0]
+    return int(store.query("SELECT COUNT(*) FROM actions WHERE outcome IN ('executed', 'refused') AND step > "
+                           "(SELECT COALESCE(MAX(step), -1) FROM actions WHERE success=1)")[0][0])
 
 
 def _cycle_time(store: Store) -> float:
     kept = store.query(f"SELECT COALESCE(SUM({CYCLE_ON_CELL_CLOCK_SQL}), 0) FROM actions")[0][0]
-    return kept + _deleted(store)["deleted_cycle_ms"] / 1000.0
+    return float(kept + _deleted(store)["deleted_cycle_ms"] / 1000.0)
 
 
 def _picks_per_hour(grasp_successes: int, cycle_time: float) -> float | None:

@@ -63,7 +63,7 @@ def _directories(path: Path) -> list[Path]:
     return list(reversed(path.parents))
 
 
-def unreadable_reason(path: str | os.PathLike, uid: int, groups: set[int]) -> str | None:
+def unreadable_reason(path: str | os.PathLike[str], uid: int, groups: set[int]) -> str | None:
     """Why ``uid`` (with ``groups``) could not open ``path`` for reading, or None if it could.
 
     A path that does not exist where the caller may look is None: the loader then says "not found",

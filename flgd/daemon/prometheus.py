@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import logging
 import time
-from typing import TYPE_CHECKING, Callable, Iterator
+from typing import Any, TYPE_CHECKING, Callable, Iterator
 
 from prometheus_client import CollectorRegistry
 from prometheus_client.core import (CounterMetricFamily, GaugeMetricFamily, HistogramMetricFamily,
@@ -53,7 +53,7 @@ def _gauge(name: str, doc: str, value: float | None) -> GaugeMetricFamily | None
     return GaugeMetricFamily(name, doc, value=value)
 
 
-def _gate_families(gate: dict | None) -> Iterator[Metric]:
+def _gate_families(gate: dict[str, Any] | None) -> Iterator[Metric]:
     """The champion/challenger gate: which policies act and their tallies (absent while there is no gate)."""
     if not gate:
         return
@@ -79,7 +79,7 @@ def _gate_families(gate: dict | None) -> Iterator[Metric]:
                                 value=float(verdict["p_better"]))
 
 
-def _calibration_families(watch: dict | None) -> Iterator[Metric]:
+def _calibration_families(watch: dict[str, Any] | None) -> Iterator[Metric]:
     """The calibration watch: the table plane the camera sees, and whether it says the camera moved (absent when
     the watch is off; the estimates are absent before the first frame with enough table)."""
     if not watch:

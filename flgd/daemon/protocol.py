@@ -122,7 +122,7 @@ class ProtocolError(Exception):
 @dataclass(frozen=True)
 class Request:
     cmd: str
-    args: dict = field(default_factory=dict)
+    args: dict[str, Any] = field(default_factory=dict[str, Any])
     id: Any = None
     peer: str = ""  # who sent it ("uid U pid P", from SO_PEERCRED; set by the server), for the gate's records
 
@@ -150,9 +150,9 @@ class _DuplicateKey(ValueError):
         self.key = key
 
 
-def _no_duplicates(pairs: list[tuple[str, Any]]) -> dict:
+def _no_duplicates(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
     """json's object hook: a key given twice is refused, not silently resolved to its last value."""
-    obj: dict = {}
+    obj: dict[str, Any] = {}
     for key, value in pairs:
         if key in obj:
             raise _DuplicateKey(key)
@@ -231,13 +231,13 @@ def parse_request(line: bytes) -> Request:
     return Request(cmd=cmd, args=dict(args), id=rid)
 
 
-def encode(obj: dict) -> bytes:
+def encode(obj: dict[str, Any]) -> bytes:
     return (json.dumps(obj, separators=(",", ":"), allow_nan=False, default=str) + "\n").encode("utf-8")
 
 
-def ok_reply(request_id: Any, state: str, result: dict) -> dict:
+def ok_reply(request_id: Any, state: str, result: dict[str, Any]) -> dict[str, Any]:
     return {"ok": True, "id": request_id, "state": state, "result": result}
 
 
-def error_reply(request_id: Any, state: str, code: str, message: str) -> dict:
+def error_reply(request_id: Any, state: str, code: str, message: str) -> dict[str, Any]:
     return {"ok": False, "id": request_id, "state": state, "error": {"code": code, "message": message}}

@@ -32,7 +32,7 @@ import sys
 import threading
 from pathlib import Path
 from types import FrameType
-from typing import TYPE_CHECKING, Callable
+from typing import TYPE_CHECKING, Any, Callable, TextIO
 
 from flgd.config import ConfigError, load_config, parse_metrics_address
 from flgd.log_limit import RepeatLimit
@@ -56,7 +56,7 @@ EXIT_OK, EXIT_STARTUP = 0, 1
 class _StatusLine(logging.Handler):
     """Log records on stderr that do not mangle the live status line of a terminal."""
 
-    def __init__(self, stream, live: bool):
+    def __init__(self, stream: TextIO, live: bool):
         super().__init__()
         self.stream = stream
         self.live = live
@@ -265,10 +265,10 @@ def limit_learner_log() -> RepeatLimit:
     return limit
 
 
-def _until_ready(handle: Callable[[Request], dict], ready: threading.Event) -> Callable[[Request], dict]:
+def _until_ready(handle: Callable[[Request], dict[str, Any]], ready: threading.Event) -> Callable[[Request], dict[str, Any]]:
     """The control handler, answering ``busy`` while the daemon is still setting up."""
 
-    def serve(request: Request) -> dict:
+    def serve(request: Request) -> dict[str, Any]:
         if not ready.is_set():
             raise ProtocolError("busy", "flgd is starting (loading the policy, connecting the cell); try again "
                                         "in a moment")
@@ -277,6 +277,6 @@ def _until_ready(handle: Callable[[Request], dict], ready: threading.Event) -> C
     return serve
 
 
-def _status_loop(controller, handler: _StatusLine, stop: threading.Event) -> None:
+def _status_loop(controller: Controller, handler: _StatusLine, stop: threading.Event) -> None:
     while not stop.wait(1.0):
         handler.show("flgd " + controller.status_text())

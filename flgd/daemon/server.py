@@ -162,7 +162,7 @@ def _json_safe(obj: Any) -> Any:
     return obj
 
 
-Handler = Callable[[Request], dict]
+Handler = Callable[[Request], dict[str, Any]]
 StateName = Callable[[], str]
 
 
@@ -174,7 +174,7 @@ class ControlServer:
     binds if needed and begins serving.
     """
 
-    def __init__(self, path: str | os.PathLike, handler: Handler, state_name: StateName,
+    def __init__(self, path: str | os.PathLike[str], handler: Handler, state_name: StateName,
                  policy: PeerPolicy, mode: int = 0o660, *, request_timeout: float = REQUEST_TIMEOUT,
                  idle_timeout: float = IDLE_TIMEOUT, urgent_timeout: float = URGENT_TIMEOUT):
         self.path = Path(path)
@@ -485,7 +485,7 @@ class ControlServer:
         else:
             self._refuse(conn, "too_long", f"request line is over the {MAX_REQUEST_BYTES}-byte limit")
 
-    def _send_and_close(self, conn: socket.socket, reply: dict) -> None:
+    def _send_and_close(self, conn: socket.socket, reply: dict[str, Any]) -> None:
         """One reply line without waiting for the peer (the accept loop must never block), then close."""
         try:
             conn.setblocking(False)
@@ -558,7 +558,7 @@ class ControlServer:
                                       f"request line not complete within {self.request_timeout:g} s of its first "
                                       "byte (send each request as one line); connection closed"))
 
-    def _answer(self, line: bytes, peer: tuple[int, int, int]) -> dict:
+    def _answer(self, line: bytes, peer: tuple[int, int, int]) -> dict[str, Any]:
         if line.endswith(b"\r"):
             line = line[:-1]
         try:
@@ -580,7 +580,7 @@ class ControlServer:
         self.requests_served += 1
         return ok_reply(request.id, self.state_name(), _json_safe(result))
 
-    def _reply(self, conn: socket.socket, reply: dict) -> bool:
+    def _reply(self, conn: socket.socket, reply: dict[str, Any]) -> bool:
         try:
             conn.settimeout(self.request_timeout)  # a client that does not read its reply is let go too
             conn.sendall(encode(_json_safe(reply)))

@@ -65,7 +65,7 @@ import copy
 import dataclasses
 import threading
 from dataclasses import dataclass
-from typing import Any, Mapping
+from typing import TYPE_CHECKING, Any, Mapping
 
 import numpy as np
 import torch
@@ -77,6 +77,9 @@ from flgd.perception import Heightmaps
 
 from flgd.learning.failure_memory import FailureMemory
 from flgd.learning.networks import QMapNetwork, q_maps, twin_grasp_maps
+
+if TYPE_CHECKING:
+    from flgd.config import ExplorationConfig
 
 __all__ = ["Decision", "Agent", "OutcomeState", "WeightsMailbox", "RULES", "epsilon_at", "masked_maps", "greedy_index"]
 
@@ -135,10 +138,10 @@ class WeightsMailbox:
             return None if weights is None else (weights, self._version)
 
 
-def epsilon_at(step: int, exploration) -> float:
+def epsilon_at(step: int, exploration: ExplorationConfig) -> float:
     """Linear decay from epsilon_start to epsilon_end over epsilon_decay_steps, then constant."""
     frac = min(1.0, max(0, step) / exploration.epsilon_decay_steps)
-    return exploration.epsilon_start + (exploration.epsilon_end - exploration.epsilon_start) * frac
+    return float(exploration.epsilon_start + (exploration.epsilon_end - exploration.epsilon_start) * frac)
 
 
 def masked_maps(q: np.ndarray, grasp: np.ndarray, move: np.ndarray) -> np.ndarray:

@@ -323,7 +323,9 @@ class DQNUpdate:
             for k in ks:
                 rot = wanted[k][1][0]
                 these = [rot, (rot + self.rotations // 2) % self.rotations] if wanted[k][1][1] == 0 and twins else [rot]
-                c, h = rotated_inputs(wanted[k][0].next_state, these, self.rotations, self.target.stride, self.device)
+                next_state = wanted[k][0].next_state
+                assert next_state is not None  # listed as a miss above only with one
+                c, h = rotated_inputs(next_state, these, self.rotations, self.target.stride, self.device)
                 colors.append(c)
                 heights.append(h)
                 rots += these
@@ -481,7 +483,7 @@ class DQNUpdate:
             if penalty is not None:
                 terms.loss = terms.loss + penalty
             self.optimizer.zero_grad(set_to_none=True)
-            terms.loss.backward()
+            terms.loss.backward()  # type: ignore[no-untyped-call]  # torch leaves Tensor.backward unannotated
             why = self._not_finite(terms)
             if why is not None:
                 # Applying it would turn the weights into NaN for good (and the next checkpoint with them).

@@ -31,6 +31,8 @@ not see it.
 
 from __future__ import annotations
 
+from typing import Any
+
 from dataclasses import dataclass
 
 import numpy as np
@@ -175,7 +177,8 @@ class FailureMemory:
         """bool ``shape``: pixels within ``reach_px`` of (row, col) (e.g. where a move changes a failed region)."""
         h, w = shape
         yy, xx = np.ogrid[:h, :w]
-        return (yy - row) ** 2 + (xx - col) ** 2 <= reach_px * reach_px
+        within: np.ndarray = (yy - row) ** 2 + (xx - col) ** 2 <= reach_px * reach_px
+        return within
 
     def footprint(self) -> np.ndarray:
         """uint8 [H,W]: 1 where any region is suppressed, in any channel or rotation (for pictures)."""
@@ -185,7 +188,7 @@ class FailureMemory:
             out[rows, cols] |= disk.astype(np.uint8)
         return out
 
-    def status(self) -> dict:
+    def status(self) -> dict[str, Any]:
         """What a person sees: regions held, released, actions since the last pick."""
         return {"suppressed_regions": len(self.enforced), "pending_regions": len(self.entries) - len(self.enforced),
                 "released_regions": self.released,

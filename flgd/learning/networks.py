@@ -81,12 +81,15 @@ benchmark for quiet-machine numbers.)
 from __future__ import annotations
 
 import math
-from typing import Sequence
+from typing import TYPE_CHECKING, Any, Sequence
 
 import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import nn
+
+if TYPE_CHECKING:
+    from flgd.perception import Heightmaps
 
 __all__ = [
     "VARIANTS",
@@ -134,7 +137,7 @@ class QMapNetwork(nn.Module):
                              "(a grasp's theta+pi twin must be a rotation index too)")
         self.rotations = rotations
 
-    def architecture(self) -> dict:
+    def architecture(self) -> dict[str, Any]:
         """Constructor arguments recorded in policy files so that a loader rebuilds the same net."""
         return {"variant": self.variant, "rotations": self.rotations}
 
@@ -192,7 +195,7 @@ class _FastTrunkNetwork(QMapNetwork):
         self.enc3 = _conv_bn_relu(2 * width, 4 * width, stride=2)
         self.context = _DilatedContext(4 * width)
 
-    def architecture(self) -> dict:
+    def architecture(self) -> dict[str, Any]:
         return {**super().architecture(), "width": self.width}
 
 
@@ -253,7 +256,8 @@ class _DenseLayer(nn.Module):
             nn.Conv2d(bottleneck * growth, growth, 3, 1, 1, bias=False))
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return self.body(x)
+        out: torch.Tensor = self.body(x)
+        return out
 
 
 class _DenseBlock(nn.Module):
@@ -357,7 +361,7 @@ def _match(x: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
     return F.interpolate(x, size=like.shape[2:], mode="bilinear", align_corners=False)
 
 
-def build_network(variant: str, rotations: int = 16, seed: int | None = None, **architecture) -> QMapNetwork:
+def build_network(variant: str, rotations: int = 16, seed: int | None = None, **architecture: int) -> QMapNetwork:
     """A freshly initialised network of ``variant``; ``seed`` makes the initial weights reproducible."""
     if variant not in VARIANTS:
         raise ValueError(f"network variant: got {variant!r}, expected one of {', '.join(VARIANTS)}")
@@ -383,7 +387,7 @@ def padded_side(height: int, width: int, stride: int) -> int:
     return int(math.ceil(diagonal / stride) * stride)
 
 
-_GRID_CACHE: dict[tuple, tuple[torch.Tensor, torch.Tensor]] = {}
+_GRID_CACHE: dict[tuple[Any, ...], tuple[torch.Tensor, torch.Tensor]] = {}
 
 
 def _grids(height: int, width: int, side: int, rotations: int, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
@@ -429,7 +433,7 @@ def normalise(color: torch.Tensor, height: torch.Tensor) -> tuple[torch.Tensor, 
     return (color - mean) / std, (height - HEIGHT_MEAN) / HEIGHT_STD
 
 
-def _as_tensors(heightmaps, device: torch.device) -> torch.Tensor:
+def _as_tensors(heightmaps: Heightmaps, device: torch.device) -> torch.Tensor:
     """Heightmaps -> raw [1,4,H,W] float tensor: colour in [0, 1], height in metres (NaN -> 0)."""
     color = np.asarray(heightmaps.color)
     height = np.asarray(heightmaps.height, dtype=np.float32)
@@ -443,7 +447,7 @@ def _as_tensors(heightmaps, device: torch.device) -> torch.Tensor:
     return torch.cat([c.permute(2, 0, 1), h[None]], dim=0)[None]
 
 
-def rotated_inputs(heightmaps, rotation_indices: Sequence[int], rotations: int, stride: int,
+def rotated_inputs(heightmaps: Heightmaps, rotation_indices: Sequence[int], rotations: int, stride: int,
                    device: torch.device | str = "cpu") -> tuple[torch.Tensor, torch.Tensor]:
     """The normalised network inputs (colour [n,3,S,S], height [n,1,S,S]) for the given rotations."""
     device = torch.device(device)
@@ -472,7 +476,7 @@ def unrotate_maps(maps: torch.Tensor, rotation_indices: Sequence[int], rotations
     return F.grid_sample(maps, grid, mode="bilinear", padding_mode="border", align_corners=False)
 
 
-def q_maps(net: QMapNetwork, heightmaps, rotations: int = 16,
+def q_maps(net: QMapNetwork, heightmaps: Heightmaps, rotations: int = 16,
            rotation_indices: Sequence[int] | None = None) -> torch.Tensor:
     """Q-maps [R,2,H,W] of ``heightmaps`` for all rotations (or the listed ones), in the heightmap frame.
 

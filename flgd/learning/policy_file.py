@@ -38,6 +38,8 @@ be able to read (copy out) what ``flgctl policy save FILE`` asked for.
 
 from __future__ import annotations
 
+from typing import Any
+
 import datetime as _dt
 import hashlib
 import json
@@ -81,7 +83,7 @@ SANDBOX_HINT = ("if flgd runs as the systemd service, it cannot see files under 
 class PolicyFileError(ValueError):
     """A policy file cannot be used; the message names the file and the problem."""
 
-    def __init__(self, path: str | os.PathLike, problem: str) -> None:
+    def __init__(self, path: str | os.PathLike[str], problem: str) -> None:
         self.path = str(path)
         self.problem = problem
         super().__init__(f"policy file {self.path}: {problem}")
@@ -95,7 +97,7 @@ class PolicyFileUnreadable(PolicyFileError):
     not judge the file by it.
     """
 
-    def __init__(self, path: str | os.PathLike, problem: str, os_error: OSError | None) -> None:
+    def __init__(self, path: str | os.PathLike[str], problem: str, os_error: OSError | None) -> None:
         super().__init__(path, problem)
         self.os_error = os_error
 
@@ -103,7 +105,7 @@ class PolicyFileUnreadable(PolicyFileError):
 @dataclass(frozen=True)
 class LoadedPolicy:
     network: QMapNetwork
-    metadata: dict
+    metadata: dict[str, Any]
 
 
 def _weights_digest(tensors: dict[str, torch.Tensor]) -> str:
@@ -140,7 +142,7 @@ def first_non_finite(tensors: dict[str, torch.Tensor], order: list[str]) -> str 
     return None
 
 
-def save_policy(path: str | os.PathLike, network: QMapNetwork, metadata: dict, *, mode: int = POLICY_MODE) -> None:
+def save_policy(path: str | os.PathLike[str], network: QMapNetwork, metadata: dict[str, Any], *, mode: int = POLICY_MODE) -> None:
     """Write ``network`` and ``metadata`` (training_steps, cell, rolling_success, anything else) atomically.
 
     ``mode`` is the file's permission bits (default 0640, group-readable; see the module docstring).
@@ -253,7 +255,7 @@ def _cannot_read(path: Path, exc: OSError) -> str:
     return text
 
 
-def _read_header(path: Path, blob: bytes) -> dict:
+def _read_header(path: Path, blob: bytes) -> dict[str, Any]:
     if len(blob) < 8:
         raise PolicyFileError(path, f"truncated: {len(blob)} bytes, too short for a safetensors header")
     (n,) = struct.unpack("<Q", blob[:8])
@@ -269,7 +271,7 @@ def _read_header(path: Path, blob: bytes) -> dict:
     return header
 
 
-def _check_metadata(path: Path, header: dict) -> dict[str, str]:
+def _check_metadata(path: Path, header: dict[str, Any]) -> dict[str, str]:
     meta = header.get("__metadata__")
     if not isinstance(meta, dict) or not all(isinstance(v, str) for v in meta.values()):
         raise PolicyFileError(path, "no flgd metadata in the header (not a policy file, or corrupt)")
@@ -287,7 +289,7 @@ def _check_metadata(path: Path, header: dict) -> dict[str, str]:
     return meta
 
 
-def read_metadata(path: str | os.PathLike) -> dict:
+def read_metadata(path: str | os.PathLike[str]) -> dict[str, Any]:
     """The checked metadata of a policy file, decoded (without loading the weights into a network)."""
     path = Path(path)
     blob = _read_file(path)
@@ -299,7 +301,7 @@ def read_metadata(path: str | os.PathLike) -> dict:
         raise PolicyFileError(path, f"metadata value cannot be decoded: {exc}") from None
 
 
-def _decode(meta: dict[str, str]) -> dict:
+def _decode(meta: dict[str, str]) -> dict[str, Any]:
     extra = json.loads(meta["extra"])
     if not isinstance(extra, dict):
         raise ValueError(f"extra: got {type(extra).__name__}, expected a JSON object")
@@ -322,8 +324,8 @@ def _decode(meta: dict[str, str]) -> dict:
 _EXPECTED_FROM = {"rotations": "learning.rotations in the config"}
 
 
-def check_fits(path: str | os.PathLike, info: dict, expected_variant: str | None = None,
-               expected_architecture: dict | None = None) -> dict:
+def check_fits(path: str | os.PathLike[str], info: dict[str, Any], expected_variant: str | None = None,
+               expected_architecture: dict[str, Any] | None = None) -> dict[str, Any]:
     """The file's architecture (without the variant) if it is the expected one; else PolicyFileError.
 
     ``info`` is ``read_metadata``'s result.  ``expected_architecture`` holds the keys that must be equal
@@ -350,8 +352,8 @@ def check_fits(path: str | os.PathLike, info: dict, expected_variant: str | None
     return arch
 
 
-def load_policy(path: str | os.PathLike, expected_variant: str | None = None,
-                expected_architecture: dict | None = None) -> LoadedPolicy:
+def load_policy(path: str | os.PathLike[str], expected_variant: str | None = None,
+                expected_architecture: dict[str, Any] | None = None) -> LoadedPolicy:
     """Load and verify a policy file; raises PolicyFileError naming the file and the problem.
 
     ``expected_variant`` and ``expected_architecture``: see ``check_fits``.

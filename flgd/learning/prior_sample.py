@@ -29,12 +29,15 @@ import zipfile
 import zlib
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from flgd.actions import PRIMITIVES, Action
 from flgd.learning.replay import Transition, pack_heightmaps, state_key, unpack_heightmaps
+
+if TYPE_CHECKING:
+    from flgd.perception import Heightmaps
 
 __all__ = ["FORMAT", "PriorSample", "PriorSampleError", "load_prior_sample", "write_prior_sample",
            "sample_from_store", "main"]
@@ -60,7 +63,7 @@ class PriorSample:
 
     path: str
     transitions: tuple[Transition, ...]
-    source: dict
+    source: dict[str, Any]
 
     def __len__(self) -> int:
         return len(self.transitions)
@@ -72,7 +75,7 @@ class PriorSample:
         return [self.transitions[int(i)] for i in picks]
 
 
-def write_prior_sample(path: str | Path, transitions: list[Transition], source: dict) -> int:
+def write_prior_sample(path: str | Path, transitions: list[Transition], source: dict[str, Any]) -> int:
     """Write ``transitions`` to ``path`` (see the module doc); returns the number of distinct states stored.
 
     A state shared by several transitions (s' of one is s of the next) is stored once.
@@ -85,7 +88,7 @@ def write_prior_sample(path: str | Path, transitions: list[Transition], source: 
     index: dict[bytes, int] = {}
     blobs: list[bytes] = []
 
-    def put(hm) -> int:
+    def put(hm: Heightmaps) -> int:
         key = state_key(hm)
         if key not in index:
             index[key] = len(blobs)
@@ -221,7 +224,7 @@ def load_prior_sample(path: str | Path, rotations: int, shape: tuple[int, int]) 
     return PriorSample(str(path), tuple(transitions), source if isinstance(source, dict) else {"source": source})
 
 
-def sample_from_store(state_dir: str | Path, count: int, seed: int = 0) -> tuple[list[Transition], dict]:
+def sample_from_store(state_dir: str | Path, count: int, seed: int = 0) -> tuple[list[Transition], dict[str, Any]]:
     """``count`` transitions drawn at random from the store in ``state_dir`` (all when it holds fewer)."""
     from flgd.store import Store
 

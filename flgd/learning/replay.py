@@ -36,12 +36,15 @@ import hashlib
 import threading
 import zlib
 from dataclasses import dataclass, field
-from typing import Iterable
+from typing import TYPE_CHECKING, Iterable
 
 import numpy as np
 
 from flgd.actions import Action
 from flgd.perception import Heightmaps
+
+if TYPE_CHECKING:
+    from flgd.config import LearningConfig
 
 __all__ = ["Transition", "SumTree", "PrioritizedReplay", "pack_heightmaps", "unpack_heightmaps", "state_key"]
 
@@ -223,7 +226,7 @@ class PrioritizedReplay:
         self._lock = threading.RLock()
 
     @classmethod
-    def from_config(cls, learning, seed: int | None = None) -> "PrioritizedReplay":
+    def from_config(cls, learning: LearningConfig, seed: int | None = None) -> "PrioritizedReplay":
         """A replay with the sizes and exponents of a ``LearningConfig``."""
         return cls(learning.replay_capacity, learning.priority_alpha, learning.priority_beta_start,
                    learning.priority_beta_steps, learning.priority_epsilon,
