@@ -86,7 +86,7 @@ def cell(ctl, rg2, cell_cfg, cameras):
 def daemons(ctl, rg2, cell_cfg, cameras, monkeypatch):
     """Make real Controllers whose cell is the UR5e on the fakes; all shut down at the end."""
     made: list[Controller] = []
-    monkeypatch.setattr("flgd.daemon.controller.make_cell",
+    monkeypatch.setattr("flgd.daemon.startup.make_cell",
                         lambda config, backend=None: make_cell(ctl, rg2, config, cameras))
 
     def make() -> Controller:

@@ -103,7 +103,7 @@ def real_daemon(ctl, rg2, tmp_path, monkeypatch):  # noqa: F811
 
     made = []
     cameras = BlockCameras()
-    monkeypatch.setattr("flgd.daemon.controller.make_cell",
+    monkeypatch.setattr("flgd.daemon.startup.make_cell",
                         lambda config, backend=None: make_cell(ctl, rg2, config, cameras))
 
     def make(**exploration) -> Controller:

@@ -16,9 +16,9 @@ network from scratch with ``learning`` as written.  Control connections have the
 only read state, validate input and queue work; what each operator command does is in its handler
 (flgd/daemon/commands.py), which ``handle`` looks up.
 
-Start-up, the run loop, faults, reset and shutdown share the state machine, the learning lock and the stop latch,
-and each depends on the others' order of events (a stop during a reset, a fault during a checkpoint); the
-learning parts are built by flgd/learning_stack.py.
+The run loop, faults, reset and shutdown share the state machine, the learning lock and the stop latch, and each
+depends on the others' order of events (a stop during a reset, a fault during a checkpoint).  The steps of start-up
+are in flgd/daemon/startup.py; the learning parts are built by flgd/learning_stack.py.
 """
 
 from __future__ import annotations
@@ -35,13 +35,14 @@ from typing import TYPE_CHECKING, Any, Callable
 
 from flgd.memory import trim_heap
 from flgd.calibration_watch import CalibrationWatch
-from flgd.cell import Cell, CellFault, StopPending, make_cell
+from flgd.cell import Cell, CellFault, StopPending
 from flgd.config import CellConfig, fine_tunes
 from flgd.cycle import CycleRecord, CycleRunner
 from flgd.cycle_record import CycleOutcome
-from flgd.daemon import commands
+from flgd.daemon import commands, startup
 from flgd.daemon.notify import Notifier
 from flgd.daemon.protocol import ProtocolError, Request
+from flgd.daemon.startup import StartupError
 from flgd.daemon.state import IllegalTransition, State, StateChange, StateMachine
 from flgd.learning_stack import LEARNER_QUIET_TIMEOUT, CheckpointMeta, GateStart, Handover, LearningStack
 from flgd.safety import PlanRefused
@@ -61,10 +62,6 @@ EMPTY_WORKSPACE_CAUSE = "workspace empty/nothing graspable: refill the table, th
 ACCEPTING_COMMANDS = frozenset({State.IDLE, State.RUNNING, State.PAUSED, State.FAULT})
 
 
-class StartupError(RuntimeError):
-    """The daemon cannot start (bad policy, cell does not connect, state dir locked ...)."""
-
-
 def _stack_field(name: str, doc: str) -> property:
     """A field the controller's learning stack keeps about its run (``Controller.learning``)."""
     return property(lambda self: getattr(self.learning, name), lambda self, value: setattr(self.learning, name, value),
@@ -75,14 +72,6 @@ def _learning_part(name: str, doc: str) -> property:
     """A part of the controller's learning stack (``Controller.learning``), read-only: a part changes only by a
     rebuild of the stack."""
     return property(lambda self: getattr(self.learning, name) if self.learning.parts is not None else None, doc=doc)
-
-
-def _gate_errors() -> tuple[type[Exception], ...]:
-    """What building the gate raises when it cannot restore a policy to act with, or its records cannot be used."""
-    from flgd.gate.keeper import GateError
-    from flgd.learning.policy_file import PolicyFileError
-
-    return (GateError, PolicyFileError, StoreError, OSError)
 
 
 class Controller:
@@ -138,45 +127,24 @@ class Controller:
 
     # ================================================================== setup
     def setup(self) -> None:
-        """Store, policy, learning stack, cell.  Raises StartupError for what an operator must fix."""
-        self._take_state_dir_lock()
+        """Store, policy, learning stack, cell (``flgd.daemon.startup``).  Raises StartupError for what an operator
+        must fix."""
+        self._lock_fd = startup.lock_state_dir(self.state_dir)
         self._open_store()
-        try:
-            removed = self.checkpoints.remove_temporary()
-            if removed:
-                log.info("removed %d unfinished checkpoint file(s) of an interrupted run", removed)
-        except OSError as exc:
-            log.warning("cannot clean %s: %s", self.checkpoints.directory, exc)
-        self._remove_trainer_state_temporaries()
-        step = self._start_step()
-        network = self._initial_network()
+        startup.remove_unfinished_files(self.checkpoints, self.state_dir)
+        step = startup.start_step(self.store, self.state_dir)
+        network = startup.start_network(self.learning, self.policy_arg)
         self._start_network = network
-        self._load_prior(network)
+        startup.load_prior(self.learning, network.rotations)
         self._build_learning(network, step)
-        self._restore_trainer_state()
-        try:
-            self.cell = make_cell(self.cell_config_at(step))
-        except CellFault as exc:
-            raise StartupError(f"cell {self.backend!r} failed to connect: {exc}") from exc
-        except (ValueError, ImportError, OSError, RuntimeError) as exc:
-            raise StartupError(f"cell {self.backend!r} cannot be created: {exc}") from exc
+        startup.log_trainer_state(self.learning.restore_trainer_state(), self.state_dir, bool(self.last_checkpoint))
+        self.cell = startup.connect_cell(self.cell_config_at(step))
         self.runner = CycleRunner(self.config, self.cell, self.agent, store=self.store, replay=self.replay,
                                   learner=self.learner, step=self._next_step(), backend=self.backend,
                                   on_phase=lambda _phase: self.notifier.watchdog())
         self.learner.start()
         if self.store_problem:
             self.state.transition(State.FAULT, self.store_problem)
-
-    def _start_step(self) -> int:
-        """The action this start continues at (0 on a first start, or when the store could not be opened)."""
-        try:
-            step = self._next_step()
-        except StoreError as exc:
-            raise StartupError(f"the action log in {self.state_dir} cannot be read: {exc}") from exc
-        if step > 0:
-            log.info("continuing at action %d: the cell's and the learning's random seeds are drawn from "
-                     "(seed, %d)", step, step)
-        return step
 
     def cell_config_at(self, step: int) -> CellConfig:
         """The config a cell is built from at action ``step``: a restarted daemon's simulated cell deals new scenes
@@ -185,62 +153,13 @@ class Controller:
 
         return continuing_config(self.config, step)
 
-    def _remove_trainer_state_temporaries(self) -> None:
-        from flgd.training.state import remove_temporary
-
-        try:
-            removed = remove_temporary(self.state_dir)
-            if removed:
-                log.info("removed %d unfinished trainer-state file(s) of an interrupted run", removed)
-        except OSError as exc:
-            log.warning("cannot clean %s: %s", self.state_dir, exc)
-
-    def _take_state_dir_lock(self) -> None:
-        from flgd.state_dir_lock import StateDirBusy, lock_state_dir
-
-        try:
-            self._lock_fd = lock_state_dir(self.state_dir, create=True)
-        except StateDirBusy as exc:
-            raise StartupError(str(exc)) from None
-        except OSError as exc:  # a daemon without the lock could share the store with the next one
-            raise StartupError(f"cannot lock the state directory {self.state_dir}: {exc.strerror or exc}; "
-                               "make it (or its parent) exist and readable by this user, then start again") from None
-
     def _open_store(self) -> bool:
-        try:
-            sc = self.config.storage
-            self.store = Store(self.state_dir, keep_transitions=self.config.learning.replay_capacity,
-                               max_bytes=sc.max_bytes or None, action_log_days=sc.action_log_days,
-                               min_free_bytes=sc.min_free_bytes)
-            self.store_problem = ""
-        except StoreError as exc:
-            self.store = None
-            self.store_problem = str(exc)
-            log.error("%s", exc)
+        self.store, self.store_problem = startup.open_store(self.config, self.state_dir)
         self.learning.store = self.store
         return self.store is not None
 
     def _next_step(self) -> int:
         return self.store.next_step() if self.store is not None else 0
-
-    def _initial_network(self) -> Any:
-        """Resume from the newest readable checkpoint; else the given policy; else a fresh network."""
-        from flgd.learning.policy_file import PolicyFileError
-        from flgd.learning.trunk import TrunkFileError
-
-        try:
-            return self.learning.start_from(self.policy_arg)
-        except (PolicyFileError, TrunkFileError) as exc:
-            raise StartupError(str(exc)) from exc
-
-    def _load_prior(self, network: QMapNetwork) -> None:
-        """The fine-tune's prior sample (``finetune.prior_sample``), loaded once for every learner built."""
-        from flgd.learning.prior_sample import PriorSampleError
-
-        try:
-            self.learning.load_prior(network.rotations)
-        except PriorSampleError as exc:
-            raise StartupError(f"finetune.prior_sample: {exc}") from exc
 
     def _build_learning(self, network: QMapNetwork, step: int) -> None:
         """Replay, agent, learner and, on an open store, the gate, for a run at action ``step``: their random draws
@@ -250,8 +169,8 @@ class Controller:
         try:
             parts = self.learning.build(network, step, handover=Handover.GATE,
                                         gate=self._gate_start() if self.store is not None else None)
-        except _gate_errors() as exc:
-            raise StartupError(self._gate_problem(exc)) from exc
+        except startup.gate_errors() as exc:
+            raise StartupError(startup.gate_problem(exc, self.state_dir)) from exc
         if parts.replay_problem:
             self.store_problem = parts.replay_problem
         if parts.gate is not None:
@@ -259,14 +178,6 @@ class Controller:
 
     def _gate_start(self) -> GateStart:
         return GateStart(self._next_step(), self._configured_policy, self._fresh_policy, self._reset_learner_to)
-
-    def _gate_problem(self, exc: BaseException) -> str:
-        from flgd.gate.keeper import GateError
-        from flgd.learning.policy_file import PolicyFileError
-
-        if isinstance(exc, (GateError, PolicyFileError)):
-            return f"no policy to act with: {exc}"
-        return f"the gate's records in {self.state_dir} cannot be used: {exc}"
 
     def _reset_learner_to(self, network: QMapNetwork) -> None:
         """Run loop (the gate, after a rollback or a drop as worse): the learner starts again from ``network``,
@@ -291,21 +202,6 @@ class Controller:
 
     def _fresh_policy(self) -> tuple[Any, dict[str, Any], str]:
         return self._start_network, {"training_steps": 0}, self.policy_source
-
-    def _restore_trainer_state(self) -> None:
-        """Give a resumed learner back its target network and Adam moments, saved with its checkpoint
-        (``LearningStack.restore_trainer_state``); what it started from is in the log and status."""
-        from flgd.training.state import TRAINER_STATE
-
-        outcome = self.learning.restore_trainer_state()
-        if outcome.restored:
-            log.info("trainer state %s from %s", self.trainer_state, self.state_dir / TRAINER_STATE)
-        elif outcome.problem:
-            log.warning("trainer state not used: %s", self.trainer_state)
-        elif outcome.other_update is not None:
-            log.warning("trainer state: %s", self.trainer_state)
-        elif self.last_checkpoint:
-            log.info("trainer state: %s", self.trainer_state)
 
     # ================================================================== checkpoints
     def write_checkpoint(self, network: QMapNetwork, updates: int) -> None:
@@ -640,8 +536,8 @@ class Controller:
             with self.learning_lock:  # the learner goes on from its weights; nothing handed over without a gate
                 try:
                     self.learning.rebuild(self._next_step(), gate=self._gate_start())
-                except _gate_errors() as exc:
-                    gate_problem = self._gate_problem(exc)
+                except startup.gate_errors() as exc:
+                    gate_problem = startup.gate_problem(exc, self.state_dir)
                 if self.learning.parts is not None and self.learning.parts.replay_problem:
                     self.store_problem = self.learning.parts.replay_problem
                 self.learning.connect(self.runner)
