@@ -272,8 +272,8 @@ def test_flgctl_policy_load_of_a_diverged_file_is_an_error_reply_and_the_running
     net, name = poisoned(float("nan"))
     path = tmp_path / "diverged.safetensors"
     save_unchecked(path, net, monkeypatch)
-    ctl = _controller(tmp_path)
-    ctl.learner = None  # never reached: the file is refused before the learner sees any weight
+    ctl = _controller(tmp_path)  # not set up: no learner, and none is needed (the file is refused before it)
+    assert ctl.learner is None
     with pytest.raises(ProtocolError) as err:
         policy_load(ctl, str(path))
     assert err.value.code == "failed" and "running policy stays" in err.value.message
