@@ -162,6 +162,9 @@ def test_a_given_policy_fine_tunes_with_the_finetune_settings_and_no_policy_trai
     assert learner_settings(anchored, True).learning.anchor_weight == 0.3
     assert learner_settings(anchored, False).learning.anchor_weight == cfg.learning.anchor_weight
     assert ft.learning_rate != cfg.learning.learning_rate and ft.updates_per_action != cfg.learning.updates_per_action
+    # training's cheaper target (a' from the acting decision, one twin) is not a fine-tune's unless it says so
+    assert (cfg.learning.actor_argmax, cfg.learning.grasp_twins) == (True, "one")
+    assert (ft.actor_argmax, ft.grasp_twins) == (False, "both")
     scratch = config_from_dict({"policy": ""})
     assert not fine_tunes(scratch)[0] and learner_settings(scratch, False) is scratch
 

@@ -25,4 +25,5 @@ def learner_settings(cfg: CellConfig, fine_tune: bool) -> CellConfig:
     ft = cfg.finetune
     return dataclasses.replace(cfg, learning=dataclasses.replace(
         cfg.learning, learning_rate=ft.learning_rate, updates_per_action=ft.updates_per_action,
-        batchnorm=ft.batchnorm, min_replay=ft.min_replay, anchor_weight=ft.anchor_weight))
+        batchnorm=ft.batchnorm, min_replay=ft.min_replay, anchor_weight=ft.anchor_weight,
+        actor_argmax=ft.actor_argmax, grasp_twins=ft.grasp_twins))

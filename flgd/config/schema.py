@@ -295,6 +295,9 @@ class FinetuneConfig:
                                help="exploration continues from the policy's recorded training steps on the "
                                     "exploration schedule, never above this")
     anchor_weight: float = param(0.0, ge=0.0, unit="per squared weight", help="see learning.anchor_weight")
+    actor_argmax: bool = param(False, help="see learning.actor_argmax; off for a fine-tune: behind the gate the "
+                                           "acting weights lag the learner's by whole hand-overs")
+    grasp_twins: Literal["both", "one"] = param("both", help="see learning.grasp_twins")
     prior_sample: str = param("", help="a prior sample file (`flgd prior-sample`: transitions of the cell the policy "
                                        "was trained in; relative to the config file); empty = none")
     prior_share: float = param(0.0, ge=0.0, lt=1.0, help="share of each update's batch drawn from prior_sample "

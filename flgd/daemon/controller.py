@@ -10,7 +10,7 @@ with the gate off, straight to the agent's mailbox; a decision never waits for i
 
 Learner settings: with a policy given the daemon fine-tunes it (the config's
 ``finetune`` section replaces ``learning``'s learning rate, updates per action,
-BatchNorm mode and warm-up; exploration continues from the policy's recorded
+BatchNorm mode, warm-up and double-DQN target; exploration continues from the policy's recorded
 training steps, capped at ``finetune.max_epsilon``); without one it trains a fresh
 network from scratch with ``learning`` as written.  Control connections have their own threads and
 only read state, validate input and queue work; what each operator command does is in its handler
