@@ -137,6 +137,16 @@ def test_two_failed_grasps_force_a_move_and_only_then():
     assert a.select(q, height, 0).rule == "two-failures"
 
 
+def test_a_loaded_policy_explores_and_counts_on_from_its_own_training_steps():
+    cfg = config(epsilon_start=1.0, epsilon_end=0.1, epsilon_decay_steps=100)
+    a = agent(cfg, seed=5)
+    assert a.epsilon(10) == pytest.approx(epsilon_at(10, cfg.exploration)) and a.policy_steps(10) == 10
+    a.continue_exploration_from(3000 - 200)  # a policy of 3,000 steps loaded at this cell's step 200
+    assert a.policy_steps(250) == 3050 and a.epsilon(250) == pytest.approx(0.1)
+    a.continue_exploration_from(-500)  # loaded at step 500 with no steps of its own
+    assert a.policy_steps(100) == 0
+
+
 def test_epsilon_decays_linearly_and_random_actions_stay_inside_the_masks():
     cfg = config(epsilon_start=1.0, epsilon_end=0.1, epsilon_decay_steps=100)
     assert epsilon_at(0, cfg.exploration) == 1.0

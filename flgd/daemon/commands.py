@@ -318,7 +318,7 @@ def policy_save(ctl: DaemonControl, path: str | None) -> dict[str, Any]:
     # the acting policy (the champion), copied between decisions; the learner's own weights are in checkpoints
     acting = ctl.run_on_loop(lambda: {"network": copy.deepcopy(ctl.agent.network)})["network"]
     champion = ctl.gate.champion if ctl.gate is not None else None
-    meta = {"training_steps": max(0, int(ctl.runner.step if ctl.runner else 0) + ctl.agent.exploration_offset),
+    meta = {"training_steps": ctl.agent.policy_steps(ctl.runner.step if ctl.runner else 0),
             "cell": ctl.config.name or ctl.backend,
             "rolling_success": stats.get("grasp_success_last_50"),
             "learner_updates": int(ctl.learner.updates),

@@ -208,7 +208,7 @@ class Controller:
         """Learner thread: write a checkpoint; a storage failure puts the daemon in FAULT."""
         step = self.runner.step if self.runner is not None else 0
         if self.learning.parts is not None:  # the policy's own count, not the daemon's
-            step += self.learning.agent.exploration_offset
+            step = self.learning.agent.policy_steps(step)
         meta = CheckpointMeta(step, self.config.name or self.backend, updates, self.policy_source)
         try:
             path = self.learning.write_checkpoint(network, updates, meta)

@@ -401,7 +401,7 @@ class Gatekeeper:
             network.eval()
             pid = self.files.next_id()
             origin = f"learner update {version}"
-            steps = max(0, int(step) + int(getattr(self.agent, "exploration_offset", 0)))  # the policy's own count
+            steps = self.agent.policy_steps(step)  # the policy's own count
             try:
                 rel, sha = self.files.write_file(pid, network, {"training_steps": steps, "cell": self.config.name or
                                                            self.config.backend, "source": origin,

@@ -256,6 +256,11 @@ class Agent:
         step it starts acting at, so that a trained policy does not explore like a fresh one."""
         self.exploration_offset = int(offset)
 
+    def policy_steps(self, step: int) -> int:
+        """The acting policy's own count of actions when this cell is at ``step`` (what its policy file records,
+        and what exploration continues from when it is loaded again): the one place the two counts meet."""
+        return max(0, int(step) + self.exploration_offset)
+
     def epsilon(self, step: int) -> float:
         """Exploration rate at ``step``: the schedule at ``step + exploration_offset``, capped at ``max_epsilon``."""
         return min(self.max_epsilon, epsilon_at(step + self.exploration_offset, self.config.exploration))
