@@ -200,7 +200,7 @@ class LearningStack:
         Their random draws continue from seeds drawn for that action (``flgd.wiring.continuing_config``); a
         caller with seeds of its own (``flgd train``'s segments) gives ``replay_seed`` and ``agent_seed``.  The
         learner counts on from ``updates`` (default: the checkpoint resumed from).  With ``handover`` GATE and no
-        gate built, the learner posts to a mailbox nobody reads: nothing acts before a gate has vetted it.  The
+        gate built, the learner hands nothing over: nothing acts before a gate has vetted it.  The
         gate raises GateError / PolicyFileError when there is no policy to act with, StoreError / OSError on
         storage; then nothing is kept.
         """
@@ -218,9 +218,9 @@ class LearningStack:
         if with_gate and handover != Handover.GATE:
             raise ValueError(f"a gate vets the learner's weights: handover must be gate, got {handover}")
         handovers = WeightsMailbox()
-        mailbox: WeightsMailbox | None = None
-        if handover == Handover.GATE:  # with the gate switched off (gate.enabled false) they act as handed over
-            mailbox = agent.mailbox if with_gate and not self.config.gate.enabled else handovers
+        mailbox: WeightsMailbox | None = None  # GATE without a gate: nothing is handed over until one is built
+        if handover == Handover.GATE and with_gate:  # with gate.enabled false they act as handed over
+            mailbox = handovers if self.config.gate.enabled else agent.mailbox
         elif handover == Handover.AGENT:
             mailbox = agent.mailbox
         store = self.store if self.priorities_in_store else None
@@ -256,11 +256,11 @@ class LearningStack:
         without one (the learner hands nothing over) and the gate's error is raised."""
         old = self.learner
         old.stop(timeout=30.0, why="rebuilt on the store")
-        network, updates = old.snapshot(), old.updates
-        try:
-            parts = self.build(network, step, handover=Handover.GATE, gate=gate, updates=updates)
+        updates = old.updates
+        try:  # each build gets its own copy: a gate that fails part-way has loaded its champion into the agent's
+            parts = self.build(old.snapshot(), step, handover=Handover.GATE, gate=gate, updates=updates)
         except BaseException:
-            self.build(network, step, handover=Handover.GATE, updates=updates)
+            self.build(old.snapshot(), step, handover=Handover.GATE, updates=updates)
             self.learner.start()
             raise
         self.learner.start()

@@ -134,7 +134,7 @@ def test_the_scan_finds_a_part_patched_from_outside():
 
 def test_the_builder_connects_learner_gate_and_agent_as_the_daemon_runs_them(tmp_path):
     """Gate on: the learner posts to the gate's mailbox, the gate moves the learner's anchor and resets it; gate
-    off: the learner posts to the agent; no store: to a mailbox nobody reads (nothing acts unvetted)."""
+    off: the learner posts to the agent; no store: it hands nothing over (nothing acts unvetted)."""
     from flgd.learning.networks import build_network
     from flgd.learning_stack import GateStart, Handover, LearningStack
     from flgd.store import Store
@@ -156,7 +156,39 @@ def test_the_builder_connects_learner_gate_and_agent_as_the_daemon_runs_them(tmp
 
     unvetted = LearningStack(cfg, fine_tune=True, state_dir=tmp_path / "none").build(
         net, handover=Handover.GATE, gate=start)
-    assert unvetted.gate is None and unvetted.learner.mailbox not in (None, unvetted.agent.mailbox)
+    assert unvetted.gate is None and unvetted.learner.mailbox is None
     with pytest.raises(ValueError, match="handover must be gate"):
         LearningStack(cfg, fine_tune=True, state_dir=tmp_path / "on", store=Store(tmp_path / "x")).build(
             net, handover=Handover.AGENT, gate=start)
+
+
+def test_a_rebuild_whose_gate_fails_part_way_keeps_the_learners_own_weights(tmp_path, monkeypatch):
+    """The daemon's reset after the store came back: the gate loads its champion into the agent, then fails (its
+    records cannot be written); the stack is built again without a gate, and the learner goes on from its own
+    weights, not the champion's it never learned."""
+    import torch
+
+    from flgd.learning.networks import build_network
+    from flgd.learning_stack import GateStart, Handover, LearningStack
+    from flgd.store import Store, StoreError
+
+    cfg = dataclasses.replace(load_config(SIM), state_dir=str(tmp_path / "state"))
+    own = build_network(cfg.learning.network, rotations=cfg.learning.rotations, seed=0)
+    champion = build_network(cfg.learning.network, rotations=cfg.learning.rotations, seed=1)
+    store = Store(tmp_path / "state")
+    stack = LearningStack(cfg, fine_tune=True, state_dir=tmp_path / "state", store=store)
+    stack.build(own, handover=Handover.GATE)
+
+    def refuse(*_args, **_kwargs):
+        raise StoreError("disk full")
+
+    monkeypatch.setattr(store, "set_counter", refuse)  # the exploration offset of a first start is not recorded
+    with pytest.raises(StoreError, match="disk full"):
+        stack.rebuild(0, GateStart(0, configured=lambda: (champion, {"training_steps": 3000}, "policy P"),
+                                   fresh=lambda: (champion, {"training_steps": 0}, "fresh")))
+    try:
+        assert stack.gate is None and stack.learner.mailbox is None
+        learned = stack.learner.snapshot().state_dict()
+        assert all(torch.equal(learned[k], v) for k, v in own.state_dict().items())
+    finally:
+        stack.learner.stop(timeout=10.0, why="test over")

@@ -538,10 +538,11 @@ class Controller:
                     self.learning.rebuild(self._next_step(), gate=self._gate_start())
                 except startup.gate_errors() as exc:
                     gate_problem = startup.gate_problem(exc, self.state_dir)
-                if self.learning.parts is not None and self.learning.parts.replay_problem:
-                    self.store_problem = self.learning.parts.replay_problem
-                self.learning.connect(self.runner)
-                self.runner.step = self._next_step()
+                finally:  # whatever was built acts and learns from now on (an unexpected error is raised on)
+                    if self.learning.parts is not None and self.learning.parts.replay_problem:
+                        self.store_problem = self.learning.parts.replay_problem
+                    self.learning.connect(self.runner)
+                    self.runner.step = self._next_step()
             if gate_problem:
                 self.fault(gate_problem)
                 raise ProtocolError("failed", f"reset: {gate_problem}")
