@@ -73,6 +73,7 @@ from flgd.cycle_record import (UNSTABLE_MARK, CycleOutcome, CycleRecord, float_o
                                 unstable_failure, was_stopped)
 from flgd.perception import Heightmaps, frame_heightmaps
 from flgd.plans import plan_action, plan_home, plan_release
+from flgd.cycle_commit import commit_cycle
 from flgd.cycle_parts import CycleAgent, CycleLearner, CycleStore
 from flgd.safety import PlanRefused, check_plan
 
@@ -265,16 +266,8 @@ class CycleRunner:
             self.store.record_intent(record.row())
 
     def _commit(self, record: CycleRecord, transition: Transition | None, timer: _Timer) -> None:
-        t0 = time.perf_counter()
-        if self.store is not None:
-            record.transition_id = self.store.commit_cycle(record.row(), transition)
-        if transition is not None and self.replay is not None:
-            self.replay.add(transition, tag=record.transition_id)
-            if self.learner is not None:
-                self.learner.notify_new_transition()
-        record.timings["store"] = time.perf_counter() - t0
-        if self.store is not None and record.step is not None:
-            self.store.note_store_time(record.step, record.timings["store"])
+        committed = commit_cycle(record.row(), transition, store=self.store, replay=self.replay, learner=self.learner)
+        record.transition_id, record.timings["store"] = committed.transition_id, committed.seconds
         if timer.on_phase is not None:
             timer.on_phase("store")
 
@@ -517,11 +510,10 @@ class CycleRunner:
             record.failure = str(exc)
             record.cell_time = record.gripper_time = None   # no time on the cell's clock: count the wall clock's
             self.forget_state()
-            if self.store is not None:
-                try:
-                    self.store.commit_cycle(finish().row(), None)
-                except Exception:  # the fault is what matters; the log row is best effort
-                    pass
+            try:
+                commit_cycle(finish().row(), None, store=self.store, replay=None, learner=None)
+            except Exception:  # the fault is what matters; the log row is best effort
+                pass
             raise
 
         if unstable:

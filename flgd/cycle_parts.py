@@ -18,7 +18,7 @@ if TYPE_CHECKING:
     from flgd.learning.replay import Transition
     from flgd.perception import Heightmaps
 
-__all__ = ["CycleAgent", "CycleStore", "CycleLearner"]
+__all__ = ["CycleAgent", "CycleStore", "CycleReplay", "CycleLearner"]
 
 
 class CycleAgent(Protocol):
@@ -76,6 +76,14 @@ class CycleStore(Protocol):
         ...
 
     def record_event(self, kind: str, message: str) -> None:
+        ...
+
+
+class CycleReplay(Protocol):
+    """Where a stored transition is sampled from (``flgd.learning.replay.PrioritizedReplay``)."""
+
+    def add(self, transition: Transition, priority: float | None = None, tag: int | None = None) -> int:
+        """Keep ``transition`` (``tag``: its id in the store); its slot."""
         ...
 
 

@@ -169,7 +169,7 @@ def test_a_frame_taken_with_the_tool_over_the_workspace_is_refused(tmp_path):
 
 
 def test_a_training_worker_s_refused_frame_goes_to_its_notes_for_the_learner_s_store(tmp_path):
-    from flgd.training.cell_worker import CollectingStore
+    from flgd.training.collected import CollectingStore
 
     cfg, cell, agent = _cell_and_agent(tmp_path)
     notes = []

@@ -11,7 +11,7 @@ import types
 import pytest
 
 from flgd.training import ray_engine
-from flgd.training.distributed import MAX_REPLACEMENTS, DistributedTrainingRun, _WorkerSlot
+from flgd.training.ray_collector import MAX_REPLACEMENTS, RayCollector
 
 
 def _fake_ray(init_fails: bool) -> types.ModuleType:
@@ -54,36 +54,28 @@ def test_the_callers_sigterm_handler_is_put_back_after_ray_init_whether_it_succe
         signal.signal(signal.SIGTERM, previous)
 
 
-class _Driver:
-    """What ``DistributedTrainingRun._replace`` uses of the run: progress lines, events, Ray, a spawn."""
-
-    def __init__(self):
-        self.lines: list[str] = []
-        self.events: list[tuple[str, str]] = []
-        self.spawned = 0
-        self.killed = 0
-        self._last_states: dict = {}
-        self.progress = types.SimpleNamespace(message=self.lines.append)
-        self.store = types.SimpleNamespace(record_event=lambda kind, msg: self.events.append((kind, msg)))
-        self.engine = types.SimpleNamespace(ray=types.SimpleNamespace(kill=self._kill))
-
-    def _kill(self, actor) -> None:
-        self.killed += 1
-
-    def _spawn(self, slot) -> None:
-        self.spawned += 1
+def _collector() -> tuple[RayCollector, dict[str, list]]:
+    """A collector of two workers whose Ray, run and spawning are recorded, not real: what ``_replace`` uses."""
+    seen: dict[str, list] = {"lines": [], "events": [], "spawned": [], "killed": []}
+    collector = RayCollector(2)
+    collector.engine = types.SimpleNamespace(ray=types.SimpleNamespace(kill=seen["killed"].append))
+    collector._start = types.SimpleNamespace(say=seen["lines"].append,
+                                             store_event=lambda kind, msg: seen["events"].append((kind, msg)))
+    collector._spawn = lambda slot: seen["spawned"].append(slot.index)
+    return collector, seen
 
 
 def test_a_worker_lost_more_than_the_limit_in_a_row_stops_the_run_instead_of_a_new_incarnation():
     assert MAX_REPLACEMENTS == 3
-    driver, slot = _Driver(), _WorkerSlot(index=1, actor=object())
+    collector, seen = _collector()
+    slot = collector.slots[1]
+    slot.actor = object()
     lost = RuntimeError("The actor died unexpectedly before finishing this task.")
     for _ in range(MAX_REPLACEMENTS):
-        DistributedTrainingRun._replace(driver, slot, lost)
-    assert driver.spawned == MAX_REPLACEMENTS and slot.replacements == MAX_REPLACEMENTS
-    assert len(driver.events) == MAX_REPLACEMENTS and all(k == "worker" for k, _ in driver.events)
+        collector._replace(slot, lost)
+    assert seen["spawned"] == [1] * MAX_REPLACEMENTS and slot.replacements == MAX_REPLACEMENTS
+    assert len(seen["events"]) == MAX_REPLACEMENTS and all(k == "worker" for k, _ in seen["events"])
     with pytest.raises(RuntimeError, match=f"worker 1 lost .*replaced {MAX_REPLACEMENTS} times in a row without a "
                                            "completed cycle: stopping the run"):
-        DistributedTrainingRun._replace(driver, slot, lost)
-    assert driver.spawned == MAX_REPLACEMENTS  # no fifth incarnation
-
+        collector._replace(slot, lost)
+    assert len(seen["spawned"]) == MAX_REPLACEMENTS  # no fifth incarnation

@@ -279,13 +279,13 @@ def _run_with_flaky_cell(tmp_path, errors, faults, steps):
     from flgd.training.progress import LineProgress
     from flgd.training.run import RunSettings, TrainingRun
 
+    from flgd.training.collector import LocalCollector
+
     out = tmp_path / "run"
     run = TrainingRun(out, RunSettings(steps=steps, seed=1), load_config(CONFIG), LineProgress(io.StringIO(), False),
-                      threads=1)
+                      threads=1, collector=LocalCollector(lambda cell: FlakyCell(cell, errors, faults)))
     try:
         run.setup()
-        run.cell = FlakyCell(run.cell, errors, faults)
-        run.runner.cell = run.cell
         code = run.train()
         return code, run
     finally:
@@ -294,7 +294,7 @@ def _run_with_flaky_cell(tmp_path, errors, faults, steps):
 
 def test_simulator_errors_and_faults_are_survived_and_logged(tmp_path):
     code, run = _run_with_flaky_cell(tmp_path, errors=[1], faults=[3], steps=3)
-    assert code == 0 and run.runner.step == 3
+    assert code == 0 and run.step == 3
     store = Store(tmp_path / "run")
     try:
         faults = [e["message"] for e in store.events("fault")]
@@ -409,14 +409,15 @@ def test_a_give_up_whose_new_scene_fails_is_recovered_like_a_fault(tmp_path):
     from flgd.training.run import RunSettings, TrainingRun
 
     config = dataclasses.replace(load_config(CONFIG), policy="")   # a fresh network: grasps fail
+    from flgd.training.collector import LocalCollector
+
+    collector = LocalCollector(ResetFailsOnce)
     run = TrainingRun(tmp_path / "run", RunSettings(steps=4, seed=1, give_up_after=1), config,
-                      LineProgress(io.StringIO(), False), threads=1)
+                      LineProgress(io.StringIO(), False), threads=1, collector=collector)
     try:
         run.setup()
-        run.cell = ResetFailsOnce(run.cell)
-        run.runner.cell = run.cell
-        assert run.train() == 0 and run.runner.step == 4
-        assert run.cell.resets >= 2   # the failed reset, then the recovery's
+        assert run.train() == 0 and run.step == 4
+        assert collector.cell.resets >= 2   # the failed reset, then the recovery's
     finally:
         run.close()
     store = Store(tmp_path / "run")

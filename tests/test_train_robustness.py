@@ -15,6 +15,7 @@ from flgd.cell import Cell
 from flgd.config import load_config
 from flgd.store import Store
 from flgd.training.actions_csv import read_rows
+from flgd.training.collector import LocalCollector
 from flgd.training.pretrain import main as pretrain_main
 from flgd.training.progress import LineProgress
 from flgd.training.run import CONFIG_FILE, RunSettings, TrainingRun
@@ -133,13 +134,13 @@ class NothingGraspableCell(Cell):
 
 
 def _train_in(out: Path, steps: int, fail_reset: int | None = None) -> tuple[TrainingRun, NothingGraspableCell]:
+    collector = LocalCollector(lambda cell: NothingGraspableCell(cell, fail_reset))
     run = TrainingRun(out, RunSettings(steps=steps, seed=4), load_config(CONFIG), LineProgress(io.StringIO(), False),
-                      threads=1)
+                      threads=1, collector=collector)
     try:
         run.setup()
-        run.cell = run.runner.cell = NothingGraspableCell(run.cell, fail_reset)
         assert run.train() == 0
-        return run, run.cell
+        return run, collector.cell
     finally:
         run.close()
 

@@ -55,28 +55,30 @@ def _still_running(processes: dict[int, str]) -> set[int]:
 
 
 def test_two_workers_fill_one_run_directory_survive_a_killed_worker_and_resume_in_one_process(tmp_path, monkeypatch):
-    from flgd.training.distributed import DistributedTrainingRun
     from flgd.training.progress import LineProgress
+    from flgd.training.ray_collector import RayCollector
+    from flgd.training.run import TrainingRun
     from flgd.training.settings import RunSettings
 
     out = tmp_path / "run"
     config = load_config(_config(tmp_path, updates_per_action=2))
     monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {0, 1})   # two cores: the workers and the learner share them
     said = io.StringIO()
-    run = DistributedTrainingRun(out, RunSettings(steps=6, seed=3), config, LineProgress(said, False),
-                                 threads=1, workers=2)
+    collector = RayCollector(2)
+    run = TrainingRun(out, RunSettings(steps=6, seed=3), config, LineProgress(said, False), threads=1,
+                      collector=collector)
     killed: list[int] = []
-    take = run._take
+    keep = run._keep
 
-    def take_and_kill_worker_1(slot, report):
-        stored = take(slot, report)
+    def keep_and_kill_worker_1(report):
+        kept = keep(report)
         if not killed and run.step >= 2:  # mid-run: worker 1's process is killed (its cycle in flight is lost)
-            pid = run.engine.ray.get(run.slots[1].actor.pid.remote())
+            pid = collector.engine.ray.get(collector.slots[1].actor.pid.remote())
             os.kill(pid, signal.SIGKILL)
             killed.append(pid)
-        return stored
+        return kept
 
-    run._take = take_and_kill_worker_1
+    run._keep = keep_and_kill_worker_1
     try:
         run.setup()
         assert run.train() == 0
@@ -177,24 +179,26 @@ def _descendant_processes(root: int) -> dict[int, str]:
 def test_an_error_in_a_workers_cycle_stops_the_run_after_storing_its_rows(tmp_path):
     """A cycle that raised in the worker ("N cell faults in a row") is not a lost worker to replace for ever: the
     rows it sent are stored, then the run stops, as it does in one process."""
-    from flgd.training.distributed import DistributedTrainingRun
     from flgd.training.progress import LineProgress
+    from flgd.training.ray_collector import RayCollector
+    from flgd.training.run import TrainingRun
     from flgd.training.settings import RunSettings
 
     out = tmp_path / "run"
-    run = DistributedTrainingRun(out, RunSettings(steps=5, seed=2), load_config(_config(tmp_path, 1)),
-                                 LineProgress(io.StringIO(), False), threads=1, workers=1)
+    collector = RayCollector(1)
+    run = TrainingRun(out, RunSettings(steps=5, seed=2), load_config(_config(tmp_path, 1)),
+                      LineProgress(io.StringIO(), False), threads=1, collector=collector)
     try:
         run.setup()
-        slot = run.slots[0]
-        report = run.engine.ray.get(slot.actor.collect.remote(0))
+        slot = collector.slots[0]
+        report = collector.engine.ray.get(slot.actor.collect.remote(0))
         assert len(report.cycles) == 1 and not report.error
         # the worker's decision reaches the learner's double-DQN target cache, as the agent's does in one process
         [(key, version, _)] = report.decisions
         assert version == 0 and key not in run.learner._next_argmax
         report.error = "RuntimeError: 5 cell faults in a row; last: bodies 0 and 11 overlap"
         with pytest.raises(RuntimeError, match="worker 0: RuntimeError: 5 cell faults in a row"):
-            run._take(slot, report)
+            run._keep(report)
         assert run.step == 1 and run.learner.updates == 1 and slot.replacements == 0
         assert key in run.learner._next_argmax
     finally:

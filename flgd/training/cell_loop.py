@@ -1,9 +1,10 @@
 """The cell side of a training run: one simulated cell running the daemon's cycle, scene after scene.
 
-``flgd train`` runs one of these in its own process; ``flgd train --workers N`` runs one in each worker
-(``flgd.training.cell_worker``).  Both get the same scenes, curriculum, give-up rule and fault handling from
-here, so a distributed run collects what a single-process run collects; only who stores the transitions and
-when the learner runs differ.
+``flgd train`` runs one of these in its own process, ``flgd train --workers N`` one in each Ray worker
+(``flgd.training.cell_worker``); either way ``collect`` runs one cycle and returns what it did as a
+``CellReport`` for the run's loop (``flgd.training.run``), which keeps it in the store, the replay and
+``actions.csv`` and runs the learner.  So both get the same scenes, curriculum, give-up rule and fault
+handling, and a cycle is kept one way (``flgd.cycle_commit``).
 
 What it adds to ``CycleRunner.run_once``: the scene an action acted on (numbered, with its object count and
 kind, noted before the runner replaces an ended scene), a new scene after ``give_up_after`` actions without a
@@ -14,6 +15,7 @@ successful grasp, and recovery from a cell fault or a simulator error (a new sce
 from __future__ import annotations
 
 import sys
+import time
 import traceback
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Callable
@@ -22,21 +24,18 @@ import numpy as np
 
 from flgd.config import CellConfig
 from flgd.cycle_record import CycleOutcome
+from flgd.training.collected import CellReport, CollectedCycle, CollectingStore, DecisionNotes, WriteAhead
 
 if TYPE_CHECKING:
     from flgd.cell import Cell
-    from flgd.cycle_parts import CycleAgent, CycleLearner, CycleStore
+    from flgd.cycle_parts import CycleAgent
     from flgd.cycle_record import CycleRecord
-    from flgd.learning.replay import PrioritizedReplay
     from flgd.training.settings import RunSettings
 
 __all__ = ["TrainingCycle", "TrainingCell", "MAX_CONSECUTIVE_FAULTS"]
 
 MAX_CONSECUTIVE_FAULTS = 5
 
-# note(kind, event, message): a fault or a give-up; ``event`` for the run's events ('' = none), ``message`` for
-# its operator
-Note = Callable[[str, str, str], None]
 
 
 @dataclass
@@ -52,21 +51,25 @@ class TrainingCycle:
 class TrainingCell:
     """A simulated cell, its cycle runner and the scene bookkeeping of a training run (module doc)."""
 
-    def __init__(self, config: CellConfig, settings: RunSettings, agent: CycleAgent, *, step: int, scene: int,
-                 curriculum_seed: int, note: Note, store: CycleStore | None = None,
-                 replay: PrioritizedReplay | None = None, learner: CycleLearner | None = None) -> None:
+    def __init__(self, config: CellConfig, settings: RunSettings, agent: CycleAgent, *, step: int,
+                 curriculum_seed: int, write_ahead: WriteAhead | None = None,
+                 wrap_cell: Callable[[Cell], Cell] | None = None) -> None:
+        """``write_ahead``: the run's store when the cell runs in its process (``CollectingStore``);
+        ``wrap_cell``: a wrapper around the simulated cell (tests inject faults with it)."""
         from flgd.cell import make_cell
         from flgd.cycle import CycleRunner
 
         self.config = config
         self.settings = settings
         self.agent = agent
-        self.note = note
-        self.scene = scene
+        self.scene = 0
         self.consecutive_faults = 0
         self.actions_without_grasp = 0  # in the current scene (give_up_after)
         # (objects, scene kind) of the scene the current cycle acts on, noted before the runner resets it
         self._cycle_scene: tuple[int | None, str] = (None, "")
+        self._notes: list[tuple[str, str, str]] = []
+        self.store = CollectingStore(self.note, write_ahead)
+        self.decisions = DecisionNotes()
         cell = make_cell(config)
         if settings.curriculum:
             from flgd.curriculum import Curriculum, CurriculumCell
@@ -78,14 +81,25 @@ class TrainingCell:
             cell = CurriculumCell(cell, curriculum, lambda: self.runner.step, preset_scenes(),
                                   np.random.default_rng(curriculum_seed))
             cell.scene_kind = f"random {curriculum.object_count(step)}"
-        self.runner = CycleRunner(config, cell, agent, store=store, replay=replay, learner=learner, step=step,
+        if wrap_cell is not None:
+            cell = wrap_cell(cell)
+        self.runner = CycleRunner(config, cell, agent, store=self.store, learner=self.decisions, step=step,
                                   backend=config.backend, on_phase=self._on_phase,
                                   decide_while_placing=False)   # each decision after the updates its action owes
+
+    def note(self, kind: str, event: str, message: str) -> None:
+        """A fault or a give-up: ``event`` for the run's events ('' = none), ``message`` for its operator."""
+        self._notes.append((kind, event, message))
 
     @property
     def cell(self) -> Cell:
         """The cell the runner acts on (a caller may wrap it, e.g. to inject faults)."""
         return self.runner.cell
+
+    @property
+    def objects(self) -> int:
+        """Objects on its table now."""
+        return int(self.cell.object_count)
 
     @property
     def step(self) -> int:
@@ -96,11 +110,38 @@ class TrainingCell:
         """(objects, kind) of the scene the last cycle acted on."""
         return self._cycle_scene
 
+    def collect(self, step: int) -> CellReport:
+        """One cycle at the run's ``step`` (exploration and curriculum follow it) and what it did: its rows and
+        transitions, notes and decisions.  An error that ends the cell ("N cell faults in a row", a store's
+        space check) is in ``error``; what the cycle collected before it is still sent."""
+        self.runner.step = int(step)
+        report = CellReport()
+        scene = self.scene  # the scene this cycle acts on (a fault in it moves the loop to the next)
+        cycle = None
+        try:
+            cycle = self.cycle()
+        except Exception as exc:  # "N cell faults in a row", a full disk: the run stops after keeping the rows
+            report.error = f"{type(exc).__name__}: {exc}"
+        report.notes, self._notes = self._notes, []
+        report.decisions = self.decisions.take()
+        objects, kind = self._cycle_scene  # noted during this cycle's plan and judge phases
+        for row, transition in self.store.take():
+            # a row whose cycle then failed (a reset after it) still belongs to the scene it acted on
+            report.cycles.append(CollectedCycle(row, transition, CycleOutcome(row.get("outcome")),
+                                                row.get("primitive"),
+                                                None if row.get("success") is None else bool(row["success"]),
+                                                objects, scene, kind))
+        if cycle is not None and report.cycles:
+            last = report.cycles[-1]
+            last.objects_left, last.scene, last.scene_kind = cycle.objects_left, cycle.scene, cycle.scene_kind
+        report.cpu_seconds = time.process_time()
+        report.objects = self.objects
+        return report
+
     def cycle(self) -> TrainingCycle | None:
         """Run one cycle; None when it took no step (an empty table, a fault recovered from).
 
-        Raises StoreError (a run stops on it with a checkpoint) and RuntimeError after
-        ``MAX_CONSECUTIVE_FAULTS`` faults in a row."""
+        Raises RuntimeError after ``MAX_CONSECUTIVE_FAULTS`` faults in a row."""
         from flgd.cell import CellFault
         from flgd.store import StoreError
 

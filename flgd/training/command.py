@@ -11,7 +11,8 @@ from pathlib import Path
 
 from flgd.config import ConfigError, load_sim_config
 from flgd.training.progress import make_progress
-from flgd.training.run import CONFIG_FILE, EXIT_ERROR, EXIT_INTERRUPTED, EXIT_USAGE, TrainingRun
+from flgd.training.collector import Collector, LocalCollector
+from flgd.training.run import CONFIG_FILE, EXIT_ERROR, EXIT_INTERRUPTED, EXIT_USAGE, TrainingCellError, TrainingRun
 from flgd.training.settings import (RunFileError, command_line, effective_config, read_run_info,
                                     settings_from_command_line, variant_network)
 
@@ -73,13 +74,12 @@ def main(argv: list[str]) -> int:
             return EXIT_USAGE
 
     progress = make_progress(sys.stderr, every_steps=max(1, args.log_every))
+    collector: Collector = LocalCollector()
     if args.workers:
-        from flgd.training.distributed import DistributedTrainingRun
+        from flgd.training.ray_collector import RayCollector
 
-        run: TrainingRun = DistributedTrainingRun(out, settings, base, progress, threads=args.threads,
-                                                  workers=args.workers, address=args.address)
-    else:
-        run = TrainingRun(out, settings, base, progress, threads=args.threads)
+        collector = RayCollector(args.workers, args.address or "")
+    run = TrainingRun(out, settings, base, progress, threads=args.threads, collector=collector)
 
     def on_signal(signum, _frame) -> None:
         run.stop_signals.append(signum)
@@ -96,7 +96,9 @@ def main(argv: list[str]) -> int:
         return run.train()
     except Exception as exc:
         progress.finish()
-        print(f"flgd train: {type(exc).__name__}: {exc}", file=sys.stderr)
+        # a cell's error names its own type
+        print(f"flgd train: {exc}" if isinstance(exc, TrainingCellError) else f"flgd train: {type(exc).__name__}: {exc}",
+              file=sys.stderr)
         try:
             run.record_failure()
         except Exception as exc2:

@@ -1,11 +1,12 @@
 """``flgd train``: headless training in sim_cell with the daemon's cycle, agent, learner and store.
 
-Nothing here is a second training loop: each step is ``CycleRunner.run_once``
-(the daemon's cycle) followed by ``Learner.update_pending`` -- the
-``learning.updates_per_action`` updates the daemon's learner thread would run,
-but in this thread, so a run does not depend on thread timing.  Network,
-replay, agent and learner are built by ``flgd.learning_stack`` exactly as the
-daemon builds them.
+The one training loop, for one cell or many: its collector (``flgd.training.collector``) runs the cells --
+one here (``LocalCollector``) or N Ray workers (``flgd.training.ray_collector``), each running the daemon's
+cycle (``CycleRunner.run_once``) -- and the loop keeps each cell's cycle as the daemon keeps one
+(``flgd.cycle_commit``: store, replay, learner), lets that cell go on, then runs ``Learner.update_pending``:
+the ``learning.updates_per_action`` updates the daemon's learner thread would run, but in this thread, so a
+run does not depend on thread timing.  Network, replay, agent and learner are built by
+``flgd.learning_stack`` exactly as the daemon builds them.
 
 Run directory (``--out``), also the store's state directory:
 
@@ -29,7 +30,7 @@ uninterrupted one), the replay's beta annealing counter (restarts at
 ``priority_beta_start``), and after a kill -9 the updates since the last
 checkpoint (their transitions are kept and replayed).
 
-Ctrl-C / SIGTERM: the cycle in flight finishes, a checkpoint and the trainer
+Ctrl-C / SIGTERM: the cycle in flight finishes (a worker's is dropped), a checkpoint and the trainer
 state are written, exit code 130.  A second Ctrl-C exits at once; the store
 (SQLite WAL) and the atomic checkpoints stay consistent.
 """
@@ -47,30 +48,33 @@ from collections import deque
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+import numpy as np
+
 from flgd.atomic_file import write_atomically
 from flgd.config import CellConfig, dump_config
+from flgd.cycle_commit import commit_cycle
 from flgd.cycle_record import CycleOutcome
-from flgd.learning_stack import CheckpointMeta, Handover, LearningStack
+from flgd.learning_stack import CheckpointMeta, LearningStack
 from flgd.store import CheckpointDir
 from flgd.training.actions_csv import ActionsCsv
+from flgd.training.collector import Collector, CollectorStart, LocalCollector
 from flgd.training.progress import BarProgress, LineProgress
 from flgd.training.settings import (RUN_FILE, TRAIN_VARIANTS, TRUNK_NETWORKS, RunFileError, RunSettings,
                                     effective_config, read_run_info, variant_network)
 from flgd.wiring import resume_seed
 
 if TYPE_CHECKING:
-    from flgd.cell import Cell
-    from flgd.cycle import CycleRunner
     from flgd.learning.agent import Agent
-    from flgd.learning.learner import Learner
+    from flgd.learning.learner import Learner, UpdateStats
     from flgd.learning.networks import QMapNetwork
-    from flgd.learning.replay import PrioritizedReplay
+    from flgd.learning.replay import PrioritizedReplay, Transition
+    from flgd.perception import Heightmaps
     from flgd.store import Store
-    from flgd.training.cell_loop import TrainingCell
+    from flgd.training.collected import CellReport, CollectedCycle
 
 __all__ = ["TRAIN_VARIANTS", "TRUNK_NETWORKS", "variant_network", "RunSettings", "RunFileError", "TrainingRun",
-           "effective_config", "read_run_info", "next_scene_id", "EXIT_OK", "EXIT_ERROR", "EXIT_USAGE",
-           "EXIT_INTERRUPTED"]
+           "TrainingCellError", "effective_config", "read_run_info", "next_scene_id", "EXIT_OK", "EXIT_ERROR",
+           "EXIT_USAGE", "EXIT_INTERRUPTED"]
 
 log = logging.getLogger("flgd.train")
 
@@ -78,6 +82,12 @@ EXIT_OK, EXIT_ERROR, EXIT_USAGE, EXIT_INTERRUPTED = 0, 1, 2, 130
 CONFIG_FILE = "config.yaml"
 LOG_FILE = "actions.csv"
 CURVE_FILE = "curve.png"
+POLL_SECONDS = 1.0    # how often the progress display is refreshed while waiting for a worker
+
+
+class TrainingCellError(RuntimeError):
+    """A cell's cycle raised ("N cell faults in a row", a full disk): the run stops after keeping what it sent.
+    The message names the error's type."""
 
 
 def rolling(outcomes: deque, window: int) -> float | None:
@@ -89,16 +99,23 @@ def rolling(outcomes: deque, window: int) -> float | None:
 
 
 
+@dataclasses.dataclass(frozen=True)
+class _Kept:
+    """A cycle kept under the run's step, waiting for its updates and its actions.csv row."""
+
+    cell: int
+    cycle: CollectedCycle
+    row: dict[str, Any]
+    seconds: float   # its commit
+
 
 class TrainingRun:
     """One run directory: set up (fresh or resumed), train to ``settings.steps``, stop cleanly."""
 
-    # no gate in a training run: the learner's weights act as they are handed over
-    learner_hands_to: Handover = Handover.AGENT
-
     def __init__(self, out: Path, settings: RunSettings, base_config: CellConfig,
                  progress: LineProgress | BarProgress,
-                 threads: int | None = None):
+                 threads: int | None = None, collector: Collector | None = None):
+        """``collector``: where the cycles come from (default: one simulated cell in this process)."""
         self.out = out
         self.settings = settings
         self.progress = progress
@@ -112,6 +129,11 @@ class TrainingRun:
         self._cpu_at_start = time.process_time()
         self.grasps: deque = deque(maxlen=200)
         self._lock_fd: int | None = None
+        self.collector: Collector = collector if collector is not None else LocalCollector()
+        self._next_step = int(self.run_info.get("step", 0))   # until setup reads the store
+        self._next_scene = 0
+        self._scene_of: dict[int, tuple[int, int]] = {}   # cell -> (its own scene number, the run's) it acts on
+        self._last_states: dict[int, Heightmaps] = {}     # cell -> the state of its newest kept next state
         # the daemon's learning stack; the priorities live in the trainer state (written with each checkpoint)
         self.learning = LearningStack(self.config, fine_tune=False, state_dir=out, few_moves=True,
                                       checkpoints=CheckpointDir(out / "checkpoints", keep=1_000_000),
@@ -122,9 +144,6 @@ class TrainingRun:
         self.agent: Agent | None = None
         self.learner: Learner | None = None
         self.actions: ActionsCsv | None = None  # actions.csv
-        self.cell_loop: TrainingCell | None = None  # its cell and cycle runner below
-        self.cell: Cell | None = None
-        self.runner: CycleRunner | None = None
 
     # ------------------------------------------------------------------ setup
     def _load_run_info(self) -> dict:
@@ -143,16 +162,11 @@ class TrainingRun:
         if segments and isinstance(segments[-1], dict) and self.learner is not None:
             # this process's CPU seconds in this segment: the learner's, and in one process the cell's too
             segments[-1]["process_cpu_seconds"] = round(time.process_time() - self._cpu_at_start, 1)
-            segments[-1].update(self._segment_run_info())
+            segments[-1].update(self.collector.stats())
         if self.learner is not None:  # how the double-DQN a' of the targets was found (this segment)
             info["next_argmax"] = {"reused": self.learner.argmax_reused, "computed": self.learner.argmax_computed}
         self.run_info = info
         write_atomically(self.out / RUN_FILE, (json.dumps(info, indent=2) + "\n").encode(), mode=0o644)
-
-    def _segment_run_info(self) -> dict[str, Any]:
-        """What a kind of run adds to its segment in run.json (the multi-worker run: its workers), so that a
-        resumed run keeps every segment's record."""
-        return {}
 
     def _take_lock(self) -> None:
         """The state directory's one lock (``flgd.state_dir_lock``): a daemon or another run there refuses us."""
@@ -169,6 +183,7 @@ class TrainingRun:
         from flgd.store import Store
         from flgd.training.state import remove_temporary as remove_trainer_state_temporaries
 
+        self.collector.prepare()   # before the run directory is touched: a cluster that cannot be joined leaves it
         self.out.mkdir(parents=True, exist_ok=True)
         self._take_lock()
         if self.config.learning.threads > 0:
@@ -179,7 +194,7 @@ class TrainingRun:
         remove_trainer_state_temporaries(self.out)
         learning = self.learning
         network = learning.start_from(self.settings.init_policy or None)
-        parts = learning.build(network, handover=self.learner_hands_to,
+        parts = learning.build(network, handover=self.collector.handover,
                                replay_seed=resume_seed(self.settings.seed, self.segment, 3),
                                agent_seed=resume_seed(self.settings.seed, self.segment, 4))
         if parts.replay_problem:
@@ -194,30 +209,17 @@ class TrainingRun:
                     and r.get("outcome", "executed") == "executed":
                 self.grasps.append(int(float(r["success"])))
 
-        step = self.store.next_step()
-        self._setup_cell(step)
+        self.store.remember_states = self.collector.cells   # each cell's last next state, their cycles interleaved
+        self._next_step = step = self.store.next_step()
+        self._next_scene = next_scene_id(self.actions.rows)
+        self.collector.start(CollectorStart(self.config, self.settings, self.segment, step, self.agent, self.learner,
+                                            self.store, self.progress.message, self.store.record_event))
         self._begin_segment(step)
-
-    def _setup_cell(self, step: int) -> None:
-        """The run's own simulated cell and cycle runner (``TrainingCell``), storing into the run's store."""
-        from flgd.training.cell_loop import TrainingCell
-
-        self.cell_loop = TrainingCell(self.config, self.settings, self.agent, step=step,
-                                      scene=next_scene_id(self.actions.rows),
-                                      curriculum_seed=resume_seed(self.settings.seed, self.segment, 5),
-                                      note=self._note, store=self.store, replay=self.replay, learner=self.learner)
-        self.cell, self.runner = self.cell_loop.cell, self.cell_loop.runner
-
-    def _note(self, kind: str, event: str, message: str) -> None:
-        """A fault or a give-up: said to the operator and kept in the store's events."""
-        self.progress.message(f"flgd train: {message}")
-        if event:
-            self.store.record_event(kind, event)
 
     @property
     def step(self) -> int:
-        """Actions taken so far (the next action's step)."""
-        return self.runner.step if self.runner is not None else int(self.run_info.get("step", 0))
+        """Actions kept so far (the next action's step)."""
+        return self._next_step
 
     def _begin_segment(self, step: int) -> None:
         """A segment in run.json (one per start or resume) and the run's first lines."""
@@ -231,7 +233,7 @@ class TrainingRun:
                          "learning": dataclasses.asdict(self.config.learning),
                          "exploration": dataclasses.asdict(self.config.exploration),
                          "objects": {"object_set": sim.object_set, "domain_randomization": sim.domain_randomization,
-                                     "depth_noise": sim.depth_noise}})
+                                     "depth_noise": sim.depth_noise}, **self.collector.segment_info()})
         self.run_info["segments"] = segments
         self.run_info.setdefault("created", _now())
         self.run_info["config_source"] = self.config.source
@@ -301,59 +303,138 @@ class TrainingRun:
     # ------------------------------------------------------------------ the loop
     def train(self) -> int:
         """Train until ``settings.steps`` or a stop signal; returns the exit code."""
-        start_step, t0 = self.runner.step, time.monotonic()
+        start_step, t0 = self._next_step, time.monotonic()
         target = self.settings.steps
         if start_step >= target:
             self.progress.message(f"flgd train: already at step {start_step} >= --steps {target}; nothing to do")
         self.progress.start(start_step, target)
-        while self.runner.step < target and not self.stop_signals:
-            cycle = self.cell_loop.cycle()
-            if cycle is None:
+        while self._next_step < target and not self.stop_signals:
+            report = self.collector.next_report(POLL_SECONDS)
+            if report is None:
+                self._show(start_step, t0)
                 continue
-            record = cycle.record
-            t_update = time.perf_counter()
-            updates = self.learner.update_pending()
-            t_update = time.perf_counter() - t_update
-            self._log_step(record, cycle, updates, t_update, record.timings.get("store"))
-            done = self.runner.step - start_step
-            rate = done / max(1e-9, time.monotonic() - t0)
-            eta = (target - self.runner.step) / rate if rate > 0 else math.inf
-            self.progress.show(self.runner.step, self._status(rate, eta))
-        interrupted = bool(self.stop_signals) and self.runner.step < target
-        self.progress.show(self.runner.step, self._status(None, None), force=True)
+            kept = self._keep(report)
+            if self._next_step < target:
+                # the cell's next cycle starts before this one is learned from: with workers, the learner's
+                # updates and the cycle run side by side (the worker acts with weights one action older)
+                self.collector.go_on(report.cell, self._next_step)
+            self._learn(kept)
+            self._show(start_step, t0)
+        interrupted = bool(self.stop_signals) and self._next_step < target
+        self._show(start_step, t0, force=True)
         self.progress.finish()
         self.final_checkpoint()
         self._write_run_info("interrupted" if interrupted else "finished")
+        dropped = self.collector.in_flight if interrupted else 0
         self.progress.message(f"flgd train: {'interrupted' if interrupted else 'finished'} at step "
-                              f"{self.runner.step}, {self.learner.updates} updates; log {self.out / LOG_FILE}, "
-                              f"curve {self.out / CURVE_FILE}")
+                              f"{self._next_step}, {self.learner.updates} updates"
+                              + (f", {self.collector.cells} workers" if self.collector.cells > 1 else "")
+                              + (f" ({dropped} cycles in flight dropped)" if dropped else "")
+                              + f"; log {self.out / LOG_FILE}, curve {self.out / CURVE_FILE}")
         return EXIT_INTERRUPTED if interrupted else EXIT_OK
 
-    def _log_step(self, record: Any, cycle: Any, updates: list, t_update: float, t_store: float | None) -> None:
+    def _keep(self, report: CellReport) -> list[_Kept]:
+        """Keep a cell's cycles under the run's next steps (``_learn`` learns from them and logs them); a cycle
+        that raised in the cell stops the run after its rows are kept and learned from."""
+        where = self.collector.where(report.cell)
+        for key, version, index in report.decisions:  # the double-DQN a' the cell found, for the learner
+            self.learner.note_greedy(key, version, index)
+        for kind, event, message in report.notes:
+            self.progress.message(f"flgd train: {where}{message}")
+            if event:
+                self.store.record_event(kind, f"{where}{event}")
+        kept = []
+        for cycle in report.cycles:
+            if self._next_step >= self.settings.steps:
+                break  # a cycle beyond --steps (several workers were in flight): not kept
+            kept.append(self._commit(report.cell, cycle))
+        if report.error:
+            self._learn(kept)
+            raise TrainingCellError(f"{where}{report.error}")
+        return kept
+
+    def _commit(self, cell: int, cycle: CollectedCycle) -> _Kept:
+        """One collected cycle under the run's next step, kept as the daemon keeps a cycle; its transition
+        schedules the learner's updates, which ``_learn`` runs."""
+        row = dict(cycle.row, step=self._next_step)
+        transition = self._relinked(cell, cycle.transition)
+        committed = commit_cycle(row, transition, store=self.store, replay=self.replay, learner=self.learner)
+        if transition is not None:
+            if transition.next_state is None:
+                self._last_states.pop(cell, None)
+            else:
+                self._last_states[cell] = transition.next_state
+        self._next_step += 1
+        return _Kept(cell, cycle, row, committed.seconds)
+
+    def _relinked(self, cell: int, transition: Transition | None) -> Transition | None:
+        """The transition with its state replaced by the very object kept as this cell's last next state, when
+        it is that state (same pixels): the store, which remembers one recent next state per cell, then keeps
+        it once instead of a second copy per action -- also when other cells' cycles were kept in between, and
+        when the state came back from a worker as a copy."""
+        previous = self._last_states.get(cell)
+        if transition is None or previous is None:
+            return transition
+        state = transition.state
+        if state is previous:
+            return transition
+        if previous.height.shape == state.height.shape and np.array_equal(previous.height, state.height) \
+                and np.array_equal(previous.color, state.color):
+            same = transition.next_state is transition.state
+            return dataclasses.replace(transition, state=previous, next_state=previous if same
+                                       else transition.next_state)
+        return transition
+
+    def _learn(self, kept: list[_Kept]) -> None:
+        """The updates the kept cycles scheduled (``learning.updates_per_action`` each), then their rows in
+        actions.csv (a fault's row stays in the store's action log only)."""
+        t_update = time.perf_counter()
+        updates = self.learner.update_pending()
+        t_update = time.perf_counter() - t_update
+        for k in kept:
+            if k.cycle.outcome == CycleOutcome.FAULT:
+                self._scene_of.pop(k.cell, None)
+                continue
+            scene = self._scene_of.get(k.cell)
+            if scene is None or scene[0] != k.cycle.scene:  # a new scene of this cell: a new run-wide id
+                scene = self._scene_of[k.cell] = (k.cycle.scene, self._next_scene)
+                self._next_scene += 1
+            self._log_step(k, scene[1], updates, t_update)
+
+    def _log_step(self, kept: _Kept, scene: int, updates: list[UpdateStats], t_update: float) -> None:
         """One step's row in actions.csv and its grasp in the rolling success."""
-        if record.outcome == CycleOutcome.EXECUTED and record.primitive == "grasp" and record.success is not None:
-            self.grasps.append(int(record.success))
-        row = {k: v for k, v in record.row().items() if k in _LOG_KEYS}
-        row.update({"objects_left": cycle.objects_left, "scene": cycle.scene, "scene_kind": cycle.scene_kind,
+        cycle = kept.cycle
+        if cycle.outcome == CycleOutcome.EXECUTED and cycle.primitive == "grasp" and cycle.success is not None:
+            self.grasps.append(int(cycle.success))
+        row = {k: v for k, v in kept.row.items() if k in _LOG_KEYS}
+        row.update({"objects_left": cycle.objects_left, "scene": scene, "scene_kind": cycle.scene_kind,
                     "updates": self.learner.updates, "loss": updates[-1].loss if updates else None,
-                    "t_update": t_update, "t_store": t_store})
+                    "t_update": t_update, "t_store": kept.seconds})
         self.actions.append(row)
 
-    def _status(self, rate: float | None, eta: float | None, objects: str | None = None) -> dict[str, str]:
-        """The progress fields: rolling grasp success, objects on the table, learner updates, actions/s, ETA."""
+    def _show(self, start_step: int, t0: float, force: bool = False) -> None:
+        done = self._next_step - start_step
+        rate = done / max(1e-9, time.monotonic() - t0)
+        eta = (self.settings.steps - self._next_step) / rate if rate > 0 else math.inf
+        self.progress.show(self._next_step, self._status(rate if done else None, eta if done else None), force=force)
+
+    def _status(self, rate: float | None, eta: float | None) -> dict[str, str]:
+        """The progress fields: rolling grasp success, objects on the tables, learner updates, actions/s, ETA,
+        workers alive."""
         r50, r200 = rolling(self.grasps, 50), rolling(self.grasps, 200)
         pct = lambda v: "-" if v is None else f"{100 * v:.0f}%"  # noqa: E731
+        cells = self.collector.status()
         fields = {"grasp success": f"{pct(r50)} (last 50) {pct(r200)} (last 200)",
-                  "objects": str(self.cell.object_count if objects is None else objects),
-                  "updates": str(self.learner.updates)}
+                  "objects": cells.pop("objects", "-"), "updates": str(self.learner.updates)}
         if rate is not None:
             fields["actions/s"] = f"{rate:.2f}"
         if eta is not None and math.isfinite(eta):
             fields["ETA"] = _duration(eta)
+        fields.update(cells)
         return fields
 
     def close(self) -> None:
-        for closer in (self.cell_loop, self.store):
+        for closer in (self.collector, self.store):
             if closer is not None:
                 try:
                     closer.close()
