@@ -304,6 +304,20 @@ def test_simulator_errors_and_faults_are_survived_and_logged(tmp_path):
     assert any("protective stop (injected)" in m for m in faults)
 
 
+def test_a_simulator_error_after_the_write_ahead_intent_leaves_that_step_interrupted_and_the_run_goes_on(tmp_path):
+    """The first action's own motion fails (execution 1 is the move home before the first capture): its intent
+    was written, no row completes it; the step is used up and marked interrupted, the next action takes the next."""
+    code, run = _run_with_flaky_cell(tmp_path, errors=[2], faults=[], steps=3)
+    assert code == 0 and run.step == 3
+    store = Store(tmp_path / "run")
+    try:
+        log = [(int(r["step"]), r["outcome"]) for r in store.action_log()]
+    finally:
+        store.close()
+    assert log[0] == (0, "interrupted") and [step for step, _ in log] == [0, 1, 2]
+    assert all(outcome != "pending" for _, outcome in log[1:])
+
+
 def test_a_cell_that_keeps_failing_stops_the_run(tmp_path):
     from flgd.training import cell_loop
 

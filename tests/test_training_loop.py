@@ -131,6 +131,21 @@ def test_two_cells_cycles_are_kept_under_consecutive_steps_with_their_scenes_sta
     assert [int(r["scene"]) for r in rows] == [0, 1, 0, 2]
 
 
+def test_a_replaced_worker_starts_a_new_scene_in_the_run_though_it_numbers_its_own_from_zero_again(tmp_path):
+    s = [random_heightmaps(i) for i in range(6)]
+    reports = [CellReport(cell=1, incarnation=0, cycles=[_cycle(0, s[0], s[1])]),
+               CellReport(cell=1, incarnation=1, cycles=[_cycle(0, s[1], s[2])]),   # the replacement's scene 0
+               CellReport(cell=1, incarnation=1, cycles=[_cycle(0, s[2], s[3])])]
+    run = _run(tmp_path, ScriptedCollector(reports), steps=3)
+    try:
+        run.setup()
+        assert run.train() == 0
+    finally:
+        run.close()
+    rows = read_rows(tmp_path / "run" / "actions.csv")
+    assert [int(r["scene"]) for r in rows] == [0, 1, 1]
+
+
 def test_a_cells_error_stops_the_run_after_its_rows_are_kept_and_names_the_cell(tmp_path):
     s0, s1 = random_heightmaps(0), random_heightmaps(1)
     failing = CellReport(cell=1, cycles=[_cycle(0, s0, s1)],

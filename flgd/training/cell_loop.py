@@ -123,6 +123,7 @@ class TrainingCell:
         except Exception as exc:  # "N cell faults in a row", a full disk: the run stops after keeping the rows
             report.error = f"{type(exc).__name__}: {exc}"
         report.notes, self._notes = self._notes, []
+        report.open_intent = self.store.take_open_intent()
         report.decisions = self.decisions.take()
         objects, kind = self._cycle_scene  # noted during this cycle's plan and judge phases
         for row, transition in self.store.take():

@@ -45,7 +45,7 @@ class CellWorker:
         from flgd.wiring import make_agent
 
         torch.set_num_threads(max(1, int(threads)))
-        self.index = index
+        self.index, self.incarnation = index, incarnation
         seed = settings.seed
         config = dataclasses.replace(
             config, sim=dataclasses.replace(config.sim, seed=worker_seed(seed, segment, index, incarnation, 2)))
@@ -65,7 +65,7 @@ class CellWorker:
         if weights is not None:
             self.agent.mailbox.post(weights, version=version)
         report = self.loop.collect(step)
-        report.cell = self.index
+        report.cell, report.incarnation = self.index, self.incarnation
         report.weights_version = self.agent.weights_version
         return report
 

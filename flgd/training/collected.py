@@ -44,6 +44,7 @@ class CellReport:
     """What one cycle of a training cell returns to the run's loop."""
 
     cell: int = 0  # the worker's index (0 in one process)
+    incarnation: int = 0  # of that worker (a replacement starts its own scenes and states afresh)
     cycles: list[CollectedCycle] = field(default_factory=list)
     notes: list[tuple[str, str, str]] = field(default_factory=list)  # (kind, event, message)
     # the greedy a' of each decision, for the learner's double-DQN target cache (``DQNUpdate.note_greedy``)
@@ -52,6 +53,9 @@ class CellReport:
     cpu_seconds: float = 0.0  # of the cell's process since it started
     objects: int | None = None  # objects on its table now
     error: str = ""  # the cycle raised: the run stops after keeping what was collected (rows and notes)
+    # the step of a write-ahead intent the cycle left open (it raised after the intent, before a row): that step
+    # is used up -- the store marks it interrupted at its next write -- and the run goes on after it
+    open_intent: int | None = None
 
 
 class WriteAhead(Protocol):
@@ -74,6 +78,7 @@ class CollectingStore:
         self.committed: list[tuple[dict[str, Any], Transition | None]] = []
         self._on_event = on_event
         self._write_ahead = write_ahead
+        self._open_intent: int | None = None
 
     def check_space(self) -> None:
         if self._write_ahead is not None:
@@ -82,12 +87,15 @@ class CollectingStore:
     def record_intent(self, row: dict[str, Any]) -> None:
         if self._write_ahead is not None:
             self._write_ahead.record_intent(row)
+            self._open_intent = int(row["step"])
 
     def record_event(self, kind: str, message: str) -> None:
         self._on_event(kind, message, message)
 
     def commit_cycle(self, row: dict[str, Any], transition: Transition | None = None, priority: float | None = None) -> None:
         self.committed.append((dict(row), transition))
+        if self._open_intent is not None and row.get("step") == self._open_intent:
+            self._open_intent = None
         return None
 
     def note_store_time(self, step: int, seconds: float) -> None:
@@ -98,6 +106,11 @@ class CollectingStore:
 
     def take(self) -> list[tuple[dict[str, Any], Transition | None]]:
         out, self.committed = self.committed, []
+        return out
+
+    def take_open_intent(self) -> int | None:
+        """The step of an intent written and not completed since the last call (None: none)."""
+        out, self._open_intent = self._open_intent, None
         return out
 
 

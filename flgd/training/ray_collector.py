@@ -70,6 +70,7 @@ class RayCollector:
         self._worker_class: Any = None   # Ray's remote class (untyped: Ray's)
         self._weights_ref: tuple[int, Any] | None = None  # (version, Ray object ref) of the newest weights sent
         self._in_flight: dict[Any, WorkerSlot] = {}   # Ray object ref of a collect call -> its worker
+        self._first_cycles_asked = False
 
     def prepare(self) -> None:
         """Start or join the cluster: one that cannot be started or joined leaves the run directory as it was."""
@@ -95,9 +96,7 @@ class RayCollector:
         self._worker_class = remote_class(engine.ray, CellWorker, cpus=1.0)
         for slot in self.slots:
             self._spawn(slot)
-        if start.step < start.settings.steps:
-            for slot in self.slots:
-                self._submit(slot)
+        self._first_cycles_asked = False
 
     def _engine(self) -> Engine:
         assert self.engine is not None, "prepare() first"
@@ -138,6 +137,10 @@ class RayCollector:
         from flgd.training.ray_engine import worker_lost_errors
 
         ray = self._engine().ray
+        if not self._first_cycles_asked:   # asked for by the run's loop, once its segment is on record
+            self._first_cycles_asked = True
+            for slot in self.slots:
+                self._submit(slot)
         ready, _ = ray.wait(list(self._in_flight), num_returns=1, timeout=timeout)
         if not ready:
             return None

@@ -103,7 +103,7 @@ def rolling(outcomes: deque, window: int) -> float | None:
 class _Kept:
     """A cycle kept under the run's step, waiting for its updates and its actions.csv row."""
 
-    cell: int
+    cell: tuple[int, int]   # (worker index, incarnation)
     cycle: CollectedCycle
     row: dict[str, Any]
     seconds: float   # its commit
@@ -132,8 +132,10 @@ class TrainingRun:
         self.collector: Collector = collector if collector is not None else LocalCollector()
         self._next_step = int(self.run_info.get("step", 0))   # until setup reads the store
         self._next_scene = 0
-        self._scene_of: dict[int, tuple[int, int]] = {}   # cell -> (its own scene number, the run's) it acts on
-        self._last_states: dict[int, Heightmaps] = {}     # cell -> the state of its newest kept next state
+        # per cell (worker index, incarnation): (its own scene number, the run's) it acts on; its newest kept
+        # next state
+        self._scene_of: dict[tuple[int, int], tuple[int, int]] = {}
+        self._last_states: dict[tuple[int, int], Heightmaps] = {}
         # the daemon's learning stack; the priorities live in the trainer state (written with each checkpoint)
         self.learning = LearningStack(self.config, fine_tune=False, state_dir=out, few_moves=True,
                                       checkpoints=CheckpointDir(out / "checkpoints", keep=1_000_000),
@@ -328,7 +330,8 @@ class TrainingRun:
         dropped = self.collector.in_flight if interrupted else 0
         self.progress.message(f"flgd train: {'interrupted' if interrupted else 'finished'} at step "
                               f"{self._next_step}, {self.learner.updates} updates"
-                              + (f", {self.collector.cells} workers" if self.collector.cells > 1 else "")
+                              + (f", {workers} workers" if (workers := self.collector.segment_info().get("workers"))
+                                 else "")
                               + (f" ({dropped} cycles in flight dropped)" if dropped else "")
                               + f"; log {self.out / LOG_FILE}, curve {self.out / CURVE_FILE}")
         return EXIT_INTERRUPTED if interrupted else EXIT_OK
@@ -344,16 +347,19 @@ class TrainingRun:
             if event:
                 self.store.record_event(kind, f"{where}{event}")
         kept = []
+        cell = (report.cell, report.incarnation)
         for cycle in report.cycles:
             if self._next_step >= self.settings.steps:
                 break  # a cycle beyond --steps (several workers were in flight): not kept
-            kept.append(self._commit(report.cell, cycle))
+            kept.append(self._commit(cell, cycle))
+        if report.open_intent is not None and report.open_intent >= self._next_step:
+            self._next_step = report.open_intent + 1   # used up by an intent that stays open (CellReport)
         if report.error:
             self._learn(kept)
             raise TrainingCellError(f"{where}{report.error}")
         return kept
 
-    def _commit(self, cell: int, cycle: CollectedCycle) -> _Kept:
+    def _commit(self, cell: tuple[int, int], cycle: CollectedCycle) -> _Kept:
         """One collected cycle under the run's next step, kept as the daemon keeps a cycle; its transition
         schedules the learner's updates, which ``_learn`` runs."""
         row = dict(cycle.row, step=self._next_step)
@@ -367,7 +373,7 @@ class TrainingRun:
         self._next_step += 1
         return _Kept(cell, cycle, row, committed.seconds)
 
-    def _relinked(self, cell: int, transition: Transition | None) -> Transition | None:
+    def _relinked(self, cell: tuple[int, int], transition: Transition | None) -> Transition | None:
         """The transition with its state replaced by the very object kept as this cell's last next state, when
         it is that state (same pixels): the store, which remembers one recent next state per cell, then keeps
         it once instead of a second copy per action -- also when other cells' cycles were kept in between, and
