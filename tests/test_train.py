@@ -20,6 +20,8 @@ from flgd.store import Store
 from flgd.training.actions_csv import read_rows
 from flgd.training.command import main as train_main
 
+from tests.fakes.wrapped_cell import WrappedCell
+
 REPO = Path(__file__).resolve().parents[1]
 CONFIG = str(REPO / "cell_config" / "sim.yaml")
 U = yaml.safe_load(Path(CONFIG).read_text())["learning"]["updates_per_action"]  # sim.yaml's, run synchronously
@@ -234,13 +236,13 @@ def test_bad_arguments_are_refused_with_the_flag_named(tmp_path, capsys):
     assert not (tmp_path / "w").exists()
 
 
-class FlakyCell(Cell):
+class FlakyCell(WrappedCell):
     """A real SimCell behind a wrapper that fails chosen executions like a simulator can (a fake of failures only):
     ``errors`` non-CellFault exceptions (pybullet giving up) and ``faults`` CellFaults."""
 
     def __init__(self, inner: Cell, errors: list[int], faults: list[int]):
-        super().__init__(inner.config)
-        self.inner, self.errors, self.faults, self.calls = inner, errors, faults, 0
+        super().__init__(inner)
+        self.errors, self.faults, self.calls = errors, faults, 0
 
     def execute(self, plan):
         self.calls += 1
@@ -249,27 +251,6 @@ class FlakyCell(Cell):
         if self.calls in self.faults:
             raise CellFault("protective stop (injected)")
         return self.inner.execute(plan)
-
-    def __getattr__(self, name):  # set_object_count, object_count ...
-        return getattr(self.inner, name)
-
-    def capture(self):
-        return self.inner.capture()
-
-    def gripper_width(self):
-        return self.inner.gripper_width()
-
-    def reset_scene(self):
-        self.inner.reset_scene()
-
-    def recover(self):
-        self.inner.recover()
-
-    def workspace_empty_hint(self):
-        return self.inner.workspace_empty_hint()
-
-    def close(self):
-        self.inner.close()
 
 
 def _run_with_flaky_cell(tmp_path, errors, faults, steps):

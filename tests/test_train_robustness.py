@@ -21,6 +21,8 @@ from flgd.training.progress import LineProgress
 from flgd.training.run import CONFIG_FILE, RunSettings, TrainingRun
 from flgd.training.command import main as train_main
 
+from tests.fakes.wrapped_cell import WrappedCell
+
 REPO = Path(__file__).resolve().parents[1]
 CONFIG = str(REPO / "cell_config" / "sim.yaml")
 
@@ -95,13 +97,13 @@ def test_config_yaml_is_replaced_atomically_and_left_alone_when_unchanged(tmp_pa
 
 # --------------------------------------------------------------------------------------- the loop
 
-class NothingGraspableCell(Cell):
+class NothingGraspableCell(WrappedCell):
     """A real SimCell that reports "nothing graspable" after every action while objects remain (as a pile of
     objects too large for the gripper would), and whose scene reset fails the ``fail_reset``-th time."""
 
     def __init__(self, inner: Cell, fail_reset: int | None = None):
-        super().__init__(inner.config)
-        self.inner, self.fail_reset, self.resets = inner, fail_reset, 0
+        super().__init__(inner)
+        self.fail_reset, self.resets = fail_reset, 0
         self.left_when_judged: list[int] = []
 
     def workspace_empty_hint(self):
@@ -113,24 +115,6 @@ class NothingGraspableCell(Cell):
         if self.resets == self.fail_reset:
             raise RuntimeError("reset failed (injected)")
         self.inner.reset_scene()
-
-    def __getattr__(self, name):  # object_count, set_object_count ...
-        return getattr(self.inner, name)
-
-    def execute(self, plan):
-        return self.inner.execute(plan)
-
-    def capture(self):
-        return self.inner.capture()
-
-    def gripper_width(self):
-        return self.inner.gripper_width()
-
-    def recover(self):
-        self.inner.recover()
-
-    def close(self):
-        self.inner.close()
 
 
 def _train_in(out: Path, steps: int, fail_reset: int | None = None) -> tuple[TrainingRun, NothingGraspableCell]:

@@ -24,6 +24,7 @@ from flgd.training.progress import LineProgress
 from flgd.training.run import RunSettings, TrainingCellError, TrainingRun
 
 from tests.fakes.store_rows import action_row, random_heightmaps
+from tests.fakes.wrapped_cell import WrappedCell
 
 REPO = Path(__file__).resolve().parents[1]
 CONFIG = REPO / "cell_config" / "sim.yaml"
@@ -165,43 +166,16 @@ def test_a_cells_error_stops_the_run_after_its_rows_are_kept_and_names_the_cell(
 def test_a_cell_in_the_runs_process_writes_its_intent_to_the_runs_store_before_it_moves(tmp_path):
     """Write-ahead in ``flgd train``: the decided action is in the run's store before the simulated arm moves,
     as in the daemon, although the cycle is kept by the loop."""
-    from flgd.cell import Cell
-
     seen: list[tuple[int, str]] = []
     holder: dict[str, TrainingRun] = {}
 
-    class Watching(Cell):
+    class Watching(WrappedCell):
         """The real simulated cell, noting the run's newest action-log row whenever it is told to move."""
-
-        def __init__(self, inner: Cell) -> None:
-            super().__init__(inner.config)
-            self.inner = inner
-
-        def __getattr__(self, name: str):  # set_object_count, object_count ...
-            return getattr(self.inner, name)
 
         def execute(self, plan):
             log = holder["run"].store.action_log()
             seen.append((int(log[-1]["step"]), str(log[-1]["outcome"])) if log else (-1, ""))
             return self.inner.execute(plan)
-
-        def capture(self):
-            return self.inner.capture()
-
-        def gripper_width(self):
-            return self.inner.gripper_width()
-
-        def reset_scene(self):
-            self.inner.reset_scene()
-
-        def recover(self):
-            self.inner.recover()
-
-        def workspace_empty_hint(self):
-            return self.inner.workspace_empty_hint()
-
-        def close(self):
-            self.inner.close()
 
     run = _run(tmp_path, LocalCollector(Watching), steps=2)
     holder["run"] = run
