@@ -27,6 +27,7 @@ __all__ = [
     "ExecutionResult",
     "ContactStop",
     "Cell",
+    "WrappedCell",
     "CellFault",
     "StopPending",
     "STOPPED_ON_REQUEST",
@@ -197,6 +198,45 @@ class Cell(abc.ABC):
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+class WrappedCell(Cell):
+    """A cell around another one that forwards every call to it, so that a wrapper states only what it changes
+    (the curriculum's new scenes, an evaluation run's end, a test's injected fault)."""
+
+    def __init__(self, inner: Cell, config: CellConfig | None = None) -> None:
+        super().__init__(inner.config if config is None else config)
+        self.inner = inner
+
+    def capture(self) -> Frame:
+        return self.inner.capture()
+
+    def execute(self, plan: CheckedPlan) -> ExecutionResult:
+        return self.inner.execute(plan)
+
+    def stop_motion(self) -> None:
+        self.inner.stop_motion()
+
+    def clear_stop(self) -> None:
+        self.inner.clear_stop()
+
+    def gripper_width(self) -> float:
+        return self.inner.gripper_width()
+
+    def reset_scene(self) -> None:
+        self.inner.reset_scene()
+
+    def can_reset_scene(self) -> bool:
+        return self.inner.can_reset_scene()
+
+    def recover(self) -> None:
+        self.inner.recover()
+
+    def workspace_empty_hint(self) -> bool | None:
+        return self.inner.workspace_empty_hint()
+
+    def close(self) -> None:
+        self.inner.close()
 
 
 CellFactory = Callable[[CellConfig], Cell]

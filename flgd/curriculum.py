@@ -29,7 +29,7 @@ from typing import Callable
 
 import numpy as np
 
-from flgd.cell import Cell, ExecutionResult, Frame
+from flgd.cell import Cell, WrappedCell
 from flgd.config import CellConfig
 
 __all__ = ["Curriculum", "CurriculumCell"]
@@ -85,7 +85,7 @@ class Curriculum:
             sim=dataclasses.replace(config.sim, objects=self.object_count(0)))
 
 
-class CurriculumCell(Cell):
+class CurriculumCell(WrappedCell):
     """A simulated cell whose new scenes follow a curriculum; everything else is the inner cell's.
 
     ``step_of`` returns the current training step (the cycle runner's
@@ -95,11 +95,10 @@ class CurriculumCell(Cell):
 
     def __init__(self, inner: Cell, curriculum: Curriculum, step_of: Callable[[], int], presets: list[Path],
                  rng: np.random.Generator):
-        super().__init__(inner.config)
         for attr in ("set_object_count", "load_scene", "object_count"):
             if not hasattr(inner, attr):
                 raise TypeError(f"the curriculum needs a simulated cell with {attr}; got {type(inner).__name__}")
-        self.inner = inner
+        super().__init__(inner)
         self.curriculum = curriculum
         self.step_of = step_of
         self.presets = list(presets)
@@ -124,27 +123,3 @@ class CurriculumCell(Cell):
     @property
     def object_count(self) -> int:
         return self.inner.object_count
-
-    # the rest is the inner cell's
-    def capture(self) -> Frame:
-        return self.inner.capture()
-
-    def execute(self, plan) -> ExecutionResult:
-        return self.inner.execute(plan)
-
-    def gripper_width(self) -> float:
-        return self.inner.gripper_width()
-
-    def recover(self) -> None:
-        self.inner.recover()
-
-    def workspace_empty_hint(self) -> bool | None:
-        return self.inner.workspace_empty_hint()
-
-    def stop_motion(self) -> None:
-        stop = getattr(self.inner, "stop_motion", None)
-        if stop is not None:
-            stop()
-
-    def close(self) -> None:
-        self.inner.close()

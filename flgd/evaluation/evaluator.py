@@ -54,13 +54,12 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable
 
-from flgd.cell import Cell, CellFault, Frame
+from flgd.cell import CellFault, WrappedCell
 from flgd.config import CellConfig
 from flgd.cycle import CycleRecord, CycleRunner
 from flgd.cycle_record import CycleOutcome
 from flgd.evaluation.metrics import FAILURE_LIMIT, ActionEntry, RunLog
 from flgd.evaluation.scene_sets import SceneSpec
-from flgd.safety import CheckedPlan
 
 if TYPE_CHECKING:
     from sim_cell.cell import SimCell
@@ -102,7 +101,7 @@ def evaluation_config(config: CellConfig, options: EvalOptions) -> CellConfig:
     return dataclasses.replace(config, exploration=ex, sim=sim, learning=learning)
 
 
-class EpisodeCell(Cell):
+class EpisodeCell(WrappedCell):
     """A simulated cell whose ``reset_scene`` ends the run instead of making new clutter.
 
     Everything else is the wrapped cell's; ``use`` switches the wrapped cell
@@ -112,31 +111,18 @@ class EpisodeCell(Cell):
     name = "sim"
 
     def __init__(self, config: CellConfig, inner: SimCell) -> None:
-        super().__init__(config)
-        self.inner = inner
+        super().__init__(inner, config)
         self.scene_ended = False
 
     def use(self, inner: SimCell) -> None:
         self.inner = inner
         self.scene_ended = False
 
-    def capture(self) -> Frame:
-        return self.inner.capture()
-
-    def execute(self, plan: CheckedPlan) -> Any:
-        return self.inner.execute(plan)
-
-    def gripper_width(self) -> float:
-        return self.inner.gripper_width()
-
     def reset_scene(self) -> None:
         self.scene_ended = True
 
-    def recover(self) -> None:
-        self.inner.recover()
-
-    def workspace_empty_hint(self) -> bool | None:
-        return self.inner.workspace_empty_hint()
+    def can_reset_scene(self) -> bool:
+        return True   # a run ends where the scene would be reset: nobody needs to refill the table
 
     def close(self) -> None:
         """The wrapped cells belong to the Evaluator, which closes them."""
