@@ -2,7 +2,8 @@
 beside the sim backend on the same scenes and seed; then every fault kind injected during motion.
 
     flgd bench emulated --root runs/emulated --cycles 200 --faults 10 [--parts policy faults calibrate] [--serial]
-        [--free-speed M_S] [--acceleration M_S2] [--raise-speed M_S] [--out FILE]
+        [--free-speed M_S] [--acceleration M_S2] [--raise-speed M_S] [--contact-clearance M] [--blend-radius M]
+        [--out FILE]
 
 *policy*: ``flgd run`` with the shipped policy, frozen (``finetune.updates_per_action: 0``), on
 cell_config/ur5e-emulated.yaml (backend ur5e against the emulator) and on the same file with ``backend: sim``,
@@ -397,6 +398,10 @@ def main(argv: list[str] | None = None) -> int:
                                                                     "safety.max_acceleration raised to it where lower")
     p.add_argument("--raise-speed", type=float, default=None, help="robot.raise_speed (m/s): a grasp's lift above "
                                                                    "the approach height; safety.max_speed raised to it")
+    p.add_argument("--contact-clearance", type=float, default=None,
+                   help="robot.contact_clearance (m): a grasp slow only this far above the highest point around it")
+    p.add_argument("--blend-radius", type=float, default=None,
+                   help="robot.blend_radius (m): free moves of a plan blended into one path")
     p.add_argument("--serial", action="store_true", help="robot.decide_while_placing off: the arm goes home after "
                                                          "each place and waits there for the next decision")
     args = p.parse_args(argv)
@@ -411,6 +416,10 @@ def main(argv: list[str] | None = None) -> int:
             robot["acceleration"] = args.acceleration
         if args.raise_speed is not None:
             robot["raise_speed"] = args.raise_speed
+        if args.contact_clearance is not None:
+            robot["contact_clearance"] = args.contact_clearance
+        if args.blend_radius is not None:
+            robot["blend_radius"] = args.blend_radius
         summary["policy"] = run_policy(root / "policy", args.cycles, args.time_scale, args.host, robot)
     if "faults" in args.parts:
         previous = root / "faults" / "faults.json"

@@ -5,7 +5,8 @@ execute the same motions.  Plans are pure data; ``flgd.safety.check_plan``
 must pass before a cell runs one.
 
 Distances (defaults in ``RobotConfig``, all configurable):
-  * grasp: open, approach ``approach_height`` above the grasp point, descend to
+  * grasp: open, approach ``approach_height`` above the grasp point (or, with
+    ``contact_clearance``, that clearance above the highest point around it), descend to
     ``grasp_depth`` below the surface (never below the table clearance; the
     descent stops early where the fingers meet ``descent_contact_force``), close,
     lift to ``lift_height``, go home, measure the width (the paper's success test).
@@ -41,8 +42,11 @@ __all__ = [
     "Step",
     "Plan",
     "move_kind",
+    "blended_runs",
     "plan_action",
     "plan_grasp",
+    "contact_zone",
+    "highest_around",
     "LIFT_LABEL",
     "PLACE_CHECK_LABEL",
     "plan_push",
@@ -61,6 +65,10 @@ class MoveL:
     grasp descent is guarded so that a finger landing on a neighbouring object
     closes above it instead of pressing it into the table (a protective stop).
     The guarded move ends somewhere on the checked segment, so the envelope holds.
+
+    ``blend`` (m, 0 = off) lets the move run into the next MoveL without stopping at ``pose``: the tool leaves the
+    straight line ``blend`` before the pose and rejoins the next line ``blend`` after it (``flgd.blending``).
+    Consecutive blended moves form one path (``blended_runs``), sent to a cell as one motion.
     """
 
     pose: ToolPose
@@ -68,6 +76,7 @@ class MoveL:
     acceleration: float
     label: str = ""
     stop_on_contact: float = 0.0
+    blend: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -113,6 +122,35 @@ class Plan:
         return [s.pose for s in self.steps if isinstance(s, MoveL)]
 
 
+def _distance(a, b) -> float:
+    return math.dist(tuple(a), tuple(b))
+
+
+def _corner(radius: float, before: float, after: float) -> float:
+    """The blend radius a corner between lines of lengths ``before`` and ``after`` can take: at most half of
+    either (two corners of one line never overlap), 0 when that leaves less than a millimetre."""
+    r = min(radius, 0.5 * before, 0.5 * after)
+    return r if r >= 0.001 else 0.0
+
+
+def blended_runs(steps: tuple[Step, ...]) -> list[tuple[int, int]]:
+    """(first, last) step indices of every run of MoveL steps joined by blends (each but the last with
+    ``blend`` > 0), in order; a run of one is a lone move."""
+    runs: list[tuple[int, int]] = []
+    i = 0
+    while i < len(steps):
+        if isinstance(steps[i], MoveL):
+            j = i
+            while (j + 1 < len(steps) and isinstance(steps[j], MoveL) and steps[j].blend > 0.0   # type: ignore[union-attr]
+                   and isinstance(steps[j + 1], MoveL)):
+                j += 1
+            runs.append((i, j))
+            i = j + 1
+        else:
+            i += 1
+    return runs
+
+
 def move_kind(height_at_point: float, config: CellConfig) -> str:
     """Paper III-A: a move on an object is a shift, elsewhere a push (``flgd.actions.move_kind_at``)."""
     return move_kind_at(height_at_point, config.rewards.shift_height)
@@ -133,23 +171,48 @@ def _target(action: Action, height_map: np.ndarray, config: CellConfig) -> tuple
     return (x, y, z), h
 
 
-def plan_grasp(x: float, y: float, surface_height: float, angle: float, config: CellConfig) -> Plan:
-    """Top-down grasp with the fingers closing along ``angle`` at (x, y); heights above the table."""
+def contact_zone(z: float, surroundings_top: float, config: CellConfig) -> tuple[float, float]:
+    """(where a grasp's slow descent starts, where its slow lift ends) for fingertips going down to ``z``.
+
+    Without ``robot.contact_clearance`` both are ``robot.approach_height`` above ``z``.  With it, the descent starts
+    that clearance above the highest point around the grasp (``surroundings_top``, above the table) and the lift
+    ends once the object has risen that clearance above it (an object's bottom is never below the table), each at
+    most ``approach_height`` above ``z``: slow only where a finger or the lifted object can touch something."""
+    rb, table = config.robot, config.workspace.table_z
+    full = z + rb.approach_height
+    if rb.contact_clearance <= 0.0 or not math.isfinite(surroundings_top):
+        return full, full
+    top = max(surroundings_top, 0.0)
+    descent = min(full, max(table + top + rb.contact_clearance, z + rb.contact_clearance))
+    lift = min(full, z + top + rb.contact_clearance)
+    return descent, lift
+
+
+def plan_grasp(x: float, y: float, surface_height: float, angle: float, config: CellConfig,
+               surroundings_top: float = math.nan) -> Plan:
+    """Top-down grasp with the fingers closing along ``angle`` at (x, y); heights above the table.
+
+    ``surroundings_top``: the highest point within ``robot.contact_radius`` (``contact_zone``; NaN = unknown: slow
+    over the whole approach height)."""
     if not all(map(math.isfinite, (x, y, surface_height, angle))):
         return _refused("grasp", f"non-finite grasp request x={x!r} y={y!r} "
                                  f"height={surface_height!r} angle={angle!r}")
     rb, gr, table = config.robot, config.gripper, config.workspace.table_z
     yaw = wrap_symmetric_yaw(angle)
     z = table + max(surface_height - rb.grasp_depth, config.safety.min_table_clearance)
-    above = z + rb.approach_height
+    above, clear = contact_zone(z, surroundings_top, config)
     lifted = table + rb.lift_height
     home = config.robot.home
-    # with robot.raise_speed the lift is slow only among the neighbours (up to the approach height), faster above
+    # with robot.raise_speed the lift is slow only among the neighbours (up to the contact zone's top), faster above
+    # with robot.blend_radius the lift runs on into the raise and the raise into home without stopping
     lift: tuple[Step, ...] = (
-        (MoveL(ToolPose.top_down(x, y, above, yaw), rb.approach_speed, rb.acceleration, LIFT_LABEL),
-         MoveL(ToolPose.top_down(x, y, lifted, yaw), rb.raise_speed, rb.acceleration, RAISE_LABEL))
-        if rb.raise_speed > 0.0 and above < lifted - 0.01 else
-        (MoveL(ToolPose.top_down(x, y, lifted, yaw), rb.approach_speed, rb.acceleration, LIFT_LABEL),))
+        (MoveL(ToolPose.top_down(x, y, clear, yaw), rb.approach_speed, rb.acceleration, LIFT_LABEL,
+               blend=_corner(rb.blend_radius, clear - z, lifted - clear)),
+         MoveL(ToolPose.top_down(x, y, lifted, yaw), rb.raise_speed, rb.acceleration, RAISE_LABEL,
+               blend=_corner(rb.blend_radius, lifted - clear, _distance((x, y, lifted), home.position))))
+        if rb.raise_speed > 0.0 and clear < lifted - 0.01 else
+        (MoveL(ToolPose.top_down(x, y, lifted, yaw), rb.approach_speed, rb.acceleration, LIFT_LABEL,
+               blend=_corner(rb.blend_radius, lifted - z, _distance((x, y, lifted), home.position))),))
     steps: tuple[Step, ...] = (
         GripperCommand(gr.open_width, gr.force, "open"),
         MoveL(ToolPose.top_down(x, y, above, yaw), rb.speed, rb.acceleration, "approach"),
@@ -179,7 +242,8 @@ def _travel_plan(primitive: str, x: float, y: float, z: float, angle: float, dis
         MoveL(ToolPose.top_down(x, y, above, yaw), rb.speed, rb.acceleration, "approach"),
         MoveL(ToolPose.top_down(x, y, z, yaw), rb.approach_speed, rb.acceleration, "descend"),
         MoveL(ToolPose.top_down(ex, ey, z, yaw), rb.approach_speed, rb.acceleration, primitive),
-        MoveL(ToolPose.top_down(ex, ey, above, yaw), rb.approach_speed, rb.acceleration, "retreat"),
+        MoveL(ToolPose.top_down(ex, ey, above, yaw), rb.approach_speed, rb.acceleration, "retreat",
+              blend=_corner(rb.blend_radius, above - z, _distance((ex, ey, above), home.position))),
         MoveL(ToolPose.top_down(*home.position, home.yaw), rb.speed, rb.acceleration, "home"),
     )
     return Plan(primitive, steps, target=(x, y, z), angle=angle,
@@ -234,6 +298,22 @@ def centred_grasp_pixel(height_map: np.ndarray, row: int, col: int, angle: float
     return (min(max(row + offset * d_row, 0.0), rows - 1.0), min(max(col + offset * d_col, 0.0), cols - 1.0))
 
 
+def highest_around(height_map: np.ndarray, row: float, col: float, radius: float, resolution: float) -> float:
+    """The highest finite height (m above the table) within ``radius`` (m) of pixel (row, col); NaN if none is
+    finite.  Pixels off the heightmap are not seen: the grasp's surroundings are the heightmap's own."""
+    r = int(math.ceil(radius / resolution))
+    rows, cols = height_map.shape
+    r0, c0 = int(round(row)), int(round(col))
+    lo_r, hi_r, lo_c, hi_c = max(r0 - r, 0), min(r0 + r + 1, rows), max(c0 - r, 0), min(c0 + r + 1, cols)
+    if lo_r >= hi_r or lo_c >= hi_c:
+        return math.nan
+    patch = height_map[lo_r:hi_r, lo_c:hi_c]
+    rr, cc = np.ogrid[lo_r:hi_r, lo_c:hi_c]
+    inside = ((rr - row) ** 2 + (cc - col) ** 2) * resolution ** 2 <= radius ** 2
+    values = patch[inside & np.isfinite(patch)]
+    return float(values.max()) if values.size else math.nan
+
+
 def plan_action(action: Action, height_map: np.ndarray, config: CellConfig) -> Plan:
     """The plan for an action chosen on ``height_map`` (metres above the table).
 
@@ -245,10 +325,13 @@ def plan_action(action: Action, height_map: np.ndarray, config: CellConfig) -> P
         return _refused(action.primitive, target)
     (x, y, _z), h = target
     if action.primitive == "grasp":
+        row, col = float(action.row), float(action.col)
         if config.robot.grasp_centring > 0.0:
             row, col = centred_grasp_pixel(height_map, action.row, action.col, action.angle, config)
             x, y, _z = pixel_to_base(row, col, h, config.workspace)
-        return plan_grasp(x, y, h, action.angle, config)
+        return plan_grasp(x, y, h, action.angle, config,
+                          surroundings_top=highest_around(height_map, row, col, config.robot.contact_radius,
+                                                          config.workspace.resolution))
     if move_kind(h, config) == "shift":
         return plan_shift(x, y, h, action.angle, config)
     return plan_push(x, y, action.angle, config)

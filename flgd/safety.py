@@ -1,4 +1,5 @@
-"""The safety envelope: every pose of a plan is checked before any cell sees it.
+"""The safety envelope: every pose of a plan, and every blended corner between two, is checked before any cell
+sees it.
 
 A plan with one bad step is refused as a whole, with the reason, and nothing of
 it is sent.  Cells accept only ``CheckedPlan`` objects and re-verify them
@@ -12,6 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from flgd.blending import corner_curve, corner_problem
 from flgd.config import CellConfig
 from flgd.plans import GripperCommand, MeasureWidth, MoveL, Plan
 
@@ -51,6 +53,17 @@ def _finite(values) -> bool:
     return bool(np.all(np.isfinite(arr)))
 
 
+def _check_position(pos, cfg: CellConfig) -> str | None:
+    sf = cfg.safety
+    for axis, v, (lo, hi) in zip("xyz", pos, (sf.envelope_x, sf.envelope_y, sf.envelope_z)):
+        if not lo <= v <= hi:
+            return f"{axis} = {v:.4f} m is outside the envelope [{lo}, {hi}] m"
+    floor = cfg.workspace.table_z + sf.min_table_clearance
+    if pos[2] < floor:
+        return f"z = {pos[2]:.4f} m is below the table clearance floor {floor:.4f} m"
+    return None
+
+
 def _check_move(step: MoveL, cfg: CellConfig) -> str | None:
     sf = cfg.safety
     pos, rot = step.pose.position, step.pose.rotation
@@ -61,12 +74,9 @@ def _check_move(step: MoveL, cfg: CellConfig) -> str | None:
         return "orientation is not a finite 3x3 rotation"
     if np.abs(r.T @ r - np.eye(3)).max() > _ORTHO_TOL or abs(np.linalg.det(r) - 1.0) > _ORTHO_TOL:
         return "orientation is not a proper rotation matrix"
-    for axis, v, (lo, hi) in zip("xyz", pos, (sf.envelope_x, sf.envelope_y, sf.envelope_z)):
-        if not lo <= v <= hi:
-            return f"{axis} = {v:.4f} m is outside the envelope [{lo}, {hi}] m"
-    floor = cfg.workspace.table_z + sf.min_table_clearance
-    if pos[2] < floor:
-        return f"z = {pos[2]:.4f} m is below the table clearance floor {floor:.4f} m"
+    where = _check_position(pos, cfg)
+    if where:
+        return where
     tool_axis = r[:, 2]
     tilt = math.acos(max(-1.0, min(1.0, -float(tool_axis[2]))))
     if tilt > sf.max_tilt:
@@ -77,6 +87,31 @@ def _check_move(step: MoveL, cfg: CellConfig) -> str | None:
         return f"acceleration {step.acceleration!r} m/s^2 is outside (0, {sf.max_acceleration}] m/s^2"
     if not (_finite([step.stop_on_contact]) and step.stop_on_contact >= 0.0):
         return f"stop_on_contact {step.stop_on_contact!r} N is not a finite force >= 0 N"
+    if not (_finite([step.blend]) and 0.0 <= step.blend <= sf.max_blend_radius):
+        return f"blend radius {step.blend!r} m is outside [0, {sf.max_blend_radius}] m (safety.max_blend_radius)"
+    return None
+
+
+def _check_corner(steps, i: int, cfg: CellConfig) -> str | None:
+    """A move that blends into the next: both unguarded, the next a MoveL, a known incoming line (not the plan's
+    first move, which starts wherever the arm is), the radius within half of each line, and every point of the
+    blended corner inside the envelope."""
+    step = steps[i]
+    nxt = steps[i + 1] if i + 1 < len(steps) else None
+    if not isinstance(nxt, MoveL):
+        return "a move blends into a step that is not a move (it must stop there)"
+    if step.stop_on_contact > 0.0 or nxt.stop_on_contact > 0.0:
+        return "a guarded move (stop_on_contact) cannot blend, nor be blended into"
+    before = next((s for s in reversed(steps[:i]) if isinstance(s, MoveL)), None)
+    if before is None:
+        return "the plan's first move cannot blend: its incoming line starts wherever the arm stands"
+    why = corner_problem(before.pose.position, step.pose.position, nxt.pose.position, step.blend)
+    if why:
+        return why
+    for point in corner_curve(before.pose.position, step.pose.position, nxt.pose.position, step.blend):
+        where = _check_position(point, cfg)
+        if where:
+            return f"the blended corner passes {np.round(point, 4).tolist()}: {where}"
     return None
 
 
@@ -99,6 +134,8 @@ def check_plan(plan: Plan, config: CellConfig) -> CheckedPlan:
     for i, step in enumerate(plan.steps):
         if isinstance(step, MoveL):
             why = _check_move(step, config)
+            if why is None and step.blend > 0.0:
+                why = _check_corner(plan.steps, i, config)
         elif isinstance(step, GripperCommand):
             why = _check_gripper(step, config)
         elif isinstance(step, MeasureWidth):

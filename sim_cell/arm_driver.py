@@ -149,8 +149,9 @@ class ArmDriver:
             self._world.stability.wake(body)
         self._world.sim_time += seconds
 
-    def run_line(self, traj: motion.Trajectory, stop_force: float = 0.0) -> bool:
-        """Follow ``traj``; True when a guarded line (``stop_force`` N > 0) stopped at a contact."""
+    def run_line(self, traj: motion.Trajectory, stop_force: float = 0.0, settle: bool = True) -> bool:
+        """Follow ``traj``; True when a guarded line (``stop_force`` N > 0) stopped at a contact.  ``settle=False``:
+        the motion goes on into the next trajectory (a blended path), so the servos' last error is not waited out."""
         joints = traj.joints
         n = len(joints) - 1
         if n <= 0:
@@ -197,6 +198,8 @@ class ArmDriver:
                 self._press_yield += min(depth - YIELD_DEPTH, give)
         end = self._yielded(traj, n)
         self._robot.command_arm(end)
+        if not settle:
+            return False
         # let the servos close the last tracking error
         for _ in range(10):
             if np.max(np.abs(self._robot.joints() - end)) < 2e-4:

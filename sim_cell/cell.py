@@ -177,7 +177,8 @@ class SimCell(Cell):
             try:
                 for i, step in enumerate(steps):
                     if isinstance(step, MoveL):
-                        if self._arm.run_line(lines[i], step.stop_on_contact):
+                        blends_on = step.blend > 0.0 and i + 1 < len(steps) and isinstance(steps[i + 1], MoveL)
+                        if self._arm.run_line(lines[i], step.stop_on_contact, settle=not blends_on):
                             short = float(np.linalg.norm(self._tcp()[:3, 3] - np.asarray(step.pose.position)))
                             stops.append(ContactStop(step.label, short))
                             # a guarded move met resistance: the rest of the plan starts where it stopped

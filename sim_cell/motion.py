@@ -18,11 +18,12 @@ from dataclasses import dataclass
 import numpy as np
 
 from flgd.geometry import matrix_to_rotvec, pose_matrix
-from flgd.plans import MoveL
+from flgd.plans import blended_runs
 from sim_cell import kinematics
 
 __all__ = ["Trajectory", "Unreachable", "trapezoid_duration", "trapezoid_fraction", "plan_line", "plan_lines",
-           "raised_joints", "tcp_to_flange", "flange_to_tcp", "line_profile", "joint_speed_scale", "JOINT_SPEED_LIMIT"]
+           "raised_joints", "tcp_to_flange", "flange_to_tcp", "line_profile", "joint_speed_scale", "JOINT_SPEED_LIMIT",
+           "solve_poses"]
 
 # Tool rotation rate used to time moves that mostly turn the wrist (UR's default tool speed is
 # given per translation only; a real moveL still takes time to turn).
@@ -146,6 +147,14 @@ def _solve_line(q_start: np.ndarray, start: np.ndarray, goal: np.ndarray, speed:
     poses[:, 3, 3] = 1.0
     poses[:, :3, 3] = p0 + frac[:, None] * (p1 - p0)
     poses[:, :3, :3] = r0 @ _rotations(rel, frac)
+    return solve_poses(q_start, poses, tick, tcp_offset, scale)
+
+
+def solve_poses(q_start: np.ndarray, poses: np.ndarray, tick: float, tcp_offset: np.ndarray,
+                scale: float = 1.0) -> Trajectory:
+    """Joints for TCP ``poses`` (n, 4, 4) one control tick apart, each tick's IK branch the one nearest the
+    previous tick's joints; raises Unreachable naming the first pose without an exact solution or past a flip."""
+    ticks = len(poses) - 1
     flanges = poses.copy()
     flanges[:, :3, 3] = poses[:, :3, 3] - np.einsum("nij,j->ni", poses[:, :3, :3], np.asarray(tcp_offset, dtype=float))
     # every tick's solutions at once; the branch nearest the previous tick's joints is picked in order
@@ -183,17 +192,29 @@ def _solve_line(q_start: np.ndarray, start: np.ndarray, goal: np.ndarray, speed:
 def plan_lines(steps, q: np.ndarray, pose: np.ndarray, tick: float, tcp_offset: np.ndarray,
                first: int = 0) -> dict[int, Trajectory]:
     """Every MoveL of a plan (from step ``first``) as a line, starting at joints ``q`` and TCP ``pose``,
-    keyed by step index; raises Unreachable naming the step."""
+    keyed by step index; a blended run (``flgd.plans.blended_runs``) as one path cut at its moves' poses
+    (``sim_cell.path_motion``).  Raises Unreachable naming the step."""
+    from sim_cell.path_motion import plan_path
+
     out = {}
-    for i, step in enumerate(steps):
-        if i >= first and isinstance(step, MoveL):
-            goal = pose_matrix(step.pose.position, step.pose.matrix)
-            try:
-                traj = plan_line(q, pose, goal, step.speed, step.acceleration, tick, tcp_offset)
-            except Unreachable as exc:
-                raise Unreachable(f"step {i} ({step.label or 'move'}): {exc}") from None
+    for a, b in blended_runs(tuple(steps)):
+        if b < first:
+            continue
+        a = max(a, first)
+        moves = steps[a:b + 1]
+        goals = [pose_matrix(m.pose.position, m.pose.matrix) for m in moves]
+        try:
+            if b == a:
+                parts = [plan_line(q, pose, goals[0], moves[0].speed, moves[0].acceleration, tick, tcp_offset)]
+            else:
+                parts = plan_path(q, pose, goals, [m.speed for m in moves], [m.acceleration for m in moves],
+                                  [m.blend for m in moves], tick, tcp_offset)
+        except Unreachable as exc:
+            what = " to ".join(dict.fromkeys(m.label or "move" for m in moves))
+            raise Unreachable(f"step {a} ({what}): {exc}") from None
+        for i, traj in zip(range(a, b + 1), parts):
             out[i] = traj
-            q, pose = traj.joints[-1], goal
+        q, pose = parts[-1].joints[-1], goals[-1]
     return out
 
 

@@ -31,6 +31,7 @@ import rtde_io  # noqa: E402
 import rtde_receive  # noqa: E402
 
 from sim_cell.emulator.arm import RobotMode, SafetyMode  # noqa: E402
+from sim_cell.emulator.control_script import Command  # noqa: E402
 from sim_cell.emulator.tcp_service import PortTaken  # noqa: E402
 from sim_cell.emulator.ur_controller import EmulatedURController  # noqa: E402
 from sim_cell.emulator.world import EmulatorWorld  # noqa: E402
@@ -63,6 +64,18 @@ class _Harness:
             if not fired and arm.moving and arm.line.progress > fraction:
                 fired.append(True)
                 arm.protective_stop("injected")
+
+        self.world.add_tick(tick)
+
+    def watch_speed_near(self, point: list[float], radius: float) -> None:
+        """Record the commanded TCP speed on every tick the TCP is within ``radius`` of ``point``."""
+        arm, target = self.ctl.arm, np.asarray(point[:3])
+        self.speeds_near: list[float] = []
+
+        def tick(dt: float) -> None:
+            if arm.line is not None and not arm.line.arrived:
+                if np.linalg.norm(arm.line.pose()[:3, 3] - target) < radius:
+                    self.speeds_near.append(float(arm.line.v))
 
         self.world.add_tick(tick)
 
@@ -329,6 +342,52 @@ def test_urarm_connects_and_executes_a_checked_plans_moves(emulator, ur_arm):
         assert pose_error(emulator("ctl.arm.tcp_pose"), step.pose.as_ur_pose())[0] < 0.002
     ur_arm.set_tool_output(0, True)
     assert wait_until(lambda: emulator("ctl.arm.tool_digital_outputs") & 1)
+
+
+def _corner_path(ur_arm) -> tuple[list[list[float]], list[float]]:
+    """Two 8 cm lines with a right-angle corner, from where the arm stands; (poses, blends)."""
+    here = ur_arm.tcp_pose()
+    corner = list(here)
+    corner[2] += 0.08
+    end = list(corner)
+    end[1] -= 0.08
+    return [corner, end], [0.02, 0.0]
+
+
+def test_urarm_runs_a_blended_path_through_its_corner_without_stopping(emulator, ur_arm):
+    """ur_rtde's moveL(path) re-uploads its script with the moves in it; the emulator reads them and runs one
+    motion that keeps moving at the corner, and the arm's TCP is set again afterwards."""
+    poses, blends = _corner_path(ur_arm)
+    emulator("watch_speed_near", poses[0], 0.012)   # the corner passes 7 mm inside its pose
+    programs = emulator("ctl.scripts.programs").count("rtde_control")
+    ur_arm.move_path(poses, [0.2, 0.2], [1.0, 1.0], blends, "corner")
+    assert pose_error(emulator("ctl.arm.tcp_pose"), poses[-1])[0] < 0.002
+    assert Command.MOVE_PATH in emulator("ctl.script.commands")
+    assert emulator("ctl.scripts.programs").count("rtde_control") == programs + 1
+    near = emulator("speeds_near")
+    assert near and min(near) > 0.05, "the tool passed the corner without stopping"
+    assert emulator("ctl.arm.tcp") == list(sim_config().robot.tcp_offset) + [0.0, 0.0, 0.0]
+    # a single move after the path goes where it is sent (the arm's TCP again)
+    back = ur_arm.tcp_pose()
+    back[1] += 0.04
+    assert ur_arm.move_linear(back, 0.2, 1.0, "after") is False
+    assert pose_error(emulator("ctl.arm.tcp_pose"), back)[0] < 0.002
+
+
+def test_a_protective_stop_during_a_blended_path_latches_and_nothing_moves_after_it(emulator, ur_arm):
+    poses, blends = _corner_path(ur_arm)
+    emulator("stop_during_move", 0.4)
+    with pytest.raises(CellFault, match="protective stop|control script is not running"):
+        ur_arm.move_path(poses, [0.1, 0.1], [0.5, 0.5], blends, "corner")
+    assert ur_arm.fault
+    here = emulator("ctl.arm.tcp_pose")
+    assert pose_error(here, poses[-1])[0] > 0.03, "stopped short of the path's end"
+    with pytest.raises(CellFault):
+        ur_arm.move_path(poses, [0.1, 0.1], [0.5, 0.5], blends, "again")
+    with pytest.raises(CellFault):
+        ur_arm.move_linear(poses[-1], 0.1, 0.5, "again")
+    time.sleep(0.2)
+    assert pose_error(emulator("ctl.arm.tcp_pose"), here)[0] < 0.001, "nothing moved after the latch"
 
 
 @pytest.mark.slow

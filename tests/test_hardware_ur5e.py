@@ -469,3 +469,31 @@ def test_the_unlock_is_sent_5_0_s_plus_the_margin_after_the_protective_stop_not_
     assert len(unlocks) == 1, "one unlock, not a retry after a refused early one"
     waited = unlocks[0] - stopped_at
     assert 5.0 + 0.2 <= waited <= 5.0 + 0.2 + 2 * UNLOCK_WAIT_STEP, waited
+
+
+def test_a_blended_grasp_sends_its_lift_raise_and_home_as_one_path_for_the_installation_tcp(ctl, rg2):
+    """ur_rtde runs a path in a freshly uploaded script, which starts with the pendant's TCP: the path's poses
+    are sent for that TCP, and the cell's own TCP is set again once the path has ended."""
+    ctl.installation_tcp = [0.0, 0.0, 0.10, 0.0, 0.0, 0.0]
+    ctl.tcp_offset = list(ctl.installation_tcp)
+    base = real_config(xmlrpc_port=rg2.port)
+    cfg = dataclasses.replace(base, robot=dataclasses.replace(base.robot, raise_speed=0.2, blend_radius=0.02))
+    cell = make_ur5e(ctl, rg2, cfg)
+    rg2.object_width_mm = 31.0
+    checked = grasp(cfg)
+    result = cell.execute(checked)
+    assert result.completed, result.failure
+    paths = [c for c in ctl.calls("moveL") if c[0] and isinstance(c[0][0], list)]
+    assert len(paths) == 1
+    rows, asynchronous = paths[0]
+    moves = {s.label: s for s in checked.plan.steps if isinstance(s, MoveL)}
+    assert asynchronous is True and len(rows) == 3
+    for row, label in zip(rows, ("lift", "raise", "home")):
+        ours = moves[label].pose.as_ur_pose()
+        # the tool points down: the pendant's TCP, nearer the flange than ours, lies that much higher
+        lift = cfg.robot.tcp_offset[2] - 0.10
+        assert row[:6] == pytest.approx([ours[0], ours[1], ours[2] + lift, *ours[3:]], abs=1e-6)
+        assert row[6:8] == [pytest.approx(moves[label].speed), pytest.approx(moves[label].acceleration)]
+    assert [row[8] for row in rows] == [pytest.approx(0.02), pytest.approx(0.02), 0.0]
+    assert ctl.tcp_offset == [0.0, 0.0, 0.225, 0.0, 0.0, 0.0], "the cell's TCP is set again after the path"
+    assert result.widths == [pytest.approx(0.031)]

@@ -15,8 +15,8 @@ from flgd.actions import Action
 from flgd.config import load_config
 from flgd.geometry import ToolPose
 from flgd.perception import pixel_to_base
-from flgd.plans import PLACE_CHECK_LABEL, GripperCommand, MeasureWidth, MoveL, Plan, move_kind, plan_action, plan_grasp, \
-    plan_push, plan_release, plan_shift
+from flgd.plans import PLACE_CHECK_LABEL, GripperCommand, MeasureWidth, MoveL, Plan, blended_runs, move_kind, \
+    plan_action, plan_grasp, plan_push, plan_release, plan_shift
 from flgd.safety import CheckedPlan, PlanRefused, check_plan
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -62,6 +62,93 @@ def test_a_grasp_whose_approach_height_reaches_the_lift_height_lifts_slowly_all_
     assert [s.label for s in plan.steps] == ["open", "approach", "descend", "close", "lift", "home", "held"]
     assert plan.steps[4].pose.position[2] == pytest.approx(cfg.workspace.table_z + cfg.robot.lift_height)
     assert plan.steps[4].speed == cfg.robot.approach_speed
+
+
+def test_with_a_contact_clearance_a_grasp_is_slow_only_below_that_clearance_over_its_surroundings() -> None:
+    """The descent starts, and the slow lift ends, 2 cm above the highest point within the contact radius."""
+    cfg = dataclasses.replace(CFG, robot=dataclasses.replace(CFG.robot, raise_speed=0.4, contact_clearance=0.02,
+                                                             contact_radius=0.05))
+    h = np.zeros((224, 224), np.float32)
+    h[110:116, 110:116] = 0.03              # the grasped block: fingertips go to 0 + clearance floor
+    h[110:116, 122:128] = 0.04              # a taller neighbour 2.4 cm away: inside the 5 cm radius
+    h[160:170, 160:170] = 0.20              # far away: not among the surroundings
+    table = cfg.workspace.table_z
+    plan = plan_action(Action("grasp", 113, 113, 0), h, cfg)
+    steps = {s.label: s for s in plan.steps if isinstance(s, MoveL)}
+    z = steps["descend"].pose.position[2]
+    assert z == pytest.approx(table + cfg.safety.min_table_clearance)
+    assert steps["approach"].pose.position[2] == pytest.approx(table + 0.04 + 0.02)   # above the neighbour's top
+    assert steps["lift"].pose.position[2] == pytest.approx(z + 0.04 + 0.02)   # the block's bottom clears its top
+    assert steps["lift"].speed == cfg.robot.approach_speed and steps["raise"].speed == 0.4
+    # never higher than the approach height over the grasp point: a tall neighbour inside the radius
+    h[110:116, 122:128] = 0.20
+    tall = {s.label: s for s in plan_action(Action("grasp", 113, 113, 0), h, cfg).steps if isinstance(s, MoveL)}
+    assert tall["approach"].pose.position[2] == pytest.approx(z + cfg.robot.approach_height)
+    assert tall["lift"].pose.position[2] == pytest.approx(z + cfg.robot.approach_height)
+    # off (the default): the whole approach height, whatever surrounds the grasp
+    h[110:116, 122:128] = 0.04
+    off = {s.label: s for s in plan_action(Action("grasp", 113, 113, 0), h, CFG).steps if isinstance(s, MoveL)}
+    assert off["approach"].pose.position[2] == pytest.approx(off["descend"].pose.position[2]
+                                                             + CFG.robot.approach_height)
+    check_plan(plan, cfg)
+
+
+def _blending(radius: float, cfg=None):
+    cfg = cfg or CFG
+    return dataclasses.replace(cfg, robot=dataclasses.replace(cfg.robot, raise_speed=0.4, blend_radius=radius))
+
+
+def test_with_a_blend_radius_a_grasp_runs_its_lift_raise_and_home_as_one_checked_path() -> None:
+    cfg = _blending(0.03)
+    plan = plan_grasp(-0.5, 0.05, 0.05, 0.3, cfg)
+    moves = {s.label: s for s in plan.steps if isinstance(s, MoveL)}
+    assert (moves["lift"].blend, moves["raise"].blend, moves["home"].blend) == (0.03, 0.03, 0.0)
+    assert moves["approach"].blend == 0.0 and moves["descend"].blend == 0.0   # the guarded descent stops
+    labels = [s.label for s in plan.steps]
+    assert blended_runs(plan.steps) == [(1, 1), (2, 2), (labels.index("lift"), labels.index("home"))]
+    check_plan(plan, cfg)
+    # a radius larger than half the 5 cm lift is cut to fit its corner
+    short = plan_grasp(-0.5, 0.05, 0.05, 0.3, dataclasses.replace(
+        _blending(0.05), robot=dataclasses.replace(_blending(0.05).robot, approach_height=0.05)))
+    assert {s.label: s.blend for s in short.steps if isinstance(s, MoveL)}["lift"] == pytest.approx(0.025)
+    check_plan(short, cfg)
+
+
+def test_one_bad_corner_refuses_the_whole_blended_plan() -> None:
+    """A corner is checked with its three poses: a radius past the middle of a line, a blend into or out of a
+    guarded move, or into a gripper step, or on the plan's first move refuse the plan before anything moves."""
+    cfg = _blending(0.03)
+    plan = plan_grasp(-0.5, 0.05, 0.05, 0.3, cfg)
+    i = [s.label for s in plan.steps].index("lift")
+    lift = plan.steps[i]
+
+    def with_step(index: int, step) -> Plan:
+        steps = list(plan.steps)
+        steps[index] = step
+        return dataclasses.replace(plan, steps=tuple(steps))
+
+    too_wide = with_step(i, dataclasses.replace(lift, blend=0.06))   # the lift is 10 cm: more than half of it
+    wide_cap = dataclasses.replace(cfg, safety=dataclasses.replace(cfg.safety, max_blend_radius=0.1))
+    with pytest.raises(PlanRefused, match="more than half the incoming line") as refused:
+        check_plan(too_wide, wide_cap)
+    assert refused.value.step == i
+    above_cap = with_step(i, dataclasses.replace(lift, blend=0.06))
+    with pytest.raises(PlanRefused, match="safety.max_blend_radius"):
+        check_plan(above_cap, cfg)
+    d = [s.label for s in plan.steps].index("descend")
+    with pytest.raises(PlanRefused, match="step that is not a move"):   # the descent is followed by the close
+        check_plan(with_step(d, dataclasses.replace(plan.steps[d], blend=0.01)), cfg)
+    a = [s.label for s in plan.steps].index("approach")
+    with pytest.raises(PlanRefused, match="guarded move"):
+        check_plan(with_step(a, dataclasses.replace(plan.steps[a], blend=0.01)), cfg)
+    first = Plan("home", (MoveL(plan.steps[a].pose, 0.2, 1.0, "a", blend=0.01), MoveL(lift.pose, 0.2, 1.0, "b")))
+    with pytest.raises(PlanRefused, match="first move cannot blend"):
+        check_plan(first, cfg)
+    # every point of the corner lies in the triangle of its three poses, so in a box envelope that holds them;
+    # the envelope checks the points anyway (flgd.blending.corner_curve), and a pose outside refuses the plan
+    outside = with_step(i + 1, dataclasses.replace(plan.steps[i + 1], pose=ToolPose.top_down(-0.5, 0.05, 0.5, 0.3)))
+    with pytest.raises(PlanRefused, match="outside the envelope"):
+        check_plan(outside, cfg)
 
 
 def _centring(metres: float):

@@ -96,6 +96,9 @@ def check_relations(cfg: CellConfig, problems: list[str]) -> None:
     if rb.acceleration > sf.max_acceleration:
         problems.append(f"robot.acceleration: got {rb.acceleration!r} m/s^2, expected <= "
                         f"safety.max_acceleration ({sf.max_acceleration!r} m/s^2)")
+    if rb.blend_radius > sf.max_blend_radius:
+        problems.append(f"robot.blend_radius: got {rb.blend_radius!r} m, expected <= safety.max_blend_radius "
+                        f"({sf.max_blend_radius!r} m)")
     if ws.z[0] + rb.lift_height > sf.envelope_z[1]:
         problems.append(f"robot.lift_height: table + {rb.lift_height!r} m is above safety.envelope_z "
                         f"upper bound {sf.envelope_z[1]!r}")

@@ -132,6 +132,18 @@ class RobotConfig:
     raise_speed: float = param(0.0, unit="m/s", ge=0.0,
                                help="a grasp's lift above robot.approach_height over the grasp, where the object has "
                                     "left its neighbours (0 = the whole lift at approach_speed)")
+    contact_clearance: float = param(
+        0.0, unit="m", ge=0.0, le=0.10,
+        help="a grasp's slow descent starts, and its slow lift ends, this far above the highest point the heightmap "
+             "shows within robot.contact_radius of the grasp, where no finger or lifted object can touch anything "
+             "(never higher than robot.approach_height over the grasp point; 0 = the whole approach_height slow)")
+    contact_radius: float = param(0.08, unit="m", gt=0.0, le=0.20,
+                                  help="how far around a grasp robot.contact_clearance looks for the highest point")
+    blend_radius: float = param(
+        0.0, unit="m", ge=0.0,
+        help="free moves of a plan run into each other through a corner of this radius instead of stopping at each "
+             "pose: a grasp's lift into its raise and the raise into home, a push's or shift's retreat into home "
+             "(0 = stop at every pose); <= safety.max_blend_radius")
     grasp_centring: float = param(
         0.0, unit="m", ge=0.0, le=0.05,
         help="a grasp moves along the finger pads towards the middle of the top surface it was chosen on, by at most "
@@ -171,6 +183,9 @@ class SafetyConfig:
                             help="tool axis deviation from straight down")
     max_speed: float = param(0.5, unit="m/s", gt=0.0)
     max_acceleration: float = param(1.5, unit="m/s^2", gt=0.0)
+    max_blend_radius: float = param(0.05, unit="m", ge=0.0, le=0.2,
+                                    help="largest radius a move may blend into the next one with (0 = every move "
+                                         "stops at its pose)")
 
 
 @dataclass(frozen=True)

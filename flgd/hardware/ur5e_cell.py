@@ -3,7 +3,8 @@
 It runs the same checked plans as the simulated cell.  Each plan is
 re-verified against this cell's config before anything moves; MoveL steps
 become ``moveL`` at the step's speed and acceleration (capped by the safety
-envelope); the measured gripper width is recorded at MeasureWidth steps.
+envelope), a blended run of them one ``moveL(path)`` (``URArm.move_path``);
+the measured gripper width is recorded at MeasureWidth steps.
 
 Faults (protective/emergency stop, lost connection, dead control script,
 gripper errors, the arm standing outside the safety envelope) raise
@@ -23,7 +24,7 @@ from typing import Callable
 from flgd.cell import STOPPED_ON_REQUEST, Cell, CellFault, ContactStop, ExecutionResult, Frame, StopPending
 from flgd.config import CellConfig
 from flgd.geometry import ToolPose, rotvec_to_matrix
-from flgd.plans import GripperCommand, MeasureWidth, MoveL, Plan, plan_home
+from flgd.plans import GripperCommand, MeasureWidth, MoveL, Plan, blended_runs, plan_home
 from flgd.safety import CheckedPlan, PlanRefused, check_plan
 from flgd.hardware.camera import Camera
 from flgd.hardware.gripper import GripperDriver, GripperFault
@@ -103,12 +104,24 @@ class UR5eCell(Cell):
             widths: list[float] = []
             stops: list[ContactStop] = []
             gripper = 0.0   # controller seconds of the gripper's steps
-            for i, step in enumerate(steps):
+            runs = {a: b for a, b in blended_runs(steps) if b > a}   # blended moves: one path each
+            i = -1
+            while i + 1 < len(steps):
+                i += 1
+                step = steps[i]
                 where = f"step {i} ({step.label or type(step).__name__})"
                 try:
                     if self.arm.stop_requested:
                         raise MotionStopped("stop requested")
-                    if isinstance(step, MoveL):
+                    if i in runs:
+                        moves = [s for s in steps[i:runs[i] + 1] if isinstance(s, MoveL)]
+                        self.arm.move_path([m.pose.as_ur_pose() for m in moves],
+                                           [min(m.speed, sf.max_speed) for m in moves],
+                                           [min(m.acceleration, sf.max_acceleration) for m in moves],
+                                           [m.blend for m in moves],
+                                           " to ".join(dict.fromkeys(m.label or "move" for m in moves)))
+                        i = runs[i]
+                    elif isinstance(step, MoveL):
                         # a guarded move may end short of its pose; the next (absolute) pose goes on from there
                         target = step.pose.as_ur_pose()
                         if self.arm.move_linear(target, min(step.speed, sf.max_speed),

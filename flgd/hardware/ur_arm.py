@@ -52,10 +52,11 @@ from typing import Any, Callable, Protocol, Sequence
 import numpy as np
 
 from flgd.cell import CellFault, StopPending
-from flgd.geometry import rotvec_to_matrix
+from flgd.geometry import matrix_to_rotvec, rotvec_to_matrix
 
 __all__ = [
     "URArm",
+    "for_tcp",
     "RTDEFactory",
     "PoseUnreachable",
     "MotionStopped",
@@ -140,6 +141,19 @@ def move_duration(distance: float, speed: float, acceleration: float) -> float:
     return distance / speed + speed / acceleration
 
 
+def for_tcp(pose: Sequence[float], tcp: Sequence[float], other: Sequence[float]) -> list[float]:
+    """``pose`` of the TCP ``tcp`` (both [x, y, z, rx, ry, rz], the TCP in the flange frame) expressed as the pose
+    of the TCP ``other`` on the same flange."""
+    def matrix(v: Sequence[float]) -> np.ndarray:
+        out = np.eye(4)
+        out[:3, :3] = rotvec_to_matrix(np.asarray(v[3:6], dtype=float))
+        out[:3, 3] = np.asarray(v[:3], dtype=float)
+        return out
+
+    m = matrix(pose) @ np.linalg.inv(matrix(tcp)) @ matrix(other)
+    return [float(v) for v in m[:3, 3]] + [float(v) for v in matrix_to_rotvec(m[:3, :3])]
+
+
 class URArm:
     """One UR arm: connections, checked moves, fault latch, recovery."""
 
@@ -163,6 +177,7 @@ class URArm:
         self._stop_requested = threading.Event()
         self._fault: str | None = None
         self._protective_since: float | None = None
+        self.installation_tcp = list(self.tcp)   # read from the controller when the control interface opens
         self.control: Any = None
         self.receive: Any = None
         self.io: Any = None
@@ -232,7 +247,20 @@ class URArm:
                 self.io = self._factory.io(self.host)
         except Exception as exc:
             self._latch(f"cannot open the RTDE control interface (remote control enabled on the pendant?): {exc}")
+        self._read_installation_tcp()
         self._require(self._call(self.control, "setTcp", list(self.tcp)), "setTcp")
+
+    def _read_installation_tcp(self) -> None:
+        """The TCP a freshly uploaded control script starts with (the pendant's installation), read before this
+        arm's is set: a path (``move_path``) runs in such a script."""
+        offset = self._call(self.control, "getTCPOffset")
+        try:
+            values = [float(v) for v in offset]
+        except (TypeError, ValueError):
+            values = []
+        if len(values) != 6 or not all(map(math.isfinite, values)):
+            self._latch(f"the controller reported an unusable TCP offset {offset!r}")
+        self.installation_tcp = values
 
     def close(self) -> None:
         """Stop the control script and drop every connection; safe to call twice."""
@@ -383,6 +411,44 @@ class URArm:
         self._require(ok, f"moveL ({what})")
         return self._wait_for_move(target, what, timeout, guard)
 
+    def move_path(self, poses: Sequence[Sequence[float]], speeds: Sequence[float], accelerations: Sequence[float],
+                  blends: Sequence[float], label: str = "") -> None:
+        """Blended moveLs through ``poses`` (each [x, y, z, rx, ry, rz] for this arm's TCP) as one motion
+        (ur_rtde's ``moveL(path)``): ``blends[k]`` is the radius at ``poses[k]`` (the last one stops).  Waits
+        until the last pose is reached.  Raises PoseUnreachable (nothing sent), MotionStopped, or CellFault.
+
+        ur_rtde runs a path by re-uploading its control script with the moves written into it, and a fresh
+        script starts with the installation's TCP: the poses are sent for that TCP (read when the control
+        interface opened) and this arm's TCP is set again once the path has ended."""
+        what = f"path '{label}'" if label else "path"
+        targets = [[float(v) for v in pose] for pose in poses]
+        if not targets or any(len(t) != 6 or not all(map(math.isfinite, t)) for t in targets):
+            raise PoseUnreachable(f"{what}: targets {poses!r} are not poses of six finite numbers")
+        if self._stop_requested.is_set():
+            raise MotionStopped(f"{what}: stop requested")
+        self.check()
+        for target in targets:
+            if self._call(self.control, "isPoseWithinSafetyLimits", target) is not True:
+                self.check()
+                raise PoseUnreachable(f"{what}: the controller reports {np.round(target, 4).tolist()} outside its "
+                                      f"safety limits or reach")
+        here = self.tcp_pose()
+        timeout = MOVE_TIMEOUT_MARGIN + 2.0 * sum(
+            move_duration(pose_error(a, b)[0], v, acc)
+            for a, b, v, acc in zip([here] + targets[:-1], targets, speeds, accelerations))
+        path = [for_tcp(t, self.tcp, self.installation_tcp) + [float(v), float(acc), float(r)]
+                for t, v, acc, r in zip(targets, speeds, accelerations, list(blends[:-1]) + [0.0])]
+        with self._lock:
+            if self._stop_requested.is_set():
+                raise MotionStopped(f"{what}: stop requested")
+            ok = self._call(self.control, "moveL", path, True)
+        try:
+            self._require(ok, f"moveL path ({what})")
+            self._wait_for_move(targets[-1], what, timeout, tcp=self.installation_tcp)
+        finally:
+            if self._fault is None and self.control is not None:
+                self._require(self._call(self.control, "setTcp", list(self.tcp)), "setTcp after a path")
+
     def _tcp_force(self) -> np.ndarray:
         """The controller's estimate of the force at the TCP (N, base frame)."""
         try:
@@ -429,7 +495,9 @@ class URArm:
         return value if math.isfinite(value) else None
 
     def _wait_for_move(self, target: list[float], what: str, timeout: float,
-                       guard: tuple[np.ndarray, float] | None = None) -> bool:
+                       guard: tuple[np.ndarray, float] | None = None, tcp: Sequence[float] | None = None) -> bool:
+        """Poll until the move to ``target`` (a pose of this arm's TCP) has ended; ``tcp``: the TCP the controller
+        reports poses for meanwhile, when it is not this arm's (a path's script)."""
         start, controller_start = self._clock(), self.controller_time()
         seen_running = False
         while True:
@@ -446,7 +514,8 @@ class URArm:
                 return True
             running = self._async_running()
             seen_running = seen_running or running
-            dp, dr = pose_error(self.tcp_pose(), target)
+            here = self.tcp_pose() if tcp is None else for_tcp(self.tcp_pose(), tcp, self.tcp)
+            dp, dr = pose_error(here, target)
             elapsed = self.controller_time() - controller_start
             if not running:
                 if dp <= POSITION_TOLERANCE and dr <= ORIENTATION_TOLERANCE:
@@ -528,10 +597,13 @@ class URArm:
                                 f"and release the brakes on the pendant, then reset again")
             if self.control is None:
                 self._open_control()
-            if not self._call(self.control, "isProgramRunning"):
+            reuploaded = not self._call(self.control, "isProgramRunning")
+            if reuploaded:
                 self._require(self._call(self.control, "reuploadScript"), "reuploadScript")
             self._confirm(lambda: bool(self._call(self.control, "isProgramRunning")),
                           lambda: "the ur_rtde control script does not run after re-upload")
+            if reuploaded:
+                self._read_installation_tcp()
             self._require(self._call(self.control, "setTcp", list(self.tcp)), "setTcp")
             self._refuse_if_stopped("at its end")
             self._fault = None

@@ -12,7 +12,8 @@ What a UR controller owns and what the emulator's servers read and command:
     exceed the UR5e's rated 180 deg/s (``motion.JOINT_SPEED_LIMIT``), followed on the physics clock of
     ``EmulatorWorld`` by closed-form IK and the joint servos; ``stop_linear``
     decelerates along the line; a target out of reach is refused before
-    anything moves (``pose_within_limits``);
+    anything moves (``pose_within_limits``); a moveL path (ur_rtde's
+    ``moveL(path)``) runs its blended lines as one motion (``sim_cell.path_motion``);
   * the fault latch: a protective stop (also raised by the arm itself when the
     gripper presses on something harder than ``PROTECTIVE_STOP_FORCE``), an
     emergency stop, and the operator's actions on them.  Any fault ends a
@@ -36,7 +37,8 @@ import numpy as np
 import pybullet as p
 
 from flgd.geometry import matrix_to_rotvec, rotvec_to_matrix
-from sim_cell import kinematics, motion
+from sim_cell import kinematics, motion, path_motion
+from sim_cell.path_motion import PathProfile
 from sim_cell.emulator.world import EmulatorWorld
 
 __all__ = ["EmulatedArm", "ArmSnapshot", "RobotMode", "SafetyMode", "RuntimeState", "Refused",
@@ -153,6 +155,49 @@ class _Line:
     def progress(self) -> float:
         return 1.0 if self.length <= 1e-9 else self.s / self.length
 
+    def direction(self) -> np.ndarray:
+        """The unit direction the TCP moves in now."""
+        return (self.goal[:3, 3] - self.start[:3, 3]) / max(self.length, 1e-12)
+
+
+class _Path(_Line):
+    """A moveL path in progress: blended lines followed along ``path_motion.PathProfile`` online (or a stop
+    ramp), never faster than the profile allows where the tool is."""
+
+    def __init__(self, start: np.ndarray, profile: PathProfile, speed_scale: float = 1.0):
+        self.profile = profile
+        self.start, self.goal = start, profile.pose_at(profile.length)
+        self.length, self.acc = profile.length, profile.acceleration
+        self.vmax = float(profile.v.max())
+        self.speed_scale = speed_scale
+        self.s = 0.0
+        self.v = 0.0
+        self.stop_acc = None
+        self.arrived = self.length <= 1e-9
+        self.settle = 0.0
+        self.descending = bool(np.any(np.diff(profile.positions[:, 2]) < -1e-4))
+
+    def advance(self, dt: float) -> None:
+        if self.arrived:
+            return
+        if self.stop_acc is not None:
+            super().advance(dt)
+            return
+        left = self.length - self.s
+        want = self.v + self.acc * dt
+        self.v = min(want, max(self.profile.allowed_speed(self.s + want * dt), 0.5 * self.acc * dt))
+        if left <= max(self.v * dt, 1e-9):
+            self.s, self.arrived = self.length, True
+        else:
+            self.s += self.v * dt
+
+    def pose(self) -> np.ndarray:
+        return self.profile.pose_at(self.s)
+
+    def direction(self) -> np.ndarray:
+        ahead = self.profile.pose_at(self.s + 1e-3)[:3, 3] - self.profile.pose_at(self.s)[:3, 3]
+        return ahead / max(float(np.linalg.norm(ahead)), 1e-12)
+
 
 def pose_to_matrix(pose: Sequence[float]) -> np.ndarray:
     out = np.eye(4)
@@ -219,8 +264,7 @@ class EmulatedArm:
             target = self.line.pose() if self.line is not None else self._tcp_matrix(self._target_q)
             speed = [0.0] * 6
             if self.line is not None and not self.line.arrived and self.line.length > 0:
-                direction = (self.line.goal[:3, 3] - self.line.start[:3, 3]) / self.line.length
-                speed = [float(v) for v in direction * self.line.v] + [0.0, 0.0, 0.0]
+                speed = [float(v) for v in self.line.direction() * self.line.v] + [0.0, 0.0, 0.0]
             return ArmSnapshot(
                 timestamp=float(self.world.sim_time), actual_q=[float(v) for v in q],
                 actual_qd=[float(v) for v in self._qd], target_q=[float(v) for v in self._target_q],
@@ -330,6 +374,36 @@ class EmulatedArm:
             if self.line.speed_scale < 1.0:
                 log.info("moveL slowed to %.0f %% of its speed: a joint would exceed %.0f deg/s",
                          100.0 * self.line.speed_scale, math.degrees(motion.JOINT_SPEED_LIMIT))
+
+    def move_path(self, moves: Sequence[tuple[Sequence[float], float, float, float]]) -> None:
+        """Start a moveL path: (pose, speed, acceleration, blend radius) each, blended into one motion
+        (``sim_cell.path_motion``); Refused when the arm cannot move or a part of the path leaves the reach."""
+        if not moves:
+            raise Refused("move_path: no moves")
+        for pose, speed, acceleration, radius in moves:
+            if not (0.0 < speed <= MAX_SPEED and 0.0 < acceleration <= MAX_ACCELERATION and radius >= 0.0):
+                raise Refused(f"move_path: speed {speed} / acceleration {acceleration} / blend {radius} outside "
+                              f"the controller's limits")
+        with self.world.lock:
+            why = self.can_move()
+            if why:
+                raise Refused(f"move_path refused: {why}")
+            start = self._tcp_matrix(self._target_q)
+            goals = [pose_to_matrix([float(v) for v in pose]) for pose, _, _, _ in moves]
+            speeds = [float(m[1]) for m in moves]
+            accelerations = [float(m[2]) for m in moves]
+            blends = [float(m[3]) for m in moves]
+            try:
+                parts = path_motion.plan_path(self._target_q, start, goals, speeds, accelerations, blends,
+                                              REACH_CHECK_TICK, np.asarray(self.tcp[:3]))
+            except motion.Unreachable as exc:
+                raise Refused(f"move_path refused: {exc}") from None
+            scale = parts[0].speed_scale
+            self.line = _Path(start, path_motion.PathProfile.build(start, goals, speeds, accelerations, blends,
+                                                                   scale), scale)
+            if scale < 1.0:
+                log.info("moveL path slowed to %.0f %% of its speed: a joint would exceed %.0f deg/s",
+                         100.0 * scale, math.degrees(motion.JOINT_SPEED_LIMIT))
 
     def _joint_speed_scale(self, start: np.ndarray, goal: np.ndarray, speed: float, acceleration: float) -> float:
         """How much a line must be slowed so that no joint exceeds the UR5e's rated speed (the controller's

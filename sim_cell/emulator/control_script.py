@@ -14,7 +14,8 @@ program's register protocol (facts from ur_rtde 1.6.5's source and script):
     (bits 24-30), a write counter (bits 16-22), running (bit 15), progress (bits 0-14).
 
 The commands the emulator carries out are those flgd's URArm sends (moveL,
-sync or async, stopL, speedStop, setTcp, isPoseWithinSafetyLimits,
+sync or async, a moveL path (MOVE_PATH: the moves the script server read from
+the uploaded program), stopL, speedStop, setTcp, isPoseWithinSafetyLimits,
 stopScript) and a few read-only queries; any other command number is
 acknowledged and logged as not emulated.  A moveL the arm refuses stops the
 program, as a URScript runtime error does on a robot.
@@ -39,7 +40,7 @@ READY, DONE = 1, 2
 
 class Command:
     """ur_rtde's command numbers (RTDE::RobotCommand::Type) that the emulator carries out."""
-    NO_CMD, MOVEL, SPEED_STOP, SET_TCP, STOPL, STOPJ = 0, 3, 15, 29, 33, 34
+    NO_CMD, MOVEL, SPEED_STOP, SET_TCP, STOPL, STOPJ, MOVE_PATH = 0, 3, 15, 29, 33, 34, 45
     IS_POSE_WITHIN_SAFETY_LIMITS, IS_JOINTS_WITHIN_SAFETY_LIMITS, GET_TCP_OFFSET = 36, 37, 40
     GET_FORWARD_KINEMATICS_DEFAULT, IS_STEADY, GET_ACTUAL_TOOL_FLANGE_POSE = 43, 47, 58
     STOP_SCRIPT = 255
@@ -59,17 +60,21 @@ class ControlScript:
         self._op_id = 0
         self._writes = 0
         self.commands: list[int] = []       # every command carried out, for tests and logs
+        self.path: list[tuple[list[float], float, float, float]] = []   # the running program's injected moves
         arm.world.add_tick(self._tick)
 
     # ------------------------------------------------------------------ program
-    def start(self, register_offset: int = 0) -> bool:
-        """The script was uploaded: the program runs if the arm lets it (False: it did not start)."""
+    def start(self, register_offset: int = 0,
+              path: list[tuple[list[float], float, float, float]] | None = None) -> bool:
+        """The script was uploaded: the program runs if the arm lets it (False: it did not start).  ``path``: the
+        blended moves written into it (pose, speed, acceleration, radius), run by a MOVE_PATH command."""
         try:
             self.arm.start_program()
         except Refused as exc:
             log.warning("control script not started: %s", exc)
             return False
         self.offset = int(register_offset)
+        self.path = list(path or [])
         self._waiting_for_motion = False
         self._async_running = False
         # ur_rtde's stopScript leaves STOP_SCRIPT in the command register and its clear reaches RTDE on another
@@ -148,6 +153,21 @@ class ControlScript:
             asynchronous = self._in_int(1) == 1
             try:
                 arm.move_linear(values[:6], values[6], values[7])
+            except Refused as exc:
+                log.warning("control script: %s; the program stops", exc)
+                arm.stop_program()
+                return False
+            if asynchronous:
+                self._async_running = True
+                self._write_progress(running=True)
+            else:
+                self._waiting_for_motion = True
+        elif cmd == Command.MOVE_PATH:
+            asynchronous = self._in_int(1) == 1
+            try:
+                if not self.path:
+                    raise Refused("move_path: the running script carries no path")
+                arm.move_path(self.path)
             except Refused as exc:
                 log.warning("control script: %s; the program stops", exc)
                 arm.stop_program()

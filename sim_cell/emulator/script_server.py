@@ -3,7 +3,8 @@
 ur_rtde's ScriptClient sends its control script (``def rtde_control():`` ...
 ``end``) to one of these ports; the emulator recognises that program, reads
 the register offset ur_rtde injected into it (``reg_offset_int``, 0 or 24) and
-starts ``ControlScript`` on the arm -- ``runtime_state`` then reports the
+the blended moves of a ``moveL(path)`` (``movel(p[...], a=, v=, r=)`` lines
+after ``# inject move path``), and starts ``ControlScript`` on the arm -- ``runtime_state`` then reports the
 program running.  Any other complete program stops the running one and is
 logged as not emulated (the emulator does not interpret URScript).  The real
 ports also stream the robot state to their clients; ur_rtde never reads it,
@@ -28,7 +29,24 @@ MAX_PROGRAM = 4 * 1024 * 1024          # bytes; ur_rtde's script is about 60 kB
 _DEF = re.compile(rb"^def\s+(\w+)\s*\(\s*\)\s*:", re.MULTILINE)
 _END = re.compile(rb"^end\b", re.MULTILINE)
 _OFFSET = re.compile(rb"global\s+reg_offset_int\s*=\s*(\d+)")
+_INJECTED = re.compile(rb"# inject move path\s*\n(.*?)^\s*end\b", re.MULTILINE | re.DOTALL)
+_NUMBER = rb"\s*([-+0-9.eE]+)\s*"
+_MOVEL = re.compile(rb"movel\(\s*p\[" + rb",".join([_NUMBER] * 6) + rb"\]\s*,\s*a=" + _NUMBER + rb",\s*v="
+                    + _NUMBER + rb",\s*r=" + _NUMBER + rb"\)")
 CONTROL_PROGRAM = b"rtde_control"
+
+
+def injected_path(program: bytes) -> list[tuple[list[float], float, float, float]]:
+    """The moves ur_rtde wrote into its control script for ``moveL(path)`` (after ``# inject move path``):
+    (pose, speed, acceleration, blend radius) each, in order; empty when the script carries none."""
+    block = _INJECTED.search(program)
+    if block is None:
+        return []
+    moves = []
+    for m in _MOVEL.finditer(block.group(1)):
+        values = [float(v) for v in m.groups()]
+        moves.append((values[:6], values[7], values[6], values[8]))
+    return moves
 
 
 class ScriptServer:
@@ -79,5 +97,5 @@ class ScriptServer:
             return
         offset = _OFFSET.search(program)
         arm.stop_program()   # a new program replaces the running one
-        if self.script.start(int(offset.group(1)) if offset else 0):
+        if self.script.start(int(offset.group(1)) if offset else 0, injected_path(program)):
             log.info("script port: ur_rtde's control script runs (register offset %d)", self.script.offset)

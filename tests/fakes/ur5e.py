@@ -49,7 +49,8 @@ class FakeURController:
         self.program_running = True
         self.interfaces: list = []        # every fake interface opened, each with its own link
         self.network_up = True
-        self.tcp_offset = None
+        self.installation_tcp = [0.0, 0.0, 0.0, 0.0, 0.0, 0.0]   # the pendant's: what a fresh script starts with
+        self.tcp_offset = list(self.installation_tcp)
         self.tool_out = {0: False, 1: False}
         self.fail_next: dict[str, int] = {}
         self.unreachable = lambda pose: math.dist(pose[:3], (0, 0, 0)) > 0.85  # UR5e reach
@@ -228,11 +229,27 @@ class FakeRTDEControl(_FakeInterface):
         return not self.ctl.unreachable(pose)
 
     def moveL(self, pose, speed=0.25, acceleration=1.2, asynchronous=False) -> bool:
+        """A single moveL, or ur_rtde's ``moveL(path, asynchronous)``: rows of [pose, speed, acceleration, blend]
+        (the fake runs a path straight to its last pose at its first speed, with the script's TCP)."""
+        if pose and isinstance(pose[0], (list, tuple)):
+            path, asynchronous = [list(row) for row in pose], bool(speed)
+            self._rec("moveL", path, asynchronous)
+            self.ctl.program_running = False            # ur_rtde re-uploads its script with the path in it
+            self.ctl.tcp_offset = list(self.ctl.installation_tcp)
+            self.ctl.program_running = True
+            if self.ctl.failing("moveL") or not self.ctl.ready_for_motion(self):
+                return False
+            self.ctl.start_move(path[-1][:6], path[0][6])
+            return True
         self._rec("moveL", list(pose), speed, acceleration, asynchronous)
         if self.ctl.failing("moveL") or not self.ctl.ready_for_motion(self):
             return False
         self.ctl.start_move(pose, speed)
         return True
+
+    def getTCPOffset(self) -> list[float]:
+        self._rec("getTCPOffset")
+        return list(self.ctl.tcp_offset)
 
     def stopL(self, a=10.0, asynchronous=False) -> None:
         self._rec("stopL", a)
