@@ -57,9 +57,10 @@ def _write_config(root: Path, backend: str, host: str, robot: dict[str, Any] | N
     data.update(backend=backend, state_dir=str(root / "state"), policy=str(shipped.policy))
     data["robot"]["host"] = host
     data["robot"].update(robot or {})
-    for key, cap in (("speed", "max_speed"), ("raise_speed", "max_speed"), ("acceleration", "max_acceleration")):
+    for key, cap in (("speed", "max_speed"), ("raise_speed", "max_speed"), ("acceleration", "max_acceleration"),
+                     ("blend_radius", "max_blend_radius")):
         if key in (robot or {}):
-            data["safety"][cap] = max(float(data["safety"][cap]), float(robot[key]))
+            data["safety"][cap] = max(float(data["safety"].get(cap, 0.0)), float(robot[key]))
     data["camera"]["emulator"] = f"{host}:{data['camera']['emulator'].rsplit(':', 1)[1]}"
     data["learning"]["init_trunk"] = str(shipped.learning.init_trunk)
     data["finetune"].update(prior_sample=str(shipped.finetune.prior_sample), updates_per_action=0)

@@ -5,11 +5,13 @@ execute the same motions.  Plans are pure data; ``flgd.safety.check_plan``
 must pass before a cell runs one.
 
 Distances (defaults in ``RobotConfig``, all configurable):
-  * grasp: open, approach ``approach_height`` above the grasp point (or, with
-    ``contact_clearance``, that clearance above the highest point around it), descend to
+  * grasp: open, approach ``approach_height`` above the grasp point, descend to
     ``grasp_depth`` below the surface (never below the table clearance; the
     descent stops early where the fingers meet ``descent_contact_force``), close,
-    lift to ``lift_height``, go home, measure the width (the paper's success test).
+    lift to ``lift_height`` (slowly up to the approach height, or with
+    ``contact_clearance`` until the object clears what surrounds it, then at
+    ``raise_speed``), go home (the raise blended into it with ``blend_radius``),
+    measure the width (the paper's success test).
   * place (after a grasp measured as held): carry to ``robot.place``, measure the
     width again, open, go home.  Only an object still between the fingers at the
     place pose was picked: one that slipped out on the way is a failed grasp.
@@ -45,7 +47,7 @@ __all__ = [
     "blended_runs",
     "plan_action",
     "plan_grasp",
-    "contact_zone",
+    "slow_lift_top",
     "highest_around",
     "LIFT_LABEL",
     "PLACE_CHECK_LABEL",
@@ -171,48 +173,46 @@ def _target(action: Action, height_map: np.ndarray, config: CellConfig) -> tuple
     return (x, y, z), h
 
 
-def contact_zone(z: float, surroundings_top: float, config: CellConfig) -> tuple[float, float]:
-    """(where a grasp's slow descent starts, where its slow lift ends) for fingertips going down to ``z``.
+def slow_lift_top(z: float, surroundings_top: float, config: CellConfig) -> float:
+    """Where a grasp's slow lift from fingertips at ``z`` ends: ``robot.approach_height`` above ``z``, or, with
+    ``robot.contact_clearance``, once the object has risen that clearance above the highest point around the grasp
+    (``surroundings_top``, above the table; an object's bottom is never below the table), whichever is lower.
 
-    Without ``robot.contact_clearance`` both are ``robot.approach_height`` above ``z``.  With it, the descent starts
-    that clearance above the highest point around the grasp (``surroundings_top``, above the table) and the lift
-    ends once the object has risen that clearance above it (an object's bottom is never below the table), each at
-    most ``approach_height`` above ``z``: slow only where a finger or the lifted object can touch something."""
-    rb, table = config.robot, config.workspace.table_z
+    Only the lift: it stays over the grasp point, where the disc of ``robot.contact_radius`` is all the object can
+    meet.  The descent keeps the whole approach height slow: the approach comes down on a slant from outside the
+    workspace, past objects outside that disc."""
+    rb = config.robot
     full = z + rb.approach_height
     if rb.contact_clearance <= 0.0 or not math.isfinite(surroundings_top):
-        return full, full
-    top = max(surroundings_top, 0.0)
-    descent = min(full, max(table + top + rb.contact_clearance, z + rb.contact_clearance))
-    lift = min(full, z + top + rb.contact_clearance)
-    return descent, lift
+        return full
+    return min(full, z + max(surroundings_top, 0.0) + rb.contact_clearance)
 
 
 def plan_grasp(x: float, y: float, surface_height: float, angle: float, config: CellConfig,
                surroundings_top: float = math.nan) -> Plan:
     """Top-down grasp with the fingers closing along ``angle`` at (x, y); heights above the table.
 
-    ``surroundings_top``: the highest point within ``robot.contact_radius`` (``contact_zone``; NaN = unknown: slow
-    over the whole approach height)."""
+    ``surroundings_top``: the highest point within ``robot.contact_radius`` (``slow_lift_top``; NaN = unknown: the
+    whole lift up to the approach height slow)."""
     if not all(map(math.isfinite, (x, y, surface_height, angle))):
         return _refused("grasp", f"non-finite grasp request x={x!r} y={y!r} "
                                  f"height={surface_height!r} angle={angle!r}")
     rb, gr, table = config.robot, config.gripper, config.workspace.table_z
     yaw = wrap_symmetric_yaw(angle)
     z = table + max(surface_height - rb.grasp_depth, config.safety.min_table_clearance)
-    above, clear = contact_zone(z, surroundings_top, config)
+    above, clear = z + rb.approach_height, slow_lift_top(z, surroundings_top, config)
     lifted = table + rb.lift_height
     home = config.robot.home
-    # with robot.raise_speed the lift is slow only among the neighbours (up to the contact zone's top), faster above
-    # with robot.blend_radius the lift runs on into the raise and the raise into home without stopping
+    # with robot.raise_speed the lift is slow only among the neighbours (up to slow_lift_top), faster above; with
+    # robot.blend_radius the raise runs on into home without stopping.  The lift itself never blends: it starts
+    # where a guarded descent stopped (its length is known only then), and a blend into the raise would speed up
+    # before the lift's pose, among the neighbours.
     lift: tuple[Step, ...] = (
-        (MoveL(ToolPose.top_down(x, y, clear, yaw), rb.approach_speed, rb.acceleration, LIFT_LABEL,
-               blend=_corner(rb.blend_radius, clear - z, lifted - clear)),
+        (MoveL(ToolPose.top_down(x, y, clear, yaw), rb.approach_speed, rb.acceleration, LIFT_LABEL),
          MoveL(ToolPose.top_down(x, y, lifted, yaw), rb.raise_speed, rb.acceleration, RAISE_LABEL,
                blend=_corner(rb.blend_radius, lifted - clear, _distance((x, y, lifted), home.position))))
         if rb.raise_speed > 0.0 and clear < lifted - 0.01 else
-        (MoveL(ToolPose.top_down(x, y, lifted, yaw), rb.approach_speed, rb.acceleration, LIFT_LABEL,
-               blend=_corner(rb.blend_radius, lifted - z, _distance((x, y, lifted), home.position))),))
+        (MoveL(ToolPose.top_down(x, y, lifted, yaw), rb.approach_speed, rb.acceleration, LIFT_LABEL),))
     steps: tuple[Step, ...] = (
         GripperCommand(gr.open_width, gr.force, "open"),
         MoveL(ToolPose.top_down(x, y, above, yaw), rb.speed, rb.acceleration, "approach"),

@@ -2,9 +2,9 @@
 
 The tool runs each line at its move's speed, up to the middle of a corner (its pose) at the incoming line's and
 after it at the outgoing line's, never stopping between the run's first and last pose; it speeds up and slows
-down at the moves' acceleration (a lift that runs on into a faster raise is still slow up to the lift's pose).  The
-profile is the fastest one within those limits (forward and backward passes over the path sampled every
-millimetre).  A line that turns the wrist is slowed so that the wrist turns at most ``motion.ANGULAR_SPEED``.
+down at the moves' acceleration, and through a corner no faster than keeps its sideways acceleration (v^2 over the
+curve's radius) within that acceleration too.  The profile is the fastest one within those limits (forward and
+backward passes over the path sampled every millimetre); blends that would overlap on a line are refused.  A line that turns the wrist is slowed so that the wrist turns at most ``motion.ANGULAR_SPEED``.
 The simulated cell follows the profile tick by tick (``plan_path``: one Trajectory per move, so that each move's
 end is still a point in the plan); the emulated controller runs the same profile online (``PathProfile``).
 """
@@ -24,6 +24,20 @@ __all__ = ["PathProfile", "plan_path", "SAMPLE_STEP"]
 
 SAMPLE_STEP = 0.001   # m between samples of a straight line
 CORNER_POINTS = 24    # samples of one blended corner
+
+
+def _bend_speeds(entry: np.ndarray, corner: np.ndarray, exit_: np.ndarray, samples: int,
+                 acceleration: float) -> np.ndarray:
+    """The fastest speed at each of ``samples`` points of a corner (a quadratic Bezier) whose sideways
+    acceleration v^2 / rho stays within ``acceleration`` (rho: the curve's radius of curvature there)."""
+    t = np.linspace(0.0, 1.0, samples)[:, None]
+    d1 = 2.0 * (1 - t) * (corner - entry) + 2.0 * t * (exit_ - corner)
+    d2 = 2.0 * (entry - 2.0 * corner + exit_)
+    speed = np.linalg.norm(d1, axis=1)
+    bend = np.linalg.norm(np.cross(d1, d2), axis=1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        rho = np.where(bend > 1e-12, speed ** 3 / bend, np.inf)
+    return np.sqrt(acceleration * rho)
 
 
 def _rot(rel: np.ndarray, frac: float) -> np.ndarray:
@@ -73,6 +87,9 @@ class PathProfile:
             u = (b - a) / lengths[k]
             d0 = radius[k - 1] if k > 0 else 0.0
             d1 = lengths[k] - radius[k]
+            if d1 < d0 - 1e-9:
+                raise motion.Unreachable(f"the blends at both ends of move {k} overlap ({d0:.4f} + "
+                                         f"{radius[k]:.4f} m on a {lengths[k]:.4f} m line)")
             count = max(int(math.ceil((d1 - d0) / SAMPLE_STEP)), 1)
             first = 0 if k == 0 else 1   # the previous corner ended on this line's first sample
             for i in range(first, count + 1):
@@ -82,6 +99,7 @@ class PathProfile:
                 vmax.append(caps[k])
             if k < n - 1 and radius[k] > 0.0:
                 curve = corner_curve(a, b, poses[k + 2][:3, 3], radius[k], CORNER_POINTS + 1)
+                bend = _bend_speeds(curve[0], b, curve[-1], len(curve), min(accelerations) * scale ** 2)
                 for i in range(1, len(curve)):
                     t = i / (len(curve) - 1)
                     if t <= 0.5:
@@ -92,7 +110,7 @@ class PathProfile:
                         r = poses[k + 1][:3, :3] @ _rot(rels[k + 1], frac)
                     pos.append(curve[i])
                     rot.append(r)
-                    vmax.append(caps[k] if t <= 0.5 else caps[k + 1])
+                    vmax.append(min(caps[k] if t <= 0.5 else caps[k + 1], bend[i]))
                     if i == (len(curve) - 1) // 2:
                         passes.append(len(pos) - 1)
             elif k < n - 1:   # no blend: the tool stops at this pose, as the controller does

@@ -471,7 +471,7 @@ def test_the_unlock_is_sent_5_0_s_plus_the_margin_after_the_protective_stop_not_
     assert 5.0 + 0.2 <= waited <= 5.0 + 0.2 + 2 * UNLOCK_WAIT_STEP, waited
 
 
-def test_a_blended_grasp_sends_its_lift_raise_and_home_as_one_path_for_the_installation_tcp(ctl, rg2):
+def test_a_blended_grasp_sends_its_raise_and_home_as_one_path_for_the_installation_tcp(ctl, rg2):
     """ur_rtde runs a path in a freshly uploaded script, which starts with the pendant's TCP: the path's poses
     are sent for that TCP, and the cell's own TCP is set again once the path has ended."""
     ctl.installation_tcp = [0.0, 0.0, 0.10, 0.0, 0.0, 0.0]
@@ -487,13 +487,36 @@ def test_a_blended_grasp_sends_its_lift_raise_and_home_as_one_path_for_the_insta
     assert len(paths) == 1
     rows, asynchronous = paths[0]
     moves = {s.label: s for s in checked.plan.steps if isinstance(s, MoveL)}
-    assert asynchronous is True and len(rows) == 3
-    for row, label in zip(rows, ("lift", "raise", "home")):
+    assert asynchronous is True and len(rows) == 2
+    for row, label in zip(rows, ("raise", "home")):
         ours = moves[label].pose.as_ur_pose()
         # the tool points down: the pendant's TCP, nearer the flange than ours, lies that much higher
         lift = cfg.robot.tcp_offset[2] - 0.10
         assert row[:6] == pytest.approx([ours[0], ours[1], ours[2] + lift, *ours[3:]], abs=1e-6)
         assert row[6:8] == [pytest.approx(moves[label].speed), pytest.approx(moves[label].acceleration)]
-    assert [row[8] for row in rows] == [pytest.approx(0.02), pytest.approx(0.02), 0.0]
+    assert [row[8] for row in rows] == [pytest.approx(0.02), 0.0]
     assert ctl.tcp_offset == [0.0, 0.0, 0.225, 0.0, 0.0, 0.0], "the cell's TCP is set again after the path"
     assert result.widths == [pytest.approx(0.031)]
+
+
+def test_a_path_whose_script_runs_another_tcp_is_halted_and_latched(ctl, rg2):
+    """The pendant's TCP changed since it was read: the path's poses would be off by the difference."""
+    base = real_config(xmlrpc_port=rg2.port)
+    cfg = dataclasses.replace(base, robot=dataclasses.replace(base.robot, raise_speed=0.2, blend_radius=0.02))
+    cell = make_ur5e(ctl, rg2, cfg)
+    cell.execute(check_plan(plan_home(cfg), cfg))
+    ctl.installation_tcp = [0.0, 0.0, 0.15, 0.0, 0.0, 0.0]   # changed on the pendant after the arm connected
+    with pytest.raises(CellFault, match="not the installation's"):
+        cell.execute(grasp(cfg))
+    assert cell.arm.fault and ctl.calls("stopL")
+
+
+def test_with_the_installation_tcp_unknown_a_path_runs_as_single_moves(ctl, rg2):
+    base = real_config(xmlrpc_port=rg2.port)
+    cfg = dataclasses.replace(base, robot=dataclasses.replace(base.robot, raise_speed=0.2, blend_radius=0.02))
+    cell = make_ur5e(ctl, rg2, cfg)
+    rg2.object_width_mm = 31.0
+    cell.arm.installation_tcp = None   # could not be read when the script started
+    result = cell.execute(grasp(cfg))
+    assert result.completed, result.failure
+    assert not [c for c in ctl.calls("moveL") if c[0] and isinstance(c[0][0], list)]

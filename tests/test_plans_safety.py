@@ -64,8 +64,8 @@ def test_a_grasp_whose_approach_height_reaches_the_lift_height_lifts_slowly_all_
     assert plan.steps[4].speed == cfg.robot.approach_speed
 
 
-def test_with_a_contact_clearance_a_grasp_is_slow_only_below_that_clearance_over_its_surroundings() -> None:
-    """The descent starts, and the slow lift ends, 2 cm above the highest point within the contact radius."""
+def test_with_a_contact_clearance_a_grasps_slow_lift_ends_once_the_object_clears_its_surroundings() -> None:
+    """The slow lift ends 2 cm above the highest point within the contact radius; the descent is unchanged."""
     cfg = dataclasses.replace(CFG, robot=dataclasses.replace(CFG.robot, raise_speed=0.4, contact_clearance=0.02,
                                                              contact_radius=0.05))
     h = np.zeros((224, 224), np.float32)
@@ -77,19 +77,18 @@ def test_with_a_contact_clearance_a_grasp_is_slow_only_below_that_clearance_over
     steps = {s.label: s for s in plan.steps if isinstance(s, MoveL)}
     z = steps["descend"].pose.position[2]
     assert z == pytest.approx(table + cfg.safety.min_table_clearance)
-    assert steps["approach"].pose.position[2] == pytest.approx(table + 0.04 + 0.02)   # above the neighbour's top
+    assert steps["approach"].pose.position[2] == pytest.approx(z + cfg.robot.approach_height)   # unchanged
     assert steps["lift"].pose.position[2] == pytest.approx(z + 0.04 + 0.02)   # the block's bottom clears its top
     assert steps["lift"].speed == cfg.robot.approach_speed and steps["raise"].speed == 0.4
     # never higher than the approach height over the grasp point: a tall neighbour inside the radius
     h[110:116, 122:128] = 0.20
     tall = {s.label: s for s in plan_action(Action("grasp", 113, 113, 0), h, cfg).steps if isinstance(s, MoveL)}
-    assert tall["approach"].pose.position[2] == pytest.approx(z + cfg.robot.approach_height)
     assert tall["lift"].pose.position[2] == pytest.approx(z + cfg.robot.approach_height)
-    # off (the default): the whole approach height, whatever surrounds the grasp
+    # off (the default): slow up to the approach height, whatever surrounds the grasp
     h[110:116, 122:128] = 0.04
-    off = {s.label: s for s in plan_action(Action("grasp", 113, 113, 0), h, CFG).steps if isinstance(s, MoveL)}
-    assert off["approach"].pose.position[2] == pytest.approx(off["descend"].pose.position[2]
-                                                             + CFG.robot.approach_height)
+    off_cfg = dataclasses.replace(cfg, robot=dataclasses.replace(cfg.robot, contact_clearance=0.0))
+    off = {s.label: s for s in plan_action(Action("grasp", 113, 113, 0), h, off_cfg).steps if isinstance(s, MoveL)}
+    assert off["lift"].pose.position[2] == pytest.approx(z + CFG.robot.approach_height)
     check_plan(plan, cfg)
 
 
@@ -98,20 +97,25 @@ def _blending(radius: float, cfg=None):
     return dataclasses.replace(cfg, robot=dataclasses.replace(cfg.robot, raise_speed=0.4, blend_radius=radius))
 
 
-def test_with_a_blend_radius_a_grasp_runs_its_lift_raise_and_home_as_one_checked_path() -> None:
+def test_with_a_blend_radius_a_grasp_runs_its_raise_and_home_as_one_checked_path() -> None:
+    """The raise blends into home; the lift never blends (it starts where a guarded descent stopped)."""
     cfg = _blending(0.03)
     plan = plan_grasp(-0.5, 0.05, 0.05, 0.3, cfg)
     moves = {s.label: s for s in plan.steps if isinstance(s, MoveL)}
-    assert (moves["lift"].blend, moves["raise"].blend, moves["home"].blend) == (0.03, 0.03, 0.0)
-    assert moves["approach"].blend == 0.0 and moves["descend"].blend == 0.0   # the guarded descent stops
+    assert (moves["lift"].blend, moves["raise"].blend, moves["home"].blend) == (0.0, 0.03, 0.0)
+    assert moves["approach"].blend == 0.0 and moves["descend"].blend == 0.0
     labels = [s.label for s in plan.steps]
-    assert blended_runs(plan.steps) == [(1, 1), (2, 2), (labels.index("lift"), labels.index("home"))]
+    assert blended_runs(plan.steps) == [(1, 1), (2, 2), (4, 4), (labels.index("raise"), labels.index("home"))]
     check_plan(plan, cfg)
-    # a radius larger than half the 5 cm lift is cut to fit its corner
-    short = plan_grasp(-0.5, 0.05, 0.05, 0.3, dataclasses.replace(
-        _blending(0.05), robot=dataclasses.replace(_blending(0.05).robot, approach_height=0.05)))
-    assert {s.label: s.blend for s in short.steps if isinstance(s, MoveL)}["lift"] == pytest.approx(0.025)
-    check_plan(short, cfg)
+    # a radius larger than half the raise is cut to fit its corner
+    near = plan_grasp(-0.5, 0.05, 0.05, 0.3, dataclasses.replace(
+        _blending(0.05), robot=dataclasses.replace(_blending(0.05).robot, lift_height=0.25)))
+    raise_ = {s.label: s for s in near.steps if isinstance(s, MoveL)}["raise"]
+    assert raise_.blend == pytest.approx(min(0.05, 0.5 * (0.25 - 0.12)))
+    # a push's retreat blends into home
+    push = {s.label: s for s in plan_push(-0.5, 0.05, 0.3, cfg).steps if isinstance(s, MoveL)}
+    assert push["retreat"].blend == 0.03 and push["push"].blend == 0.0
+    check_plan(plan_push(-0.5, 0.05, 0.3, cfg), cfg)
 
 
 def test_one_bad_corner_refuses_the_whole_blended_plan() -> None:
@@ -119,16 +123,16 @@ def test_one_bad_corner_refuses_the_whole_blended_plan() -> None:
     guarded move, or into a gripper step, or on the plan's first move refuse the plan before anything moves."""
     cfg = _blending(0.03)
     plan = plan_grasp(-0.5, 0.05, 0.05, 0.3, cfg)
-    i = [s.label for s in plan.steps].index("lift")
-    lift = plan.steps[i]
+    i = [s.label for s in plan.steps].index("raise")
+    lift = plan.steps[i]   # the raise: its incoming line is the lift
 
     def with_step(index: int, step) -> Plan:
         steps = list(plan.steps)
         steps[index] = step
         return dataclasses.replace(plan, steps=tuple(steps))
 
-    too_wide = with_step(i, dataclasses.replace(lift, blend=0.06))   # the lift is 10 cm: more than half of it
-    wide_cap = dataclasses.replace(cfg, safety=dataclasses.replace(cfg.safety, max_blend_radius=0.1))
+    too_wide = with_step(i, dataclasses.replace(lift, blend=0.09))   # the raise is 13 cm: more than half of it
+    wide_cap = dataclasses.replace(cfg, safety=dataclasses.replace(cfg.safety, max_blend_radius=0.2))
     with pytest.raises(PlanRefused, match="more than half the incoming line") as refused:
         check_plan(too_wide, wide_cap)
     assert refused.value.step == i

@@ -462,3 +462,26 @@ def test_what_a_grasp_lifted_is_forgotten_when_the_next_plan_starts(empty_cell):
     result = empty_cell.execute(check_plan(plan_push(-0.62, -0.12, 0.0, cfg), cfg))
     assert result.completed, result.failure
     assert state(empty_cell, body) is not None and empty_cell._world.lifted == set()
+
+
+def test_a_blended_grasp_carries_the_block_home_faster_than_one_that_stops_at_each_pose():
+    """The raise blended into home (one motion, no settle at the raise's pose) holds the block and saves time."""
+    durations = {}
+    for blend in (0.0, 0.03):
+        base = make_config(objects=0, depth_noise=False, domain_randomization=False)
+        cfg = dataclasses.replace(base, robot=dataclasses.replace(base.robot, raise_speed=0.4, blend_radius=blend))
+        cell = SimCell(cfg)
+        try:
+            body = cube_at(cell, -0.52, 0.04, yaw=0.3)
+            s = state(cell, body)
+            plan = plan_grasp(s.position[0], s.position[1], s.top - cfg.workspace.table_z, 0.3 + math.pi / 2, cfg)
+            assert any(isinstance(st, MoveL) and st.blend > 0 for st in plan.steps) is (blend > 0)
+            result = cell.execute(check_plan(plan, cfg))
+            assert result.completed, result.failure
+            assert grasp_reward(result.widths[0], cfg.gripper) == 1.0, "held at home"
+            home = np.asarray(cfg.robot.home.position)
+            assert np.linalg.norm(cell._tcp()[:3, 3] - home) < 0.002
+            durations[blend] = result.duration
+        finally:
+            cell.close()
+    assert durations[0.03] < durations[0.0] - 0.1

@@ -134,16 +134,16 @@ class RobotConfig:
                                     "left its neighbours (0 = the whole lift at approach_speed)")
     contact_clearance: float = param(
         0.0, unit="m", ge=0.0, le=0.10,
-        help="a grasp's slow descent starts, and its slow lift ends, this far above the highest point the heightmap "
-             "shows within robot.contact_radius of the grasp, where no finger or lifted object can touch anything "
-             "(never higher than robot.approach_height over the grasp point; 0 = the whole approach_height slow)")
+        help="a grasp's slow lift ends once the object has risen this far above the highest point the heightmap "
+             "shows within robot.contact_radius of the grasp, where it can touch nothing (never higher than "
+             "robot.approach_height over the grasp point; 0 = slow up to the approach height); with raise_speed")
     contact_radius: float = param(0.08, unit="m", gt=0.0, le=0.20,
                                   help="how far around a grasp robot.contact_clearance looks for the highest point")
     blend_radius: float = param(
         0.0, unit="m", ge=0.0,
         help="free moves of a plan run into each other through a corner of this radius instead of stopping at each "
-             "pose: a grasp's lift into its raise and the raise into home, a push's or shift's retreat into home "
-             "(0 = stop at every pose); <= safety.max_blend_radius")
+             "pose: a grasp's raise into home, a push's or shift's retreat into home (0 = stop at every pose); "
+             "<= safety.max_blend_radius")
     grasp_centring: float = param(
         0.0, unit="m", ge=0.0, le=0.05,
         help="a grasp moves along the finger pads towards the middle of the top surface it was chosen on, by at most "

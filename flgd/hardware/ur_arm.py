@@ -34,7 +34,9 @@ Recovery sequence (:meth:`URArm.recover`), in this order:
   5. confirm the safety mode is NORMAL;
   6. open the RTDE control (and IO) interfaces if they are not open;
   7. re-upload the control script if it is not running, and confirm it runs;
-  8. set the TCP again (a new script starts with the installation's TCP).
+  8. read the installation's TCP if the script was re-uploaded (a blended path
+     runs in a fresh script, which starts with it), then set the TCP again (a
+     new script starts with the installation's TCP).
 Moving home is the cell's job (a checked ``plan_home``).  A pending stop
 request refuses recovery (before, during the protective-stop wait, and
 before the fault is cleared) with :class:`flgd.cell.StopPending`.
@@ -177,7 +179,7 @@ class URArm:
         self._stop_requested = threading.Event()
         self._fault: str | None = None
         self._protective_since: float | None = None
-        self.installation_tcp = list(self.tcp)   # read from the controller when the control interface opens
+        self.installation_tcp: list[float] | None = None   # read when a control script starts (_read_installation_tcp)
         self.control: Any = None
         self.receive: Any = None
         self.io: Any = None
@@ -252,15 +254,17 @@ class URArm:
 
     def _read_installation_tcp(self) -> None:
         """The TCP a freshly uploaded control script starts with (the pendant's installation), read before this
-        arm's is set: a path (``move_path``) runs in such a script."""
-        offset = self._call(self.control, "getTCPOffset")
+        arm's is set: a path (``move_path``) runs in such a script.  Unknown (None) when it cannot be read: paths
+        then run as single moves."""
+        self.installation_tcp = None
         try:
-            values = [float(v) for v in offset]
-        except (TypeError, ValueError):
-            values = []
-        if len(values) != 6 or not all(map(math.isfinite, values)):
-            self._latch(f"the controller reported an unusable TCP offset {offset!r}")
-        self.installation_tcp = values
+            values = [float(v) for v in self._call(self.control, "getTCPOffset")]
+        except (CellFault, TypeError, ValueError) as exc:
+            log.warning("UR %s: cannot read the installation's TCP (%s); blended paths run as single moves",
+                        self.host, exc)
+            return
+        if len(values) == 6 and all(map(math.isfinite, values)):
+            self.installation_tcp = values
 
     def close(self) -> None:
         """Stop the control script and drop every connection; safe to call twice."""
@@ -419,11 +423,17 @@ class URArm:
 
         ur_rtde runs a path by re-uploading its control script with the moves written into it, and a fresh
         script starts with the installation's TCP: the poses are sent for that TCP (read when the control
-        interface opened) and this arm's TCP is set again once the path has ended."""
+        interface opened; a script running another TCP halts the path and latches a fault) and this arm's TCP is
+        set again once the path has ended.  With that TCP unknown the poses are run as single moves."""
         what = f"path '{label}'" if label else "path"
         targets = [[float(v) for v in pose] for pose in poses]
         if not targets or any(len(t) != 6 or not all(map(math.isfinite, t)) for t in targets):
             raise PoseUnreachable(f"{what}: targets {poses!r} are not poses of six finite numbers")
+        installation = self.installation_tcp
+        if installation is None:
+            for target, v, acc in zip(targets, speeds, accelerations):
+                self.move_linear(target, v, acc, label)
+            return
         if self._stop_requested.is_set():
             raise MotionStopped(f"{what}: stop requested")
         self.check()
@@ -436,7 +446,7 @@ class URArm:
         timeout = MOVE_TIMEOUT_MARGIN + 2.0 * sum(
             move_duration(pose_error(a, b)[0], v, acc)
             for a, b, v, acc in zip([here] + targets[:-1], targets, speeds, accelerations))
-        path = [for_tcp(t, self.tcp, self.installation_tcp) + [float(v), float(acc), float(r)]
+        path = [for_tcp(t, self.tcp, installation) + [float(v), float(acc), float(r)]
                 for t, v, acc, r in zip(targets, speeds, accelerations, list(blends[:-1]) + [0.0])]
         with self._lock:
             if self._stop_requested.is_set():
@@ -444,7 +454,13 @@ class URArm:
             ok = self._call(self.control, "moveL", path, True)
         try:
             self._require(ok, f"moveL path ({what})")
-            self._wait_for_move(targets[-1], what, timeout, tcp=self.installation_tcp)
+            running = self._call(self.control, "getTCPOffset")
+            if pose_error(list(running), installation)[0] > 1e-6 or pose_error(list(running), installation)[1] > 1e-6:
+                self._halt()
+                self._latch(f"{what}: the path's script runs the TCP {np.round(running, 4).tolist()}, not the "
+                            f"installation's {np.round(installation, 4).tolist()} read before (changed on the "
+                            f"pendant?): halted")
+            self._wait_for_move(targets[-1], what, timeout, tcp=installation)
         finally:
             if self._fault is None and self.control is not None:
                 self._require(self._call(self.control, "setTcp", list(self.tcp)), "setTcp after a path")

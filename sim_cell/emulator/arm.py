@@ -547,6 +547,7 @@ class EmulatedArm:
             if self.can_move():
                 raise Refused(f"cannot start a program: {self.can_move()}")
             self.runtime_state = RuntimeState.PLAYING
+            self.tcp = list(self.installation_tcp)   # a fresh program starts with the installation's TCP
 
     def play(self) -> None:
         self.start_program()

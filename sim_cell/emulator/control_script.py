@@ -68,13 +68,13 @@ class ControlScript:
               path: list[tuple[list[float], float, float, float]] | None = None) -> bool:
         """The script was uploaded: the program runs if the arm lets it (False: it did not start).  ``path``: the
         blended moves written into it (pose, speed, acceleration, radius), run by a MOVE_PATH command."""
+        self.path = list(path or [])
         try:
             self.arm.start_program()
         except Refused as exc:
             log.warning("control script not started: %s", exc)
             return False
         self.offset = int(register_offset)
-        self.path = list(path or [])
         self._waiting_for_motion = False
         self._async_running = False
         # ur_rtde's stopScript leaves STOP_SCRIPT in the command register and its clear reaches RTDE on another
