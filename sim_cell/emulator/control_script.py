@@ -24,6 +24,7 @@ program, as a URScript runtime error does on a robot.
 from __future__ import annotations
 
 import logging
+from typing import Callable
 
 import numpy as np
 
@@ -145,39 +146,35 @@ class ControlScript:
             if self._execute(cmd) and arm.program_running and not self._waiting_for_motion:
                 self._set_status(DONE)
 
+    @staticmethod
+    def _no_path() -> None:
+        raise Refused("move_path: the running script carries no path")
+
+    def _start_motion(self, start: Callable[[], None]) -> bool:
+        """Start a move (``start`` raises Refused when the arm refuses it: the program stops, as on a robot);
+        asynchronous (the command's flag) it reports progress, else the command is done when the arm is still."""
+        try:
+            start()
+        except Refused as exc:
+            log.warning("control script: %s; the program stops", exc)
+            self.arm.stop_program()
+            return False
+        if self._in_int(1) == 1:
+            self._async_running = True
+            self._write_progress(running=True)
+        else:
+            self._waiting_for_motion = True
+        return True
+
     def _execute(self, cmd: int) -> bool:
         """Carry out one command; False when it ended the program (nothing more to signal)."""
         arm = self.arm
         if cmd == Command.MOVEL:
             values = self._in_doubles(8)
-            asynchronous = self._in_int(1) == 1
-            try:
-                arm.move_linear(values[:6], values[6], values[7])
-            except Refused as exc:
-                log.warning("control script: %s; the program stops", exc)
-                arm.stop_program()
-                return False
-            if asynchronous:
-                self._async_running = True
-                self._write_progress(running=True)
-            else:
-                self._waiting_for_motion = True
-        elif cmd == Command.MOVE_PATH:
-            asynchronous = self._in_int(1) == 1
-            try:
-                if not self.path:
-                    raise Refused("move_path: the running script carries no path")
-                arm.move_path(self.path)
-            except Refused as exc:
-                log.warning("control script: %s; the program stops", exc)
-                arm.stop_program()
-                return False
-            if asynchronous:
-                self._async_running = True
-                self._write_progress(running=True)
-            else:
-                self._waiting_for_motion = True
-        elif cmd in (Command.STOPL, Command.STOPJ, Command.SPEED_STOP):
+            return self._start_motion(lambda: arm.move_linear(values[:6], values[6], values[7]))
+        if cmd == Command.MOVE_PATH:
+            return self._start_motion(lambda: arm.move_path(self.path) if self.path else self._no_path())
+        if cmd in (Command.STOPL, Command.STOPJ, Command.SPEED_STOP):
             deceleration = self._in_doubles(1)[0] or Command.DEFAULT_DECELERATION
             arm.stop_linear(deceleration)
             self._waiting_for_motion = not (cmd in (Command.STOPL, Command.STOPJ) and self._in_int(1) == 1)
