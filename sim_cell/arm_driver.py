@@ -56,7 +56,7 @@ import numpy as np
 import pybullet as p
 
 from flgd.config import CellConfig
-from sim_cell import free_space, motion, objects
+from sim_cell import free_space, motion, objects, path_motion
 from sim_cell.gripper_contacts import GripperContacts
 from sim_cell.robot import FINGER_SPEED
 from sim_cell.stability import Unstable
@@ -113,7 +113,7 @@ class ArmDriver:
 
     def plan_lines(self, steps, first: int = 0) -> dict[int, motion.Trajectory]:
         """IK for every MoveL of the plan (from step ``first``) before anything moves."""
-        return motion.plan_lines(steps, self._robot.joints(), self.tcp(), CONTROL_SUBSTEPS * self._dt,
+        return path_motion.plan_lines(steps, self._robot.joints(), self.tcp(), CONTROL_SUBSTEPS * self._dt,
                                  self._tcp_offset, first)
 
     def in_gripper(self) -> set[int]:

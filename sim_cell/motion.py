@@ -17,11 +17,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from flgd.geometry import matrix_to_rotvec, pose_matrix
-from flgd.plans import blended_runs
+from flgd.geometry import matrix_to_rotvec
 from sim_cell import kinematics
 
-__all__ = ["Trajectory", "Unreachable", "trapezoid_duration", "trapezoid_fraction", "plan_line", "plan_lines",
+__all__ = ["Trajectory", "Unreachable", "trapezoid_duration", "trapezoid_fraction", "plan_line",
            "raised_joints", "tcp_to_flange", "flange_to_tcp", "line_profile", "joint_speed_scale", "JOINT_SPEED_LIMIT",
            "solve_poses"]
 
@@ -187,35 +186,6 @@ def solve_poses(q_start: np.ndarray, poses: np.ndarray, tick: float, tcp_offset:
             raise Unreachable(f"the straight line passes a singularity near {where} "
                               f"(joint jump {steps[i]:.2f} rad in one tick)")
     return Trajectory(joints=joints, tcp=poses, tick=tick, speed_scale=scale)
-
-
-def plan_lines(steps, q: np.ndarray, pose: np.ndarray, tick: float, tcp_offset: np.ndarray,
-               first: int = 0) -> dict[int, Trajectory]:
-    """Every MoveL of a plan (from step ``first``) as a line, starting at joints ``q`` and TCP ``pose``,
-    keyed by step index; a blended run (``flgd.plans.blended_runs``) as one path cut at its moves' poses
-    (``sim_cell.path_motion``).  Raises Unreachable naming the step."""
-    from sim_cell.path_motion import plan_path
-
-    out = {}
-    for a, b in blended_runs(tuple(steps)):
-        if b < first:
-            continue
-        a = max(a, first)
-        moves = steps[a:b + 1]
-        goals = [pose_matrix(m.pose.position, m.pose.matrix) for m in moves]
-        try:
-            if b == a:
-                parts = [plan_line(q, pose, goals[0], moves[0].speed, moves[0].acceleration, tick, tcp_offset)]
-            else:
-                parts = plan_path(q, pose, goals, [m.speed for m in moves], [m.acceleration for m in moves],
-                                  [m.blend for m in moves], tick, tcp_offset)
-        except Unreachable as exc:
-            what = " to ".join(dict.fromkeys(m.label or "move" for m in moves))
-            raise Unreachable(f"step {a} ({what}): {exc}") from None
-        for i, traj in zip(range(a, b + 1), parts):
-            out[i] = traj
-        q, pose = parts[-1].joints[-1], goals[-1]
-    return out
 
 
 def raised_joints(traj: Trajectory, i: int, rise: float, tcp_offset: np.ndarray) -> np.ndarray:

@@ -17,10 +17,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from flgd.blending import corner_curve
-from flgd.geometry import matrix_to_rotvec
+from flgd.geometry import matrix_to_rotvec, pose_matrix
+from flgd.plans import blended_runs
 from sim_cell import motion
 
-__all__ = ["PathProfile", "plan_path", "SAMPLE_STEP"]
+__all__ = ["PathProfile", "plan_path", "plan_lines", "SAMPLE_STEP"]
 
 SAMPLE_STEP = 0.001   # m between samples of a straight line
 CORNER_POINTS = 24    # samples of one blended corner
@@ -186,3 +187,30 @@ def _solve(q_start: np.ndarray, profile: PathProfile, tick: float, tcp_offset: n
     cuts = [int(np.searchsorted(at, times[i] - 1e-9)) for i in profile.passes]
     cuts[-1] = ticks
     return motion.solve_poses(q_start, poses, tick, tcp_offset, scale), cuts
+
+
+def plan_lines(steps, q: np.ndarray, pose: np.ndarray, tick: float, tcp_offset: np.ndarray,
+               first: int = 0) -> dict[int, motion.Trajectory]:
+    """Every MoveL of a plan (from step ``first``) as a line, starting at joints ``q`` and TCP ``pose``,
+    keyed by step index; a blended run (``flgd.plans.blended_runs``) as one path cut at its moves' poses
+    (``plan_path``).  Raises motion.Unreachable naming the step."""
+    out = {}
+    for a, b in blended_runs(tuple(steps)):
+        if b < first:
+            continue
+        a = max(a, first)
+        moves = steps[a:b + 1]
+        goals = [pose_matrix(m.pose.position, m.pose.matrix) for m in moves]
+        try:
+            if b == a:
+                parts = [motion.plan_line(q, pose, goals[0], moves[0].speed, moves[0].acceleration, tick, tcp_offset)]
+            else:
+                parts = plan_path(q, pose, goals, [m.speed for m in moves], [m.acceleration for m in moves],
+                                  [m.blend for m in moves], tick, tcp_offset)
+        except motion.Unreachable as exc:
+            what = " to ".join(dict.fromkeys(m.label or "move" for m in moves))
+            raise motion.Unreachable(f"step {a} ({what}): {exc}") from None
+        for i, traj in zip(range(a, b + 1), parts):
+            out[i] = traj
+        q, pose = parts[-1].joints[-1], goals[-1]
+    return out

@@ -11,7 +11,7 @@ from flgd.config import load_config
 from flgd.geometry import pose_matrix
 from flgd.plans import MoveL, plan_grasp
 from sim_cell import kinematics, motion
-from sim_cell.path_motion import PathProfile
+from sim_cell.path_motion import PathProfile, plan_lines
 from sim_cell.robot import READY_JOINTS
 from tests.fakes.realsense import SIM_CONFIG
 
@@ -30,7 +30,7 @@ def _lines(steps) -> dict[int, motion.Trajectory]:
     d = [s.label for s in steps].index("descend")
     start = pose_matrix(steps[d].pose.position, steps[d].pose.matrix)
     q = kinematics.nearest_solution(kinematics.inverse(motion.tcp_to_flange(start, OFFSET)), READY_JOINTS)
-    return motion.plan_lines(steps, q, start, TICK, OFFSET, first=d + 1)
+    return plan_lines(steps, q, start, TICK, OFFSET, first=d + 1)
 
 
 def _tcp_speeds(parts: list[motion.Trajectory]) -> np.ndarray:
