@@ -18,9 +18,9 @@ import multiprocessing
 import signal
 import threading
 from multiprocessing.connection import Connection
-from typing import Any
+from typing import Any, Protocol
 
-__all__ = ["IsolatedRTDEFactory", "RemoteInterface", "RTDEProcessLost", "RTDECallInProgress", "Snapshot",
+__all__ = ["RTDEFactory", "IsolatedRTDEFactory", "RemoteInterface", "RTDEProcessLost", "RTDECallInProgress", "Snapshot",
            "CALL_TIMEOUT", "OPEN_TIMEOUT"]
 
 CALL_TIMEOUT = 20.0   # s a call may take (the dashboard's own timeout is 2 s; asynchronous moves return at once)
@@ -29,6 +29,19 @@ OPEN_TIMEOUT = 30.0   # s to open an interface (the control interface uploads it
 _PR_SET_PDEATHSIG = 1
 _CLASSES = {"control": ("rtde_control", "RTDEControlInterface"), "receive": ("rtde_receive", "RTDEReceiveInterface"),
             "io": ("rtde_io", "RTDEIOInterface"), "dashboard": ("dashboard_client", "DashboardClient")}
+
+
+class RTDEFactory(Protocol):
+    """Builds the four ur_rtde interfaces (``rtde_process.IsolatedRTDEFactory``: in a child process); tests pass a
+    fake with the same methods."""
+
+    def control(self, host: str) -> Any: ...
+
+    def receive(self, host: str) -> Any: ...
+
+    def io(self, host: str) -> Any: ...
+
+    def dashboard(self, host: str) -> Any: ...
 
 
 class RTDEProcessLost(RuntimeError):

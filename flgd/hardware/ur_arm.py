@@ -49,16 +49,18 @@ import logging
 import math
 import threading
 import time
-from typing import Any, Callable, Protocol, Sequence
+from typing import Any, Callable, NoReturn, Sequence
 
 import numpy as np
 
 from flgd.cell import CellFault, StopPending
-from flgd.geometry import matrix_to_rotvec, rotvec_to_matrix
+from flgd.hardware.rtde_process import IsolatedRTDEFactory, RTDEFactory
+from flgd.hardware.ur_modes import (EMERGENCY, NEEDS_A_PERSON, NORMAL, PROTECTIVE, REDUCED, ROBOT_MODES,
+                                    ROBOT_RUNNING, SAFETY_MODES)
+from flgd.hardware.ur_poses import for_tcp, move_duration, pose_error
 
 __all__ = [
     "URArm",
-    "for_tcp",
     "RTDEFactory",
     "PoseUnreachable",
     "MotionStopped",
@@ -67,28 +69,6 @@ __all__ = [
 ]
 
 log = logging.getLogger(__name__)
-
-# RTDE safety_mode values (UR RTDE guide; same numbers as the primary interface).
-SAFETY_MODES = {
-    1: "NORMAL", 2: "REDUCED", 3: "PROTECTIVE_STOP", 4: "RECOVERY", 5: "SAFEGUARD_STOP",
-    6: "SYSTEM_EMERGENCY_STOP", 7: "ROBOT_EMERGENCY_STOP", 8: "VIOLATION", 9: "FAULT",
-    10: "VALIDATE_JOINT_ID", 11: "UNDEFINED_SAFETY_MODE", 12: "AUTOMATIC_MODE_SAFEGUARD_STOP",
-    13: "SYSTEM_THREE_POSITION_ENABLING_STOP",
-}
-_NORMAL, _REDUCED, _PROTECTIVE = 1, 2, 3
-_EMERGENCY = {6, 7}
-_NEEDS_A_PERSON = {
-    4: "the arm is in RECOVERY mode (a joint is outside its limits): move it back on the pendant",
-    5: "a safeguard stop is active (safety input open: door, light curtain?)",
-    8: "the safety system reports a VIOLATION: inspect the cell and restart safety on the pendant",
-    9: "the safety system reports a FAULT: inspect the cell and restart safety on the pendant",
-    12: "an automatic-mode safeguard stop is active",
-    13: "the three-position enabling device stopped the arm",
-}
-# RTDE robot_mode values.
-ROBOT_MODES = {-1: "NO_CONTROLLER", 0: "DISCONNECTED", 1: "CONFIRM_SAFETY", 2: "BOOTING", 3: "POWER_OFF",
-               4: "POWER_ON", 5: "IDLE", 6: "BACKDRIVE", 7: "RUNNING", 8: "UPDATING_FIRMWARE"}
-_ROBOT_RUNNING = 7
 
 PROTECTIVE_STOP_UNLOCK_DELAY = 5.0  # s; the controller refuses "unlock protective stop" sooner
 _UNLOCK_MARGIN = 0.2                # s on top of it, for clock differences with the controller
@@ -112,50 +92,6 @@ class MotionStopped(Exception):
     """A move was halted on request (``stop_motion``)."""
 
 
-class RTDEFactory(Protocol):
-    """Builds the four ur_rtde interfaces (``rtde_process.IsolatedRTDEFactory``: in a child process); tests pass a
-    fake with the same methods."""
-
-    def control(self, host: str) -> Any: ...
-
-    def receive(self, host: str) -> Any: ...
-
-    def io(self, host: str) -> Any: ...
-
-    def dashboard(self, host: str) -> Any: ...
-
-
-def pose_error(actual: Sequence[float], target: Sequence[float]) -> tuple[float, float]:
-    """(position error m, rotation error rad) between two UR poses [x, y, z, rx, ry, rz]."""
-    dp = float(np.linalg.norm(np.asarray(actual[:3], float) - np.asarray(target[:3], float)))
-    r = rotvec_to_matrix(actual[3:6]).T @ rotvec_to_matrix(target[3:6])
-    angle = math.acos(max(-1.0, min(1.0, (float(np.trace(r)) - 1.0) / 2.0)))
-    return dp, angle
-
-
-def move_duration(distance: float, speed: float, acceleration: float) -> float:
-    """Time of a trapezoidal (or triangular) speed profile over ``distance``."""
-    if distance <= 0:
-        return 0.0
-    ramp = speed * speed / acceleration
-    if distance < ramp:
-        return 2.0 * math.sqrt(distance / acceleration)
-    return distance / speed + speed / acceleration
-
-
-def for_tcp(pose: Sequence[float], tcp: Sequence[float], other: Sequence[float]) -> list[float]:
-    """``pose`` of the TCP ``tcp`` (both [x, y, z, rx, ry, rz], the TCP in the flange frame) expressed as the pose
-    of the TCP ``other`` on the same flange."""
-    def matrix(v: Sequence[float]) -> np.ndarray:
-        out = np.eye(4)
-        out[:3, :3] = rotvec_to_matrix(np.asarray(v[3:6], dtype=float))
-        out[:3, 3] = np.asarray(v[:3], dtype=float)
-        return out
-
-    m = matrix(pose) @ np.linalg.inv(matrix(tcp)) @ matrix(other)
-    return [float(v) for v in m[:3, 3]] + [float(v) for v in matrix_to_rotvec(m[:3, :3])]
-
-
 class URArm:
     """One UR arm: connections, checked moves, fault latch, recovery."""
 
@@ -167,8 +103,6 @@ class URArm:
         self.host = host
         self.tcp = [float(v) for v in tcp_offset] + [0.0, 0.0, 0.0]
         if factory is None:
-            from flgd.hardware.rtde_process import IsolatedRTDEFactory
-
             factory = IsolatedRTDEFactory()
         self._factory = factory
         self._use_io = use_io
@@ -203,7 +137,7 @@ class URArm:
             detail = f" ({reason})" if reason else ""
             self._latch(f"{what} returned {ok!r}{detail}")
 
-    def _latch(self, reason: str) -> None:
+    def _latch(self, reason: str) -> NoReturn:
         self._fault = self._fault or reason
         raise CellFault(f"UR {self.host}: {reason}; no further motion until recovery (flgctl reset)")
 
@@ -295,12 +229,12 @@ class URArm:
                     self._protective_since = self._clock()
                 return "protective stop"
             mode = int(self._call(rcv, "getSafetyMode"))
-            if mode == _PROTECTIVE and self._protective_since is None:
+            if mode == PROTECTIVE and self._protective_since is None:
                 self._protective_since = self._clock()
-            if mode not in (_NORMAL, _REDUCED):
+            if mode not in (NORMAL, REDUCED):
                 return f"safety mode {SAFETY_MODES.get(mode, mode)}"
             robot_mode = int(self._call(rcv, "getRobotMode"))
-            if robot_mode != _ROBOT_RUNNING:
+            if robot_mode != ROBOT_RUNNING:
                 return (f"robot mode {ROBOT_MODES.get(robot_mode, robot_mode)} (expected RUNNING: power on and "
                         f"release the brakes on the pendant)")
         except CellFault as exc:
@@ -392,28 +326,39 @@ class URArm:
         CellFault (latched).
         """
         what = f"move '{label}'" if label else "move"
-        target = [float(v) for v in pose]
-        if len(target) != 6 or not all(map(math.isfinite, target)):
-            raise PoseUnreachable(f"{what}: target {pose!r} is not six finite numbers")
-        if self._stop_requested.is_set():
-            raise MotionStopped(f"{what}: stop requested")
-        self.check()
-        if self._call(self.control, "isPoseWithinSafetyLimits", target) is not True:
-            self.check()  # a dropped link also answers False
-            raise PoseUnreachable(f"{what}: the controller reports {np.round(target, 4).tolist()} outside its "
-                                  f"safety limits or reach")
-        start_pose = self.tcp_pose()
-        distance = pose_error(start_pose, target)[0]
-        timeout = 2.0 * move_duration(distance, speed, acceleration) + MOVE_TIMEOUT_MARGIN
+        [target], timeout = self._checked_targets([pose], [speed], [acceleration], what)
         guard = None
         if stop_force > 0.0:
             guard = (self._tcp_force(), float(stop_force))
-        with self._lock:  # see stop_motion: a stop now either refuses this move or halts it after it was sent
+        self._require(self._send(what, target, float(speed), float(acceleration), True), f"moveL ({what})")
+        return self._wait_for_move(target, what, timeout, guard)
+
+    def _checked_targets(self, poses: Sequence[Sequence[float]], speeds: Sequence[float],
+                         accelerations: Sequence[float], what: str) -> tuple[list[list[float]], float]:
+        """The targets as floats, each one the controller accepts, and the time limit of the moves through them
+        from here; raises PoseUnreachable (nothing sent), MotionStopped or CellFault first."""
+        targets = [[float(v) for v in pose] for pose in poses]
+        if not targets or any(len(t) != 6 or not all(map(math.isfinite, t)) for t in targets):
+            raise PoseUnreachable(f"{what}: target {poses!r} is not poses of six finite numbers")
+        if self._stop_requested.is_set():
+            raise MotionStopped(f"{what}: stop requested")
+        self.check()
+        for target in targets:
+            if self._call(self.control, "isPoseWithinSafetyLimits", target) is not True:
+                self.check()  # a dropped link also answers False
+                raise PoseUnreachable(f"{what}: the controller reports {np.round(target, 4).tolist()} outside its "
+                                      f"safety limits or reach")
+        legs = zip([self.tcp_pose()] + targets[:-1], targets, speeds, accelerations)
+        return targets, MOVE_TIMEOUT_MARGIN + 2.0 * sum(move_duration(pose_error(a, b)[0], v, acc)
+                                                          for a, b, v, acc in legs)
+
+    def _send(self, what: str, *args: Any) -> Any:
+        """ur_rtde's ``moveL(*args)``, unless a stop was requested (see stop_motion: a stop now either refuses
+        this move or halts it after it was sent)."""
+        with self._lock:
             if self._stop_requested.is_set():
                 raise MotionStopped(f"{what}: stop requested")
-            ok = self._call(self.control, "moveL", target, float(speed), float(acceleration), True)
-        self._require(ok, f"moveL ({what})")
-        return self._wait_for_move(target, what, timeout, guard)
+            return self._call(self.control, "moveL", *args)
 
     def move_path(self, poses: Sequence[Sequence[float]], speeds: Sequence[float], accelerations: Sequence[float],
                   blends: Sequence[float], label: str = "") -> None:
@@ -426,40 +371,26 @@ class URArm:
         interface opened; a script running another TCP halts the path and latches a fault) and this arm's TCP is
         set again once the path has ended.  With that TCP unknown the poses are run as single moves."""
         what = f"path '{label}'" if label else "path"
-        targets = [[float(v) for v in pose] for pose in poses]
-        if not targets or any(len(t) != 6 or not all(map(math.isfinite, t)) for t in targets):
-            raise PoseUnreachable(f"{what}: targets {poses!r} are not poses of six finite numbers")
         installation = self.installation_tcp
         if installation is None:
-            for target, v, acc in zip(targets, speeds, accelerations):
+            for target, v, acc in zip(poses, speeds, accelerations):
                 self.move_linear(target, v, acc, label)
             return
-        if self._stop_requested.is_set():
-            raise MotionStopped(f"{what}: stop requested")
-        self.check()
-        for target in targets:
-            if self._call(self.control, "isPoseWithinSafetyLimits", target) is not True:
-                self.check()
-                raise PoseUnreachable(f"{what}: the controller reports {np.round(target, 4).tolist()} outside its "
-                                      f"safety limits or reach")
-        here = self.tcp_pose()
-        timeout = MOVE_TIMEOUT_MARGIN + 2.0 * sum(
-            move_duration(pose_error(a, b)[0], v, acc)
-            for a, b, v, acc in zip([here] + targets[:-1], targets, speeds, accelerations))
+        targets, timeout = self._checked_targets(poses, speeds, accelerations, what)
         path = [for_tcp(t, self.tcp, installation) + [float(v), float(acc), float(r)]
                 for t, v, acc, r in zip(targets, speeds, accelerations, list(blends[:-1]) + [0.0])]
-        with self._lock:
-            if self._stop_requested.is_set():
-                raise MotionStopped(f"{what}: stop requested")
-            ok = self._call(self.control, "moveL", path, True)
+        ok = self._send(what, path, True)
         try:
             self._require(ok, f"moveL path ({what})")
             running = self._call(self.control, "getTCPOffset")
-            if pose_error(list(running), installation)[0] > 1e-6 or pose_error(list(running), installation)[1] > 1e-6:
+            try:
+                offset = max(pose_error([float(v) for v in running], installation))
+            except (TypeError, ValueError, IndexError):
+                offset = math.inf
+            if not offset <= 1e-6:
                 self._halt()
-                self._latch(f"{what}: the path's script runs the TCP {np.round(running, 4).tolist()}, not the "
-                            f"installation's {np.round(installation, 4).tolist()} read before (changed on the "
-                            f"pendant?): halted")
+                self._latch(f"{what}: the path's script runs the TCP {running!r}, not the installation's "
+                            f"{np.round(installation, 4).tolist()} read before (changed on the pendant?): halted")
             self._wait_for_move(targets[-1], what, timeout, tcp=installation)
         finally:
             if self._fault is None and self.control is not None:
@@ -487,19 +418,12 @@ class URArm:
 
     def controller_time(self) -> float:
         """The controller's own clock (RTDE ``timestamp``, s): a move's time limits are counted on it, so that a
-        controller that runs slower than the wall clock (an emulator on a busy PC) is judged by its own time."""
-        try:
-            stamp = self._call(self.receive, "getTimestamp")
-        except CellFault as exc:   # a lost link during a move: the move must not go on unwatched
+        controller that runs slower than the wall clock (an emulator on a busy PC) is judged by its own time.
+        Unreadable (a lost link during a move: the move must not go on unwatched): halt and latch."""
+        value = self.controller_time_or_none()
+        if value is None:
             self._halt()
-            self._latch(f"cannot read the controller's clock: {exc}")
-        try:
-            value = float(stamp)
-        except (TypeError, ValueError):
-            value = math.nan
-        if not math.isfinite(value):
-            self._halt()
-            self._latch(f"the controller reported an unusable timestamp {stamp!r}")
+            self._latch("cannot read the controller's clock (lost link, or an unusable timestamp)")
         return value
 
     def controller_time_or_none(self) -> float | None:
@@ -586,14 +510,14 @@ class URArm:
                 raise CellFault(f"UR {self.host}: emergency stop engaged: release it at the cell and "
                                 f"reset again (recovery refused)")
             mode = int(self._call(self.receive, "getSafetyMode"))
-            if mode in _EMERGENCY:
+            if mode in EMERGENCY:
                 raise CellFault(f"UR {self.host}: safety mode {SAFETY_MODES[mode]}: release the emergency stop "
                                 f"and reset again (recovery refused)")
-            if mode in _NEEDS_A_PERSON:
-                raise CellFault(f"UR {self.host}: {_NEEDS_A_PERSON[mode]} (recovery refused)")
+            if mode in NEEDS_A_PERSON:
+                raise CellFault(f"UR {self.host}: {NEEDS_A_PERSON[mode]} (recovery refused)")
             if not self._call(self.dashboard, "isConnected"):
                 self._call(self.dashboard, "connect", DASHBOARD_TIMEOUT_MS)
-            if mode == _PROTECTIVE or self._call(self.receive, "isProtectiveStopped"):
+            if mode == PROTECTIVE or self._call(self.receive, "isProtectiveStopped"):
                 if self._protective_since is None:
                     self._protective_since = self._clock()
                 self._wait_for_unlock()
@@ -603,12 +527,12 @@ class URArm:
                     raise CellFault(f"UR {self.host}: the dashboard refused to unlock the protective stop: "
                                     f"{exc}") from exc
             self._call(self.dashboard, "closeSafetyPopup")
-            self._confirm(lambda: int(self._call(self.receive, "getSafetyMode")) == _NORMAL,
+            self._confirm(lambda: int(self._call(self.receive, "getSafetyMode")) == NORMAL,
                           lambda: f"safety mode is "
                                   f"{SAFETY_MODES.get(int(self._call(self.receive, 'getSafetyMode')))}, "
                                   f"expected NORMAL after recovery")
             robot_mode = int(self._call(self.receive, "getRobotMode"))
-            if robot_mode != _ROBOT_RUNNING:
+            if robot_mode != ROBOT_RUNNING:
                 raise CellFault(f"UR {self.host}: robot mode {ROBOT_MODES.get(robot_mode, robot_mode)}: power on "
                                 f"and release the brakes on the pendant, then reset again")
             if self.control is None:
