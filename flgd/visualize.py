@@ -93,7 +93,7 @@ def greedy_action(q_maps: np.ndarray, grasp_mask: np.ndarray, move_mask: np.ndar
                   height: np.ndarray, shift_height: float) -> Action:
     """The best masked action (used to draw a picture when nothing was decided yet)."""
     q = np.asarray(q_maps, dtype=np.float32).copy()
-    q[:, 0][:, grasp_mask == 0] = -np.inf
+    q[:, 0][np.broadcast_to(grasp_mask, q.shape[:1] + q.shape[2:]) == 0] = -np.inf   # [H,W] or per rotation
     q[:, 1][:, move_mask == 0] = -np.inf
     rot, ch, row, col = (int(v) for v in np.unravel_index(int(np.argmax(q)), q.shape))
     prim = "grasp" if ch == 0 else move_kind_at(float(height[row, col]), shift_height)
@@ -167,7 +167,10 @@ def _draw_action(img: np.ndarray, action: Action, centre: tuple[int, int], scale
 
 def _q_range(q: np.ndarray, mask: np.ndarray) -> tuple[float, float]:
     r = q.shape[0]
-    values = q[:, mask > 0] if mask.any() else q.reshape(r, -1)
+    if mask.ndim == 3:   # per rotation
+        values = q[mask > 0] if mask.any() else q.reshape(r, -1)
+    else:
+        values = q[:, mask > 0] if mask.any() else q.reshape(r, -1)
     values = values[np.isfinite(values)]
     return (float(values.min()), float(values.max())) if values.size else (0.0, 1.0)
 
@@ -178,10 +181,11 @@ def _grid(q: np.ndarray, mask: np.ndarray, base: np.ndarray, q_range: tuple[floa
     side = int(math.ceil(math.sqrt(r)))
     lo, hi = q_range
     small_base = cv2.resize(base, (tile, tile), interpolation=cv2.INTER_AREA)
-    small_mask = cv2.resize(mask.astype(np.uint8), (tile, tile), interpolation=cv2.INTER_NEAREST)
+    masks = mask if mask.ndim == 3 else np.broadcast_to(mask, q.shape)   # [H,W] or per rotation
     out = np.zeros((side * tile, side * tile, 3), dtype=np.uint8)
     for i in range(r):
         qi = cv2.resize(q[i].astype(np.float32), (tile, tile), interpolation=cv2.INTER_AREA)
+        small_mask = cv2.resize(masks[i].astype(np.uint8), (tile, tile), interpolation=cv2.INTER_NEAREST)
         cell = _heat(qi, lo, hi, small_mask, small_base)
         cell[:19] = (cell[:19].astype(np.uint16) * 2 // 5).astype(np.uint8)  # dark strip under the label
         _text(cell, f"{title} {i}  {360.0 * i / r:.1f} deg", (4, 14))
@@ -257,7 +261,8 @@ def qmap_figure(color: np.ndarray, height: np.ndarray, q_maps: np.ndarray, grasp
         _text(hpic, f"no reading: {n_unknown} px", (4, tile - 6))
     held = None if suppressed is None or np.shape(suppressed) != (h, w) else np.asarray(suppressed) > 0
     mask_pics = []
-    for name, m in (("grasp mask", masks[0]), ("move mask", masks[1])):
+    for name, m in (("grasp mask", masks[0].max(axis=0) if masks[0].ndim == 3 else masks[0]),
+                    ("move mask", masks[1])):
         grey = np.where(np.asarray(m) > 0, np.uint8(200), np.uint8(30)).astype(np.uint8)
         small = cv2.cvtColor(grey, cv2.COLOR_GRAY2BGR)
         if held is not None and held.any():

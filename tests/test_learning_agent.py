@@ -27,8 +27,9 @@ def one_thread():
 
 
 def config(**exploration) -> CellConfig:
-    """Exploration off unless a test turns it on: no epsilon, no curriculum."""
-    base = dict(epsilon_start=0.0, epsilon_end=0.0, curriculum_steps=0)
+    """Exploration off unless a test turns it on: no epsilon, no curriculum; every grasp rotation allowed (a
+    32 px test map is narrower than the open gripper: tests/test_grasp_view.py covers that rule)."""
+    base = dict(epsilon_start=0.0, epsilon_end=0.0, curriculum_steps=0, grasp_in_view=False)
     base.update(exploration)
     cfg = CellConfig()
     return dataclasses.replace(cfg, exploration=dataclasses.replace(cfg.exploration, **base))

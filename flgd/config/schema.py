@@ -218,6 +218,9 @@ class ExplorationConfig:
                                                help="chance a chosen move is kept during the curriculum")
     masks: bool = param(True, help="use the grasp/move masks (false = DPEN ablation)")
     grasp_only: bool = param(False, help="never choose a move (paper's Grasping-only mode, Table II)")
+    grasp_in_view: bool = param(True, help="a grasp only at rotations whose open fingers come down inside the "
+                                           "heightmap: a finger beyond its edge lands where the camera has no "
+                                           "height (on an object pushed out of the workspace)")
     twin_grasps: bool = param(False, help="act on the mean of a grasp's two rotations (theta and theta + pi close "
                                           "the two-finger gripper the same way) instead of each alone")
     failure_memory: bool = param(True, help="remember, per scene, where a grasp failed and where a move changed "

@@ -71,7 +71,7 @@ import numpy as np
 import torch
 
 from flgd.actions import Action, Primitive, move_kind_at
-from flgd.clutter import action_masks, grasp_mask
+from flgd.clutter import cell_action_masks, grasp_mask
 from flgd.config import CellConfig
 from flgd.perception import Heightmaps
 
@@ -92,7 +92,7 @@ LADDER_REACH = 0.02
 class Decision:
     action: Action
     q_maps: np.ndarray  # float32 [R,2,H,W], heightmap frame
-    grasp_mask: np.ndarray  # uint8 [H,W] as applied (all ones without masks)
+    grasp_mask: np.ndarray  # uint8 [H,W], or [R,H,W] with exploration.grasp_in_view, as applied
     move_mask: np.ndarray
     q_value: float  # Q of the chosen action
     rule: str
@@ -145,9 +145,9 @@ def epsilon_at(step: int, exploration: ExplorationConfig) -> float:
 
 
 def masked_maps(q: np.ndarray, grasp: np.ndarray, move: np.ndarray) -> np.ndarray:
-    """Q [R,2,H,W] with -inf outside the grasp mask (channel 0) and the move mask (channel 1)."""
+    """Q [R,2,H,W] with -inf outside the grasp mask ([H,W] or [R,H,W]; channel 0) and the move mask (channel 1)."""
     out = np.array(q, dtype=np.float32, copy=True)
-    out[:, 0][:, grasp == 0] = -np.inf
+    out[:, 0][np.broadcast_to(grasp, out.shape[:1] + out.shape[2:]) == 0] = -np.inf   # [H,W] or per rotation
     out[:, 1][:, move == 0] = -np.inf
     return out
 
@@ -269,8 +269,7 @@ class Agent:
 
     def masks(self, height: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(rho_g, rho_m) for ``height``; all ones for the DPEN ablation (object presence still checked)."""
-        return action_masks(height, self.config.rewards, self.config.exploration.masks,
-                            self.config.workspace.resolution)
+        return cell_action_masks(height, self.config, self.rotations)
 
     def stuck_reason(self) -> str:
         """Why the cell should stop trying in this scene ('' = it should not): ``stuck_after`` actions without
@@ -317,14 +316,20 @@ class Agent:
             raise ValueError(f"q-maps: expected [{self.rotations},2,{height.shape[0]},{height.shape[1]}], "
                              f"got {list(q.shape)}")
         gmask, mmask = self.masks(height)
+        self._exhausted = ""
         if not gmask.any():
-            return None
+            if mmask.any():   # objects, but each grasp on them would put a finger beyond the heightmap
+                self._exhausted = ("every grasp on what the camera sees would bring a finger down beyond the "
+                                   "heightmap's edge") if ex.grasp_only else ""
+                if ex.grasp_only:
+                    return None
+            else:
+                return None
         masked = masked_maps(q, gmask, mmask)
         if ex.grasp_only:
             masked[:, 1] = -np.inf
         greedy = _argmax_allowed(masked)
         suppressed = None
-        self._exhausted = ""
         if ex.failure_memory:
             self.memory.release_changed(height)
             if self.memory.enforced:
@@ -450,6 +455,10 @@ class Agent:
         return int(rot), channel, int(row), int(col)
 
     def _random_inside(self, mask: np.ndarray, channel: int) -> tuple[int, int, int, int]:
+        if mask.ndim == 3:   # a grasp mask per rotation
+            rots, rows, cols = np.nonzero(mask)
+            k = int(self.rng.integers(len(rows)))
+            return int(rots[k]), channel, int(rows[k]), int(cols[k])
         rows, cols = np.nonzero(mask)
         k = int(self.rng.integers(len(rows)))
         return int(self.rng.integers(self.rotations)), channel, int(rows[k]), int(cols[k])

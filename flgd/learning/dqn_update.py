@@ -87,7 +87,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from flgd.clutter import action_masks
+from flgd.clutter import cell_action_masks
 from flgd.actions import Action
 from flgd.config import CellConfig, ConfigError
 from flgd.perception import Heightmaps
@@ -217,8 +217,7 @@ class DQNUpdate:
                     m.eval()
 
     def _masks(self, height: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        return action_masks(height, self.config.rewards, self.config.exploration.masks,
-                            self.config.workspace.resolution)
+        return cell_action_masks(height, self.config, self.rotations)
 
     def _argmax_age_ok(self, found_at: int) -> bool:
         """Whether an a' found with the weights of update ``found_at`` may serve as the target's argmax now."""

@@ -13,10 +13,13 @@ N = 32
 
 
 def learner_config(**learning) -> CellConfig:
+    """Every grasp rotation allowed: the test maps are narrower than the open gripper (exploration.grasp_in_view
+    would leave no grasp; tests/test_grasp_view.py covers that rule)."""
     cfg = CellConfig()
     base = dict(batch_size=2, device="cpu")
     base.update(learning)
-    return dataclasses.replace(cfg, learning=dataclasses.replace(cfg.learning, **base))
+    return dataclasses.replace(cfg, learning=dataclasses.replace(cfg.learning, **base),
+                               exploration=dataclasses.replace(cfg.exploration, grasp_in_view=False))
 
 
 def block_scene(seed: int) -> Heightmaps:

@@ -1,0 +1,55 @@
+"""Grasps the camera sees whole: both of the open gripper's fingers come down inside the heightmap.
+
+A heightmap ends where the workspace ends, the table does not: an object pushed
+past the edge (nothing removes it on a real table) shows as a sliver along the
+border.  A grasp on that sliver closing across the border brings one finger down
+where the camera has no height, onto the object's hidden part; the guarded descent
+stops on it, centimetres short, and the grasp fails -- again and again, since the
+heightmap never shows why.  Such grasps are left out per rotation: a grasp at a
+pixel near the border is allowed only at the rotations whose finger footprints stay
+inside the heightmap (closing along the border, for a sliver).
+
+The footprint is the RG2's fingers: from each pad face (``gripper.open_width`` / 2
+from the centre) ``FINGER_DEPTH`` outward along the closing line, and
+``FINGER_HALF_WIDTH`` either side of it (sim_cell's rg2.urdf is built to the same).
+"""
+
+from __future__ import annotations
+
+import math
+from functools import lru_cache
+
+import numpy as np
+
+__all__ = ["FINGER_DEPTH", "FINGER_HALF_WIDTH", "grasps_in_view"]
+
+FINGER_DEPTH = 0.015       # m a finger reaches beyond its pad face, along the closing line
+FINGER_HALF_WIDTH = 0.011  # m a finger reaches either side of the closing line
+
+
+def grasps_in_view(rows: int, cols: int, rotations: int, resolution: float, open_width: float) -> np.ndarray:
+    """uint8 [rotations, rows, cols]: 1 where a grasp at that pixel and rotation (closing along theta =
+    2 pi i / rotations from the base x axis; columns along x, rows along y) keeps both fingers inside the
+    heightmap.  Cached: one array per cell geometry; callers must not write to it."""
+    return _in_view(int(rows), int(cols), int(rotations), float(resolution), float(open_width))
+
+
+@lru_cache(maxsize=8)
+def _in_view(rows: int, cols: int, rotations: int, resolution: float, open_width: float) -> np.ndarray:
+    if rows <= 0 or cols <= 0 or rotations <= 0 or not resolution > 0.0 or not open_width > 0.0:
+        raise ValueError(f"grasps_in_view: rows={rows} cols={cols} rotations={rotations} resolution={resolution} "
+                         f"open_width={open_width}: expected positive sizes")
+    reach = open_width / 2.0 + FINGER_DEPTH
+    x = (np.arange(cols) + 0.5) * resolution    # pixel centres, m from the heightmap's edge
+    y = (np.arange(rows) + 0.5) * resolution
+    out = np.zeros((rotations, rows, cols), dtype=np.uint8)
+    for i in range(rotations):
+        theta = 2.0 * math.pi * i / rotations
+        c, s = abs(math.cos(theta)), abs(math.sin(theta))
+        half_x = reach * c + FINGER_HALF_WIDTH * s   # the fingers' bounding box around the grasp point
+        half_y = reach * s + FINGER_HALF_WIDTH * c
+        ok_x = (x - half_x >= -1e-9) & (x + half_x <= cols * resolution + 1e-9)
+        ok_y = (y - half_y >= -1e-9) & (y + half_y <= rows * resolution + 1e-9)
+        out[i] = ok_y[:, None] & ok_x[None, :]
+    out.setflags(write=False)
+    return out
