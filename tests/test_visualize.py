@@ -79,6 +79,22 @@ def test_outside_the_mask_the_heightmap_is_dimmed_not_heat():
     assert _near(_pixel(fig, fig.tiles[(0, 0)], r, c), 0.25 * 120 + 0.75 * np.array(heat_color(1.0)), 8)
 
 
+def test_a_grasp_mask_per_rotation_masks_each_rotation_tile_and_the_greedy_grasp():
+    color, height = _scene()
+    q, spots = _spots()
+    grasp = np.ones((R, H, W), np.uint8)
+    grasp[3] = 0                           # rotation 3 allowed nowhere (its fingers would leave the heightmap)
+    move = np.ones((H, W), np.uint8)
+    fig = qmap_figure(color, height, q, grasp, move, tile=96)
+    r, c = spots[3]
+    assert _near(_pixel(fig, fig.tiles[(0, 3)], r, c), (72, 72, 72), 6)   # dimmed, no heat
+    assert _near(_pixel(fig, fig.tiles[(1, 3)], r, c), 0.25 * 120 + 0.75 * np.array(heat_color(1.0)), 8)
+    q[3, 0, r, c] = 5.0                    # the best grasp, at the masked rotation
+    q[:, 1] = -1.0
+    action = visualize.greedy_action(q, grasp, move, height, 0.01)
+    assert action.primitive == "grasp" and action.rotation != 3
+
+
 @pytest.mark.parametrize("primitive, rotation", [("grasp", 4), ("push", 0), ("shift", 8)])
 def test_action_glyph_is_drawn_at_the_pixel_with_the_rotation(primitive, rotation):
     color, height = _scene()

@@ -1,0 +1,120 @@
+"""Grasps the camera sees whole: no finger comes down beyond the heightmap's edge (exploration.grasp_in_view),
+for the agent's decisions and the learner's a' alike."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from flgd.actions import Action
+from flgd.config import CellConfig
+from flgd.grasp_view import FINGER_DEPTH, FINGER_HALF_WIDTH, grasps_in_view
+from flgd.learning.agent import Agent, greedy_index
+from flgd.learning.learner import Learner
+from flgd.learning.networks import build_network, q_maps
+from flgd.learning.replay import PrioritizedReplay, Transition
+from flgd.perception import Heightmaps
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
+N, R, RES, OPEN = 224, 16, 0.002, 0.085
+
+
+def config(**exploration) -> CellConfig:
+    cfg = CellConfig()
+    base = dict(epsilon_start=0.0, epsilon_end=0.0, curriculum_steps=0)
+    base.update(exploration)
+    return dataclasses.replace(cfg, exploration=dataclasses.replace(cfg.exploration, **base),
+                               learning=dataclasses.replace(cfg.learning, batch_size=2, device="cpu"))
+
+
+def fingers_inside(action: Action) -> bool:
+    """Independent of the mask: every corner of both finger footprints lies on the heightmap (metres)."""
+    theta = action.angle
+    u, v = np.array([math.cos(theta), math.sin(theta)]), np.array([-math.sin(theta), math.cos(theta)])
+    centre = np.array([(action.col + 0.5) * RES, (action.row + 0.5) * RES])
+    for along in (OPEN / 2, OPEN / 2 + FINGER_DEPTH, -OPEN / 2, -OPEN / 2 - FINGER_DEPTH):
+        for across in (FINGER_HALF_WIDTH, -FINGER_HALF_WIDTH):
+            x, y = centre + along * u + across * v
+            if not (-1e-9 <= x <= N * RES + 1e-9 and -1e-9 <= y <= N * RES + 1e-9):
+                return False
+    return True
+
+
+def sliver_scene(top_row: int) -> np.ndarray:
+    """A box pushed past the heightmap's bottom edge: only rows top_row.. of it are seen."""
+    h = np.zeros((N, N), np.float32)
+    h[top_row:, 90:140] = 0.06
+    return h
+
+
+def test_a_grasp_closing_across_the_border_is_left_out_and_one_closing_along_it_kept():
+    view = grasps_in_view(N, N, R, RES, OPEN)
+    assert view.shape == (R, N, N)
+    # 13 mm from the bottom edge: closing along the edge (x) keeps both 22 mm wide fingers on the map,
+    # closing across it (y) reaches 57.5 mm
+    assert view[0, 217, 112] == 1 and view[8, 217, 112] == 1
+    assert view[4, 217, 112] == 0 and view[12, 217, 112] == 0
+    # closing along y, the first row whose fingers stay inside: (28 + 0.5) * 2 mm = 57 mm < 57.5 mm < 59 mm
+    assert view[4, 28, 112] == 0 and view[4, 29, 112] == 1
+    assert view[:, 112, 112].all()
+    # 7 mm from the edge: no rotation keeps an 11 mm half-finger inside
+    assert not view[:, 220, 112].any()
+
+
+def test_the_agent_never_brings_a_finger_down_beyond_the_edge_however_tempting_its_q():
+    height = sliver_scene(212)
+    height[100:120, 100:120] = 0.04   # and a box in the middle
+    agent = Agent(config(epsilon_start=0.2, epsilon_end=0.2), build_network("fast", R, seed=0), seed=0)
+    rng = np.random.default_rng(1)
+    grasps = 0
+    for step in range(60):
+        q = rng.normal(size=(R, 2, N, N)).astype(np.float32) * 0.01
+        q[4, 0, 212:, 90:140] = 1.0    # grasps on the sliver closing across the border: the best values
+        q[12, 0, 212:, 90:140] = 1.0
+        q[:, 1] -= 1.0                 # and moves unattractive
+        d = agent.select(q, height, step)
+        agent.previous = None
+        if d.action.primitive == "grasp":
+            grasps += 1
+            assert fingers_inside(d.action), d.action
+    assert grasps > 40
+
+
+def test_only_a_sliver_left_the_agent_moves_and_grasp_only_says_why_it_stops():
+    height = sliver_scene(219)   # 5 rows seen: no grasp rotation fits
+    agent = Agent(config(), build_network("fast", R, seed=0), seed=0)
+    q = np.zeros((R, 2, N, N), np.float32)
+    d = agent.select(q, height, 0)
+    assert d is not None and d.action.is_move and d.rule == "ladder-move"
+    only = Agent(config(grasp_only=True), build_network("fast", R, seed=0), seed=0)
+    assert only.select(q, height, 0) is None
+    assert "beyond the heightmap's edge" in only.stuck_reason()
+
+
+def test_the_learners_a_prime_keeps_the_fingers_on_the_heightmap_as_the_agent_does():
+    cfg = config(grasp_only=True)
+    net = build_network("fast", R, seed=3)
+    learner = Learner(cfg, net, PrioritizedReplay.from_config(cfg.learning))
+    height = sliver_scene(208)
+    color = np.full((N, N, 3), 90, np.uint8)
+    color[height > 0] = (200, 40, 40)
+    s2 = Heightmaps(color, height)
+    learner.online.eval()
+    with torch.no_grad():
+        online = q_maps(learner.online, s2, R).numpy()
+        target = q_maps(learner.target, s2, R).numpy()
+    gmask, mmask = Agent(cfg, net).masks(height)
+    assert gmask.shape == (R, N, N)
+    rot, ch, row, col = greedy_index(online, gmask, mmask, grasp_only=True)
+    assert fingers_inside(Action("grasp", row, col, rot, R))
+    # the same network without the rule would take a' with a finger beyond the edge: the rule decides here
+    plain = greedy_index(online, gmask.max(axis=0), mmask, grasp_only=True)
+    assert plain is not None and not fingers_inside(Action("grasp", plain[2], plain[3], plain[0], R))
+    t = Transition(s2, Action("grasp", 150, 150, 0, R), 0.25, s2, False)
+    expected = 0.25 + cfg.learning.gamma * target[rot, 0, row, col]
+    assert learner.targets([t])[0] == pytest.approx(expected, abs=1e-5)
