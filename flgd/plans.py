@@ -7,7 +7,9 @@ must pass before a cell runs one.
 Distances (defaults in ``RobotConfig``, all configurable):
   * grasp: open, approach ``approach_height`` above the grasp point, descend to
     ``grasp_depth`` below the surface (never below the table clearance; the
-    descent stops early where the fingers meet ``descent_contact_force``), close,
+    descent stops early where the fingers meet ``descent_contact_force``; with
+    ``contact_clearance`` and ``raise_speed`` it is slow only from that clearance
+    above what surrounds the grasp down), close,
     lift to ``lift_height`` (slowly up to the approach height, or with
     ``contact_clearance`` until the object clears what surrounds it, then at
     ``raise_speed``), go home (the raise blended into it with ``blend_radius``),
@@ -41,6 +43,7 @@ __all__ = [
     "GripperCommand",
     "MeasureWidth",
     "RAISE_LABEL",
+    "LOWER_LABEL",
     "Step",
     "Plan",
     "move_kind",
@@ -48,6 +51,7 @@ __all__ = [
     "plan_action",
     "plan_grasp",
     "slow_lift_top",
+    "slow_descent_top",
     "highest_around",
     "LIFT_LABEL",
     "PLACE_CHECK_LABEL",
@@ -101,6 +105,7 @@ Step = Union[MoveL, GripperCommand, MeasureWidth]
 
 LIFT_LABEL = "lift"   # a grasp's move up with the gripper closed: what is between the pads then was picked up
 RAISE_LABEL = "raise"   # the rest of the way up to robot.lift_height, above the neighbours, at robot.raise_speed
+LOWER_LABEL = "lower"   # a grasp's way down from the approach height to its contact zone, at robot.raise_speed
 PLACE_CHECK_LABEL = "at place"   # the width read at the place pose before opening: still held there = picked
 
 
@@ -178,14 +183,24 @@ def slow_lift_top(z: float, surroundings_top: float, config: CellConfig) -> floa
     ``robot.contact_clearance``, once the object has risen that clearance above the highest point around the grasp
     (``surroundings_top``, above the table; an object's bottom is never below the table), whichever is lower.
 
-    Only the lift: it stays over the grasp point, where the disc of ``robot.contact_radius`` is all the object can
-    meet.  The descent keeps the whole approach height slow: the approach comes down on a slant from outside the
-    workspace, past objects outside that disc."""
+    The lift stays over the grasp point, where the disc of ``robot.contact_radius`` is all the object can meet."""
     rb = config.robot
     full = z + rb.approach_height
     if rb.contact_clearance <= 0.0 or not math.isfinite(surroundings_top):
         return full
     return min(full, z + max(surroundings_top, 0.0) + rb.contact_clearance)
+
+
+def slow_descent_top(z: float, surroundings_top: float, config: CellConfig) -> float:
+    """Where a grasp's slow, guarded descent to fingertips at ``z`` begins: ``robot.approach_height`` above ``z``,
+    or, with ``robot.contact_clearance``, that clearance above the highest point around the grasp (the open fingers
+    and the gripper stay inside the disc of ``robot.contact_radius`` on the way down), whichever is lower.  Above it
+    the gripper comes straight down at ``raise_speed``; the slanted approach still ends at the approach height."""
+    rb = config.robot
+    full = z + rb.approach_height
+    if rb.contact_clearance <= 0.0 or not math.isfinite(surroundings_top):
+        return full
+    return min(full, max(config.workspace.table_z + max(surroundings_top, 0.0) + rb.contact_clearance, z))
 
 
 def plan_grasp(x: float, y: float, surface_height: float, angle: float, config: CellConfig,
@@ -201,6 +216,7 @@ def plan_grasp(x: float, y: float, surface_height: float, angle: float, config: 
     yaw = wrap_symmetric_yaw(angle)
     z = table + max(surface_height - rb.grasp_depth, config.safety.min_table_clearance)
     above, clear = z + rb.approach_height, slow_lift_top(z, surroundings_top, config)
+    contact_top = slow_descent_top(z, surroundings_top, config)
     lifted = table + rb.lift_height
     home = config.robot.home
     # with robot.raise_speed the lift is slow only among the neighbours (up to slow_lift_top), faster above; with
@@ -216,6 +232,8 @@ def plan_grasp(x: float, y: float, surface_height: float, angle: float, config: 
     steps: tuple[Step, ...] = (
         GripperCommand(gr.open_width, gr.force, "open"),
         MoveL(ToolPose.top_down(x, y, above, yaw), rb.speed, rb.acceleration, "approach"),
+        *((MoveL(ToolPose.top_down(x, y, contact_top, yaw), rb.raise_speed, rb.acceleration, LOWER_LABEL),)
+          if rb.raise_speed > 0.0 and contact_top < above - 0.01 else ()),
         MoveL(ToolPose.top_down(x, y, z, yaw), rb.approach_speed, rb.acceleration, "descend",
               stop_on_contact=rb.descent_contact_force),
         GripperCommand(gr.closed_width, gr.force, "close"),

@@ -65,7 +65,8 @@ def test_a_grasp_whose_approach_height_reaches_the_lift_height_lifts_slowly_all_
 
 
 def test_with_a_contact_clearance_a_grasps_slow_lift_ends_once_the_object_clears_its_surroundings() -> None:
-    """The slow lift ends 2 cm above the highest point within the contact radius; the descent is unchanged."""
+    """The slow lift ends, and the slow guarded descent begins, 2 cm above the highest point within the contact
+    radius; above it the gripper comes straight down at raise_speed from the unchanged approach height."""
     cfg = dataclasses.replace(CFG, robot=dataclasses.replace(CFG.robot, raise_speed=0.4, contact_clearance=0.02,
                                                              contact_radius=0.05))
     h = np.zeros((224, 224), np.float32)
@@ -78,17 +79,24 @@ def test_with_a_contact_clearance_a_grasps_slow_lift_ends_once_the_object_clears
     z = steps["descend"].pose.position[2]
     assert z == pytest.approx(table + cfg.safety.min_table_clearance)
     assert steps["approach"].pose.position[2] == pytest.approx(z + cfg.robot.approach_height)   # unchanged
+    assert [s.label for s in plan.steps][1:4] == ["approach", "lower", "descend"]
+    assert steps["lower"].pose.position[2] == pytest.approx(table + 0.04 + 0.02)   # fingertips clear the neighbour
+    assert steps["lower"].pose.position[:2] == pytest.approx(steps["approach"].pose.position[:2])   # straight down
+    assert steps["lower"].speed == 0.4 and steps["lower"].stop_on_contact == 0.0
+    assert steps["descend"].speed == cfg.robot.approach_speed and steps["descend"].stop_on_contact > 0.0
     assert steps["lift"].pose.position[2] == pytest.approx(z + 0.04 + 0.02)   # the block's bottom clears its top
     assert steps["lift"].speed == cfg.robot.approach_speed and steps["raise"].speed == 0.4
     # never higher than the approach height over the grasp point: a tall neighbour inside the radius
     h[110:116, 122:128] = 0.20
     tall = {s.label: s for s in plan_action(Action("grasp", 113, 113, 0), h, cfg).steps if isinstance(s, MoveL)}
     assert tall["lift"].pose.position[2] == pytest.approx(z + cfg.robot.approach_height)
+    assert "lower" not in tall   # the whole descent slow
     # off (the default): slow up to the approach height, whatever surrounds the grasp
     h[110:116, 122:128] = 0.04
     off_cfg = dataclasses.replace(cfg, robot=dataclasses.replace(cfg.robot, contact_clearance=0.0))
     off = {s.label: s for s in plan_action(Action("grasp", 113, 113, 0), h, off_cfg).steps if isinstance(s, MoveL)}
     assert off["lift"].pose.position[2] == pytest.approx(z + CFG.robot.approach_height)
+    assert "lower" not in off
     check_plan(plan, cfg)
 
 

@@ -130,13 +130,16 @@ class RobotConfig:
                                   help="descents, pushes and shifts, and a grasp's lift (up to the approach height "
                                        "when raise_speed is set)")
     raise_speed: float = param(0.0, unit="m/s", ge=0.0,
-                               help="a grasp's lift above robot.approach_height over the grasp, where the object has "
-                                    "left its neighbours (0 = the whole lift at approach_speed)")
+                               help="a grasp's straight moves above its contact zone: the lift above "
+                                    "robot.approach_height over the grasp (or above robot.contact_clearance), where the "
+                                    "object has left its neighbours, and with contact_clearance the way down to the "
+                                    "zone (0 = the whole lift and descent at approach_speed)")
     contact_clearance: float = param(
         0.0, unit="m", ge=0.0, le=0.10,
-        help="a grasp's slow lift ends once the object has risen this far above the highest point the heightmap "
-             "shows within robot.contact_radius of the grasp, where it can touch nothing (never higher than "
-             "robot.approach_height over the grasp point; 0 = slow up to the approach height); with raise_speed")
+        help="a grasp is slow only this far above the highest point the heightmap shows within "
+             "robot.contact_radius of the grasp: its guarded descent starts there and its slow lift ends once the "
+             "object has risen that far above it (never higher than robot.approach_height over the grasp point; "
+             "0 = slow over the whole approach height); with raise_speed")
     contact_radius: float = param(0.08, unit="m", gt=0.0, le=0.20,
                                   help="how far around a grasp robot.contact_clearance looks for the highest point")
     blend_radius: float = param(
