@@ -11,7 +11,10 @@ inside the heightmap (closing along the border, for a sliver).
 
 The footprint is the RG2's fingers: from each pad face (``gripper.open_width`` / 2
 from the centre) ``FINGER_DEPTH`` outward along the closing line, and
-``FINGER_HALF_WIDTH`` either side of it (sim_cell's rg2.urdf is built to the same).
+``FINGER_HALF_WIDTH`` either side of it (sim_cell's rg2.urdf is built to the same),
+kept ``VIEW_MARGIN`` inside the heightmap: its last centimetre is the least known
+(a part leaning over the border, the depth camera's shadow beside a tall object
+reading as table, a few millimetres of calibration).
 """
 
 from __future__ import annotations
@@ -21,16 +24,17 @@ from functools import lru_cache
 
 import numpy as np
 
-__all__ = ["FINGER_DEPTH", "FINGER_HALF_WIDTH", "grasps_in_view"]
+__all__ = ["FINGER_DEPTH", "FINGER_HALF_WIDTH", "VIEW_MARGIN", "grasps_in_view"]
 
 FINGER_DEPTH = 0.015       # m a finger reaches beyond its pad face, along the closing line
 FINGER_HALF_WIDTH = 0.011  # m a finger reaches either side of the closing line
+VIEW_MARGIN = 0.01         # m the fingers stay inside the heightmap's border
 
 
 def grasps_in_view(rows: int, cols: int, rotations: int, resolution: float, open_width: float) -> np.ndarray:
     """uint8 [rotations, rows, cols]: 1 where a grasp at that pixel and rotation (closing along theta =
-    2 pi i / rotations from the base x axis; columns along x, rows along y) keeps both fingers inside the
-    heightmap.  Cached: one array per cell geometry; callers must not write to it."""
+    2 pi i / rotations from the base x axis; columns along x, rows along y) keeps both fingers
+    ``VIEW_MARGIN`` inside the heightmap.  Cached: one array per cell geometry; callers must not write to it."""
     return _in_view(int(rows), int(cols), int(rotations), float(resolution), float(open_width))
 
 
@@ -48,8 +52,8 @@ def _in_view(rows: int, cols: int, rotations: int, resolution: float, open_width
         c, s = abs(math.cos(theta)), abs(math.sin(theta))
         half_x = reach * c + FINGER_HALF_WIDTH * s   # the fingers' bounding box around the grasp point
         half_y = reach * s + FINGER_HALF_WIDTH * c
-        ok_x = (x - half_x >= -1e-9) & (x + half_x <= cols * resolution + 1e-9)
-        ok_y = (y - half_y >= -1e-9) & (y + half_y <= rows * resolution + 1e-9)
+        ok_x = (x - half_x >= VIEW_MARGIN - 1e-9) & (x + half_x <= cols * resolution - VIEW_MARGIN + 1e-9)
+        ok_y = (y - half_y >= VIEW_MARGIN - 1e-9) & (y + half_y <= rows * resolution - VIEW_MARGIN + 1e-9)
         out[i] = ok_y[:, None] & ok_x[None, :]
     out.setflags(write=False)
     return out

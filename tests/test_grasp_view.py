@@ -12,7 +12,7 @@ import torch
 
 from flgd.actions import Action
 from flgd.config import CellConfig
-from flgd.grasp_view import FINGER_DEPTH, FINGER_HALF_WIDTH, grasps_in_view
+from flgd.grasp_view import FINGER_DEPTH, FINGER_HALF_WIDTH, VIEW_MARGIN, grasps_in_view
 from flgd.learning.agent import Agent, greedy_index
 from flgd.learning.learner import Learner
 from flgd.learning.networks import build_network, q_maps
@@ -33,14 +33,15 @@ def config(**exploration) -> CellConfig:
 
 
 def fingers_inside(action: Action) -> bool:
-    """Independent of the mask: every corner of both finger footprints lies on the heightmap (metres)."""
+    """Independent of the mask: every corner of both finger footprints lies VIEW_MARGIN inside the heightmap."""
     theta = action.angle
     u, v = np.array([math.cos(theta), math.sin(theta)]), np.array([-math.sin(theta), math.cos(theta)])
     centre = np.array([(action.col + 0.5) * RES, (action.row + 0.5) * RES])
     for along in (OPEN / 2, OPEN / 2 + FINGER_DEPTH, -OPEN / 2, -OPEN / 2 - FINGER_DEPTH):
         for across in (FINGER_HALF_WIDTH, -FINGER_HALF_WIDTH):
             x, y = centre + along * u + across * v
-            if not (-1e-9 <= x <= N * RES + 1e-9 and -1e-9 <= y <= N * RES + 1e-9):
+            lo, hi = VIEW_MARGIN - 1e-9, N * RES - VIEW_MARGIN + 1e-9
+            if not (lo <= x <= hi and lo <= y <= hi):
                 return False
     return True
 
@@ -55,15 +56,16 @@ def sliver_scene(top_row: int) -> np.ndarray:
 def test_a_grasp_closing_across_the_border_is_left_out_and_one_closing_along_it_kept():
     view = grasps_in_view(N, N, R, RES, OPEN)
     assert view.shape == (R, N, N)
-    # 13 mm from the bottom edge: closing along the edge (x) keeps both 22 mm wide fingers on the map,
+    # 21 mm from the bottom edge: closing along the edge (x) keeps both 22 mm wide fingers 10 mm inside,
     # closing across it (y) reaches 57.5 mm
-    assert view[0, 217, 112] == 1 and view[8, 217, 112] == 1
-    assert view[4, 217, 112] == 0 and view[12, 217, 112] == 0
-    # closing along y, the first row whose fingers stay inside: (28 + 0.5) * 2 mm = 57 mm < 57.5 mm < 59 mm
-    assert view[4, 28, 112] == 0 and view[4, 29, 112] == 1
+    assert view[0, 213, 112] == 1 and view[8, 213, 112] == 1
+    assert view[4, 213, 112] == 0 and view[12, 213, 112] == 0
+    assert view[0, 214, 112] == 0   # 19 mm: the finger's side 8 mm from the edge
+    # closing along y, the first row whose fingers stay 10 mm inside: (33 + 0.5) * 2 mm = 67 mm < 67.5 mm < 69 mm
+    assert view[4, 33, 112] == 0 and view[4, 34, 112] == 1
     assert view[:, 112, 112].all()
-    # 7 mm from the edge: no rotation keeps an 11 mm half-finger inside
-    assert not view[:, 220, 112].any()
+    # 15 mm from the edge: no rotation keeps an 11 mm half-finger 10 mm inside
+    assert not view[:, 216, 112].any()
 
 
 def test_the_agent_never_brings_a_finger_down_beyond_the_edge_however_tempting_its_q():
@@ -86,7 +88,7 @@ def test_the_agent_never_brings_a_finger_down_beyond_the_edge_however_tempting_i
 
 
 def test_only_a_sliver_left_the_agent_moves_and_grasp_only_says_why_it_stops():
-    height = sliver_scene(219)   # 5 rows seen: no grasp rotation fits
+    height = sliver_scene(216)   # 8 rows seen: no grasp rotation fits
     agent = Agent(config(), build_network("fast", R, seed=0), seed=0)
     q = np.zeros((R, 2, N, N), np.float32)
     d = agent.select(q, height, 0)
