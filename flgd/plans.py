@@ -36,6 +36,7 @@ import numpy as np
 from flgd.actions import Action, move_kind_at
 from flgd.config import CellConfig
 from flgd.geometry import ToolPose, wrap_symmetric_yaw
+from flgd.grasp_view import FINGER_DEPTH, FINGER_HALF_WIDTH
 from flgd.perception import pixel_to_base
 
 __all__ = [
@@ -52,6 +53,7 @@ __all__ = [
     "plan_grasp",
     "slow_lift_top",
     "slow_descent_top",
+    "contact_zone_radius",
     "highest_around",
     "LIFT_LABEL",
     "PLACE_CHECK_LABEL",
@@ -192,10 +194,11 @@ def slow_lift_top(z: float, surroundings_top: float, config: CellConfig) -> floa
 
 
 def slow_descent_top(z: float, surroundings_top: float, config: CellConfig) -> float:
-    """Where a grasp's slow, guarded descent to fingertips at ``z`` begins: ``robot.approach_height`` above ``z``,
-    or, with ``robot.contact_clearance``, that clearance above the highest point around the grasp (the open fingers
-    and the gripper stay inside the disc of ``robot.contact_radius`` on the way down), whichever is lower.  Above it
-    the gripper comes straight down at ``raise_speed``; the slanted approach still ends at the approach height."""
+    """Where a grasp's slow descent to fingertips at ``z`` begins: ``robot.approach_height`` above ``z``, or, with
+    ``robot.contact_clearance``, that clearance above the highest point around the grasp (``contact_zone_radius``:
+    the open fingers stay inside it on the way down), whichever is lower.  Above it the gripper comes straight down
+    at ``raise_speed``, guarded as well (a part the camera did not see); the slanted approach still ends at the
+    approach height."""
     rb = config.robot
     full = z + rb.approach_height
     if rb.contact_clearance <= 0.0 or not math.isfinite(surroundings_top):
@@ -203,11 +206,17 @@ def slow_descent_top(z: float, surroundings_top: float, config: CellConfig) -> f
     return min(full, max(config.workspace.table_z + max(surroundings_top, 0.0) + rb.contact_clearance, z))
 
 
+def contact_zone_radius(config: CellConfig) -> float:
+    """How far around a grasp its contact zone looks for the highest point: ``robot.contact_radius``, never less
+    than the open fingers' reach (a descent must clear everything they can come down on)."""
+    return max(config.robot.contact_radius, config.gripper.open_width / 2.0 + FINGER_DEPTH + FINGER_HALF_WIDTH)
+
+
 def plan_grasp(x: float, y: float, surface_height: float, angle: float, config: CellConfig,
                surroundings_top: float = math.nan) -> Plan:
     """Top-down grasp with the fingers closing along ``angle`` at (x, y); heights above the table.
 
-    ``surroundings_top``: the highest point within ``robot.contact_radius`` (``slow_lift_top``; NaN = unknown: the
+    ``surroundings_top``: the highest point within ``contact_zone_radius`` (``slow_lift_top``; NaN = unknown: the
     whole lift up to the approach height slow)."""
     if not all(map(math.isfinite, (x, y, surface_height, angle))):
         return _refused("grasp", f"non-finite grasp request x={x!r} y={y!r} "
@@ -216,7 +225,7 @@ def plan_grasp(x: float, y: float, surface_height: float, angle: float, config: 
     yaw = wrap_symmetric_yaw(angle)
     z = table + max(surface_height - rb.grasp_depth, config.safety.min_table_clearance)
     above, clear = z + rb.approach_height, slow_lift_top(z, surroundings_top, config)
-    contact_top = slow_descent_top(z, surroundings_top, config)
+    contact_top = slow_descent_top(z, max(surroundings_top, surface_height), config)
     lifted = table + rb.lift_height
     home = config.robot.home
     # with robot.raise_speed the lift is slow only among the neighbours (up to slow_lift_top), faster above; with
@@ -232,7 +241,8 @@ def plan_grasp(x: float, y: float, surface_height: float, angle: float, config: 
     steps: tuple[Step, ...] = (
         GripperCommand(gr.open_width, gr.force, "open"),
         MoveL(ToolPose.top_down(x, y, above, yaw), rb.speed, rb.acceleration, "approach"),
-        *((MoveL(ToolPose.top_down(x, y, contact_top, yaw), rb.raise_speed, rb.acceleration, LOWER_LABEL),)
+        *((MoveL(ToolPose.top_down(x, y, contact_top, yaw), rb.raise_speed, rb.acceleration, LOWER_LABEL,
+                 stop_on_contact=rb.descent_contact_force),)
           if rb.raise_speed > 0.0 and contact_top < above - 0.01 else ()),
         MoveL(ToolPose.top_down(x, y, z, yaw), rb.approach_speed, rb.acceleration, "descend",
               stop_on_contact=rb.descent_contact_force),
@@ -348,7 +358,7 @@ def plan_action(action: Action, height_map: np.ndarray, config: CellConfig) -> P
             row, col = centred_grasp_pixel(height_map, action.row, action.col, action.angle, config)
             x, y, _z = pixel_to_base(row, col, h, config.workspace)
         return plan_grasp(x, y, h, action.angle, config,
-                          surroundings_top=highest_around(height_map, row, col, config.robot.contact_radius,
+                          surroundings_top=highest_around(height_map, row, col, contact_zone_radius(config),
                                                           config.workspace.resolution))
     if move_kind(h, config) == "shift":
         return plan_shift(x, y, h, action.angle, config)

@@ -21,7 +21,9 @@ pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def config(**exploration) -> CellConfig:
-    base = dict(epsilon_start=0.0, epsilon_end=0.0, curriculum_steps=0)
+    """Every grasp rotation allowed: a 64 px test map is barely wider than the open gripper (grasps in view:
+    tests/test_grasp_view.py)."""
+    base = dict(epsilon_start=0.0, epsilon_end=0.0, curriculum_steps=0, grasp_in_view=False)
     base.update(exploration)
     cfg = CellConfig()
     return dataclasses.replace(cfg, exploration=dataclasses.replace(cfg.exploration, **base))

@@ -21,8 +21,10 @@ def gate_config(**gate) -> CellConfig:
     base = dict(share=0.5, min_attempts=10, drop_min_attempts=10, max_attempts=200, rollback_min_attempts=10,
                 promote_confidence=0.95, drop_confidence=0.95, rollback_confidence=0.95)
     base.update(gate)
+    # every grasp rotation allowed: the gate's test maps are narrower than the open gripper (grasps in view)
     return dataclasses.replace(cfg, gate=dataclasses.replace(cfg.gate, **base),
-                               learning=dataclasses.replace(cfg.learning, device="cpu"))
+                               learning=dataclasses.replace(cfg.learning, device="cpu"),
+                               exploration=dataclasses.replace(cfg.exploration, grasp_in_view=False))
 
 
 def make_network(seed: int):
