@@ -58,7 +58,7 @@ import pybullet as p
 from flgd.config import CellConfig
 from sim_cell import free_space, motion, objects, path_motion
 from sim_cell.gripper_contacts import GripperContacts
-from sim_cell.robot import FINGER_SPEED
+from sim_cell.robot import RG2_STROKE_SPEED
 from sim_cell.stability import Unstable
 from sim_cell.world import World
 
@@ -240,10 +240,11 @@ class ArmDriver:
                 self.tcp()[None, :3, 3], free_space.GRIPPER_HALF_SIZE, 0.0,
                 free_space.obstacles(self._client, self._world.objects, set())):
             # nothing within reach of the fingers: set them without stepping the physics
-            travel = abs(width - self._robot.width()) / 2.0
+            travel = abs(width - self._robot.width())
             self._robot.set_fingers(width, force)
-            self._world.sim_time += travel / FINGER_SPEED
+            self._world.sim_time += travel / RG2_STROKE_SPEED
             return
+        started, start_width = self._world.sim_time, self._robot.width()
         self._robot.command_gripper(width, force)
         closing = width < self._robot.width() - 1e-3
         steps = int(GRIPPER_TIMEOUT / self._dt)
@@ -253,6 +254,9 @@ class ArmDriver:
             self._world.step(4)
             if k >= 12 and self._robot.finger_speed() < 2e-3:
                 break
+        # the simulated fingers travel faster than an RG2's: the move takes the RG2's time on the cell's clock
+        rg2_time = abs(self._robot.width() - start_width) / RG2_STROKE_SPEED
+        self._world.sim_time += max(0.0, rg2_time - (self._world.sim_time - started))
 
     def fingers_at_rest(self) -> None:
         """Step until the fingers have stopped (as the real cell reads a settled width), at most 1 s.

@@ -31,6 +31,10 @@ GRIPPER_TCP_OFFSET = (0.0, 0.0, 0.20)
 ARM_FORCE = np.array([330.0, 330.0, 150.0, 56.0, 56.0, 56.0])  # N m, motor limits of the joint servos
 ARM_POSITION_GAIN = 0.35
 FINGER_SPEED = 0.11  # m/s per finger
+# m/s the RG2's opening changes at (its 110 mm stroke in about 1 s; datasheet: 38-127 mm/s): the time a gripper
+# move takes on the cell's clock, in the simulator and the emulated RG2 alike, however fast the simulated
+# fingers themselves travel
+RG2_STROKE_SPEED = 0.110
 FINGER_COUPLING_FORCE = 400.0  # N the linkage holds the fingers symmetric with (10x the grip force)
 
 

@@ -509,3 +509,30 @@ def test_slow_only_near_contact_a_grasp_holds_the_block_and_spends_less_time_on_
         finally:
             cell.close()
     assert durations[0.02] < durations[0.0] - 0.5
+
+
+def test_a_gripper_move_takes_the_rg2s_time_on_the_cells_clock():
+    """The simulated fingers travel faster than an RG2; the cell's clock charges the RG2's stroke speed (110 mm/s of
+    opening), closing on nothing (no physics stepped) and closing on a block alike."""
+    from flgd.plans import GripperCommand
+    from sim_cell.robot import RG2_STROKE_SPEED
+
+    base = make_config(objects=0, depth_noise=False, domain_randomization=False)
+    gr = base.gripper
+    cell = SimCell(base)
+    try:
+        close = check_plan(Plan("release", (GripperCommand(gr.closed_width, gr.force, "close"),)), base)
+        opened = cell.gripper_width()
+        result = cell.execute(close)
+        assert result.completed, result.failure
+        assert result.gripper_time == pytest.approx((opened - cell.gripper_width()) / RG2_STROKE_SPEED, rel=0.05)
+        cell.execute(check_plan(plan_release(False, base), base))   # open again
+        # a grasp closes on a 4 cm block: the fingers stop at it
+        body = cube_at(cell, -0.52, 0.04, yaw=0.0)
+        s = state(cell, body)
+        grasp = plan_grasp(s.position[0], s.position[1], s.top - base.workspace.table_z, math.pi / 2, base)
+        result = cell.execute(check_plan(grasp, base))
+        assert result.completed and grasp_reward(result.widths[0], gr) == 1.0
+        assert result.gripper_time >= (gr.open_width - result.widths[0]) / RG2_STROKE_SPEED
+    finally:
+        cell.close()

@@ -26,6 +26,8 @@ from socketserver import ThreadingMixIn
 from typing import Any
 from xmlrpc.server import SimpleXMLRPCRequestHandler, SimpleXMLRPCServer
 
+from sim_cell.robot import RG2_STROKE_SPEED
+
 __all__ = ["RG2Service", "RG2_PORT", "FINGER_STROKE_SPEED", "MAX_WIDTH_MM", "MAX_FORCE_N"]
 
 log = logging.getLogger(__name__)
@@ -33,7 +35,7 @@ log = logging.getLogger(__name__)
 RG2_PORT = 41414
 MAX_WIDTH_MM = 110.0
 MAX_FORCE_N = 40.0
-FINGER_STROKE_SPEED = 0.110   # m/s of change in the opening: 110 mm in 1 s
+FINGER_STROKE_SPEED = RG2_STROKE_SPEED   # m/s of change in the opening: 110 mm in 1 s
 STALL_SPEED = 2e-3            # m/s per finger below which the fingers count as stopped
 STALL_TIME = 0.05             # s the fingers must stay stopped to count as stalled
 GRIP_AFTER = 0.1              # s into a move before a stall behind the ramp counts as a grip
