@@ -21,7 +21,7 @@ import cv2
 import numpy as np
 
 from flgd.config import CellConfig, GripperConfig, RewardConfig
-from flgd.grasp_view import grasps_in_view
+from flgd.grasp_view import grasps_in_view, moves_in_view
 
 __all__ = [
     "DEFAULT_RESOLUTION",
@@ -133,12 +133,12 @@ def move_mask(height: np.ndarray, rc: RewardConfig, resolution: float = DEFAULT_
 
 def action_masks(height: np.ndarray, rc: RewardConfig, enabled: bool = True,
                  resolution: float = DEFAULT_RESOLUTION,
-                 in_view: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                 in_view: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(rho_g, rho_m) as the agent acts and the learner bootstraps; all ones when ``enabled`` is off
     (the DPEN ablation).  One function, so that the two can never mask differently.
 
-    ``in_view`` (uint8 [R,H,W], ``flgd.grasp_view``): the grasps whose fingers land inside the heightmap;
-    given, rho_g is per rotation, [R,H,W] (a geometric limit, kept in the DPEN ablation too)."""
+    ``in_view`` (two uint8 [R,H,W], ``flgd.grasp_view``): the grasps and the moves whose fingers stay inside the
+    heightmap; given, rho_g and rho_m are per rotation, [R,H,W] (a geometric limit, kept in the DPEN ablation too)."""
     if enabled:
         rho_g = grasp_mask(height, rc, resolution)
         rho_m = cv2.dilate(rho_g, _kernel(rc.move_mask_dilation))
@@ -146,15 +146,19 @@ def action_masks(height: np.ndarray, rc: RewardConfig, enabled: bool = True,
         rho_g = np.ones(height.shape, dtype=np.uint8)
         rho_m = rho_g.copy()
     if in_view is not None:
-        if in_view.shape[1:] != height.shape:
-            raise ValueError(f"in_view: {list(in_view.shape)} does not match the heightmap {list(height.shape)}")
-        rho_g = rho_g[None] & in_view
+        grasps, moves = in_view
+        if grasps.shape[1:] != height.shape or moves.shape[1:] != height.shape:
+            raise ValueError(f"in_view: {list(grasps.shape)}, {list(moves.shape)} do not match the heightmap "
+                             f"{list(height.shape)}")
+        rho_g, rho_m = rho_g[None] & grasps, rho_m[None] & moves
     return rho_g, rho_m
 
 
 def cell_action_masks(height: np.ndarray, config: CellConfig, rotations: int) -> tuple[np.ndarray, np.ndarray]:
     """``action_masks`` with the cell's settings (``exploration.masks``, ``exploration.grasp_in_view``): what
     the agent and the learner both call."""
-    in_view = (grasps_in_view(height.shape[0], height.shape[1], rotations, config.workspace.resolution,
-                              config.gripper.open_width) if config.exploration.grasp_in_view else None)
+    rows, cols, res, rb = height.shape[0], height.shape[1], config.workspace.resolution, config.robot
+    in_view = ((grasps_in_view(rows, cols, rotations, res, config.gripper.open_width),
+                moves_in_view(rows, cols, rotations, res, max(rb.push_distance, rb.shift_distance)))
+               if config.exploration.grasp_in_view else None)
     return action_masks(height, config.rewards, config.exploration.masks, config.workspace.resolution, in_view)

@@ -94,7 +94,7 @@ def greedy_action(q_maps: np.ndarray, grasp_mask: np.ndarray, move_mask: np.ndar
     """The best masked action (used to draw a picture when nothing was decided yet)."""
     q = np.asarray(q_maps, dtype=np.float32).copy()
     q[:, 0][np.broadcast_to(grasp_mask, q.shape[:1] + q.shape[2:]) == 0] = -np.inf   # [H,W] or per rotation
-    q[:, 1][:, move_mask == 0] = -np.inf
+    q[:, 1][np.broadcast_to(move_mask, q.shape[:1] + q.shape[2:]) == 0] = -np.inf
     rot, ch, row, col = (int(v) for v in np.unravel_index(int(np.argmax(q)), q.shape))
     prim = "grasp" if ch == 0 else move_kind_at(float(height[row, col]), shift_height)
     return Action(prim, row, col, rot, q.shape[0])
@@ -262,7 +262,7 @@ def qmap_figure(color: np.ndarray, height: np.ndarray, q_maps: np.ndarray, grasp
     held = None if suppressed is None or np.shape(suppressed) != (h, w) else np.asarray(suppressed) > 0
     mask_pics = []
     for name, m in (("grasp mask", masks[0].max(axis=0) if masks[0].ndim == 3 else masks[0]),
-                    ("move mask", masks[1])):
+                    ("move mask", masks[1].max(axis=0) if masks[1].ndim == 3 else masks[1])):
         grey = np.where(np.asarray(m) > 0, np.uint8(200), np.uint8(30)).astype(np.uint8)
         small = cv2.cvtColor(grey, cv2.COLOR_GRAY2BGR)
         if held is not None and held.any():

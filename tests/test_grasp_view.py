@@ -12,7 +12,7 @@ import torch
 
 from flgd.actions import Action
 from flgd.config import CellConfig
-from flgd.grasp_view import FINGER_DEPTH, FINGER_HALF_WIDTH, VIEW_MARGIN, grasps_in_view
+from flgd.grasp_view import FINGER_DEPTH, FINGER_HALF_WIDTH, VIEW_MARGIN, grasps_in_view, moves_in_view
 from flgd.learning.agent import Agent, greedy_index
 from flgd.learning.learner import Learner
 from flgd.learning.networks import build_network, q_maps
@@ -68,23 +68,40 @@ def test_a_grasp_closing_across_the_border_is_left_out_and_one_closing_along_it_
     assert not view[:, 216, 112].any()
 
 
+def test_a_move_is_allowed_only_where_its_closed_fingers_come_down_and_end_their_travel_inside():
+    moves = moves_in_view(N, N, R, RES, 0.10)
+    # 41 mm from the bottom edge: a push away from the edge (-y) or along it (+x) stays inside; towards it (+y)
+    # its travel would end 59 mm beyond the edge
+    assert moves[12, 203, 112] == 1 and moves[0, 203, 112] == 1
+    assert moves[4, 203, 112] == 0
+    # where the closed fingers come down: 15 mm of finger either way along the travel, 10 mm margin
+    assert moves[12, 211, 112] == 1 and moves[12, 212, 112] == 0    # 25 mm, 23 mm from the edge
+    # the travel's end: a push along +x ends 100 mm on, its fingers 15 mm beyond that, 10 mm inside the edge
+    assert moves[0, 112, 161] == 1 and moves[0, 112, 162] == 0      # (161 + 0.5) * 2 + 115 = 438 mm; 440 mm
+
+
 def test_the_agent_never_brings_a_finger_down_beyond_the_edge_however_tempting_its_q():
     height = sliver_scene(212)
     height[100:120, 100:120] = 0.04   # and a box in the middle
     agent = Agent(config(epsilon_start=0.2, epsilon_end=0.2), build_network("fast", R, seed=0), seed=0)
     rng = np.random.default_rng(1)
     grasps = 0
-    for step in range(60):
+    moves = 0
+    for step in range(80):
         q = rng.normal(size=(R, 2, N, N)).astype(np.float32) * 0.01
         q[4, 0, 212:, 90:140] = 1.0    # grasps on the sliver closing across the border: the best values
         q[12, 0, 212:, 90:140] = 1.0
-        q[:, 1] -= 1.0                 # and moves unattractive
+        q[4, 1, 195:, 80:150] = 2.0 if step % 2 else -1.0   # every other step, pushes towards the border best
         d = agent.select(q, height, step)
         agent.previous = None
         if d.action.primitive == "grasp":
             grasps += 1
             assert fingers_inside(d.action), d.action
-    assert grasps > 40
+        else:
+            moves += 1
+            end_row = d.action.row + 0.10 / RES * math.sin(d.action.angle)
+            assert (end_row + 0.5) * RES + FINGER_DEPTH * abs(math.sin(d.action.angle)) <= N * RES - VIEW_MARGIN + 1e-9
+    assert grasps > 10 and moves > 10
 
 
 def test_only_a_sliver_left_the_agent_moves_and_grasp_only_says_why_it_stops():
@@ -96,6 +113,12 @@ def test_only_a_sliver_left_the_agent_moves_and_grasp_only_says_why_it_stops():
     only = Agent(config(grasp_only=True), build_network("fast", R, seed=0), seed=0)
     assert only.select(q, height, 0) is None
     assert "beyond the heightmap's edge" in only.stuck_reason()
+    # a sliver of one row, moves only where objects are: no grasp and no move keeps the fingers in view; the cell
+    # says so instead of trying
+    cfg = config()
+    narrow = dataclasses.replace(cfg, rewards=dataclasses.replace(cfg.rewards, move_mask_dilation=1))
+    edge = Agent(narrow, build_network("fast", R, seed=0), seed=0)
+    assert edge.select(q, sliver_scene(223), 1) is None and "beyond the heightmap's edge" in edge.stuck_reason()
 
 
 def test_the_learners_a_prime_keeps_the_fingers_on_the_heightmap_as_the_agent_does():

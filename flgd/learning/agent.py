@@ -145,10 +145,11 @@ def epsilon_at(step: int, exploration: ExplorationConfig) -> float:
 
 
 def masked_maps(q: np.ndarray, grasp: np.ndarray, move: np.ndarray) -> np.ndarray:
-    """Q [R,2,H,W] with -inf outside the grasp mask ([H,W] or [R,H,W]; channel 0) and the move mask (channel 1)."""
+    """Q [R,2,H,W] with -inf outside the grasp mask (channel 0) and the move mask (channel 1), each [H,W] or
+    per rotation [R,H,W]."""
     out = np.array(q, dtype=np.float32, copy=True)
     out[:, 0][np.broadcast_to(grasp, out.shape[:1] + out.shape[2:]) == 0] = -np.inf   # [H,W] or per rotation
-    out[:, 1][:, move == 0] = -np.inf
+    out[:, 1][np.broadcast_to(move, out.shape[:1] + out.shape[2:]) == 0] = -np.inf
     return out
 
 
@@ -317,14 +318,11 @@ class Agent:
                              f"got {list(q.shape)}")
         gmask, mmask = self.masks(height)
         self._exhausted = ""
-        if not gmask.any():
-            if mmask.any():   # objects, but each grasp on them would put a finger beyond the heightmap
-                self._exhausted = ("every grasp on what the camera sees would bring a finger down beyond the "
-                                   "heightmap's edge") if ex.grasp_only else ""
-                if ex.grasp_only:
-                    return None
-            else:
-                return None
+        if not gmask.any() and (ex.grasp_only or not mmask.any()):
+            if grasp_mask(height, self.config.rewards, self.config.workspace.resolution).any():
+                self._exhausted = ("every action on what the camera sees would bring the gripper down beyond the "
+                                   "heightmap's edge (exploration.grasp_in_view): clear the table's border")
+            return None
         masked = masked_maps(q, gmask, mmask)
         if ex.grasp_only:
             masked[:, 1] = -np.inf
