@@ -18,7 +18,8 @@ Distances (defaults in ``RobotConfig``, all configurable):
     width again, open, go home.  Only an object still between the fingers at the
     place pose was picked: one that slipped out on the way is a failed grasp.
   * push (the point is background): close, descend beside the objects to
-    ``push_height`` above the table, travel ``push_distance`` (10 cm) along
+    ``push_height`` above the table (guarded: a contact on the way down means the
+    heightmap missed something there, and the push backs out and goes home), travel ``push_distance`` (10 cm) along
     theta, rise, go home.  The end point is clamped to the workspace.
   * shift (the point is on an object): close, press ``shift_press`` below the
     object's top surface, drag ``shift_distance`` (6 cm) along theta, rise, go
@@ -61,6 +62,8 @@ __all__ = [
     "plan_shift",
     "plan_release",
     "plan_home",
+    "abort_steps",
+    "ABORT_LABEL",
 ]
 
 
@@ -77,6 +80,11 @@ class MoveL:
     ``blend`` (m, 0 = off) lets the move run into the next MoveL without stopping at ``pose``: the tool leaves the
     straight line ``blend`` before the pose and rejoins the next line ``blend`` after it (``flgd.blending``).
     Consecutive blended moves form one path (``blended_runs``), sent to a cell as one motion.
+
+    ``abort_on_contact`` (a guarded move only): a contact ends the plan instead -- the rest of it becomes
+    ``abort_steps``, straight back up to the previous pose and on to the plan's last.  A push comes down beside
+    objects to near the table: meeting something there means the heightmap missed it, and pushing on would press
+    it into the table (a protective stop).
     """
 
     pose: ToolPose
@@ -85,6 +93,7 @@ class MoveL:
     label: str = ""
     stop_on_contact: float = 0.0
     blend: float = 0.0
+    abort_on_contact: bool = False
 
 
 @dataclass(frozen=True)
@@ -254,6 +263,26 @@ def plan_grasp(x: float, y: float, surface_height: float, angle: float, config: 
     return Plan("grasp", steps, target=(x, y, z), angle=angle)
 
 
+ABORT_LABEL = "abort"   # back up from a guarded move that met something it should not have (abort_on_contact)
+
+
+def abort_steps(steps: tuple[Step, ...], i: int) -> tuple[MoveL, ...]:
+    """What runs instead of the rest of ``steps`` when the guarded move ``steps[i]`` (``abort_on_contact``) met
+    something: straight back to the pose of the move before it (where that guarded line began) at its speed, then
+    the plan's last move (home) as planned.  Only poses of the plan itself: checked with it (``check_plan``)."""
+    guarded = steps[i]
+    if not isinstance(guarded, MoveL):
+        raise ValueError(f"abort_steps: step {i} is not a MoveL")
+    before = next((s for s in reversed(steps[:i]) if isinstance(s, MoveL)), None)
+    last = next((s for s in reversed(steps[i + 1:]) if isinstance(s, MoveL)), None)
+    out: tuple[MoveL, ...] = ()
+    if before is not None:
+        out += (MoveL(before.pose, guarded.speed, guarded.acceleration, ABORT_LABEL),)
+    if last is not None:
+        out += (MoveL(last.pose, last.speed, last.acceleration, last.label),)
+    return out
+
+
 def _travel_plan(primitive: str, x: float, y: float, z: float, angle: float, distance: float,
                  config: CellConfig) -> Plan:
     if not all(map(math.isfinite, (x, y, z, angle))):
@@ -268,7 +297,11 @@ def _travel_plan(primitive: str, x: float, y: float, z: float, angle: float, dis
     steps: tuple[Step, ...] = (
         GripperCommand(gr.closed_width, gr.force, "close"),
         MoveL(ToolPose.top_down(x, y, above, yaw), rb.speed, rb.acceleration, "approach"),
-        MoveL(ToolPose.top_down(x, y, z, yaw), rb.approach_speed, rb.acceleration, "descend"),
+        # a push comes down beside the objects: guarded, and a contact there ends it (a shift's press on the
+        # object's top is meant)
+        MoveL(ToolPose.top_down(x, y, z, yaw), rb.approach_speed, rb.acceleration, "descend",
+              stop_on_contact=rb.descent_contact_force if primitive == "push" else 0.0,
+              abort_on_contact=primitive == "push"),
         MoveL(ToolPose.top_down(ex, ey, z, yaw), rb.approach_speed, rb.acceleration, primitive),
         MoveL(ToolPose.top_down(ex, ey, above, yaw), rb.approach_speed, rb.acceleration, "retreat",
               blend=_corner(rb.blend_radius, above - z, _distance((ex, ey, above), home.position))),

@@ -15,7 +15,7 @@ import numpy as np
 
 from flgd.blending import corner_curve, corner_problem
 from flgd.config import CellConfig
-from flgd.plans import GripperCommand, MeasureWidth, MoveL, Plan
+from flgd.plans import GripperCommand, MeasureWidth, MoveL, Plan, abort_steps
 
 __all__ = ["PlanRefused", "CheckedPlan", "check_plan"]
 
@@ -136,6 +136,9 @@ def check_plan(plan: Plan, config: CellConfig) -> CheckedPlan:
             why = _check_move(step, config)
             if why is None and step.blend > 0.0:
                 why = _check_corner(plan.steps, i, config)
+            if why is None and step.abort_on_contact:
+                why = ("abort_on_contact on a move that is not guarded (stop_on_contact)" if step.stop_on_contact <= 0
+                       else next(filter(None, (_check_move(m, config) for m in abort_steps(plan.steps, i))), None))
         elif isinstance(step, GripperCommand):
             why = _check_gripper(step, config)
         elif isinstance(step, MeasureWidth):

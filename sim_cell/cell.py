@@ -45,7 +45,7 @@ import pybullet as p
 from flgd.cell import Cell, CellFault, ContactStop, ExecutionResult, Frame
 from flgd.config import CellConfig
 from flgd.geometry import ToolPose, pose_matrix
-from flgd.plans import LIFT_LABEL, GripperCommand, MeasureWidth, MoveL
+from flgd.plans import LIFT_LABEL, GripperCommand, MeasureWidth, MoveL, abort_steps
 from flgd.safety import CheckedPlan
 from sim_cell import camera as simcam
 from sim_cell import kinematics, motion, objects, scene_maker, scenes
@@ -175,12 +175,17 @@ class SimCell(Cell):
             self._arm.begin_plan(self.config.robot.shift_press if planned.primitive == "shift" else 0.0)
             self._world.lifted = self._world.held & self._arm.in_gripper()   # carried in (to the place): lost = dropped
             try:
-                for i, step in enumerate(steps):
+                i = -1
+                while i + 1 < len(steps):
+                    i += 1
+                    step = steps[i]
                     if isinstance(step, MoveL):
                         blends_on = step.blend > 0.0 and i + 1 < len(steps) and isinstance(steps[i + 1], MoveL)
                         if self._arm.run_line(lines[i], step.stop_on_contact, settle=not blends_on):
                             short = float(np.linalg.norm(self._tcp()[:3, 3] - np.asarray(step.pose.position)))
                             stops.append(ContactStop(step.label, short))
+                            if step.abort_on_contact:   # the rest of the plan: back up and home
+                                steps = steps[:i + 1] + abort_steps(steps, i)
                             # a guarded move met resistance: the rest of the plan starts where it stopped
                             lines.update(self._arm.plan_lines(steps, first=i + 1))
                         if step.label == LIFT_LABEL:   # pinched pairs too (``held``), as a measurement counts them

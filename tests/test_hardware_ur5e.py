@@ -520,3 +520,24 @@ def test_with_the_installation_tcp_unknown_a_path_runs_as_single_moves(ctl, rg2)
     result = cell.execute(grasp(cfg))
     assert result.completed, result.failure
     assert not [c for c in ctl.calls("moveL") if c[0] and isinstance(c[0][0], list)]
+
+
+def test_a_push_that_comes_down_on_something_backs_straight_up_and_goes_home_without_pushing(ctl, rg2):
+    cell = make_ur5e(ctl, rg2)
+    cfg = cell.config
+    checked = push(cfg)
+    steps = checked.plan.steps
+    descend = next(s for s in steps if isinstance(s, MoveL) and s.label == "descend")
+    approach = next(s for s in steps if isinstance(s, MoveL) and s.label == "approach")
+    assert descend.stop_on_contact == cfg.robot.descent_contact_force and descend.abort_on_contact
+    ctl.surface_z = descend.pose.position[2] + 0.03   # a part the heightmap did not show, 3 cm up
+    since = len(ctl.log)
+    result = cell.execute(checked)
+    assert result.completed, result.failure
+    assert [s.label for s in result.contact_stops] == ["descend"]
+    moves = ctl.calls("moveL", since)
+    # approach, the stopped descent, straight back up to the approach pose, home: no push, no retreat
+    assert len(moves) == 4
+    np.testing.assert_allclose(moves[2][0], approach.pose.as_ur_pose())
+    np.testing.assert_allclose(ctl.tcp[:3], cfg.robot.home.position, atol=1e-9)
+    assert not ctl.calls("triggerProtectiveStop", since)

@@ -345,3 +345,25 @@ def test_actions_on_adversarial_heightmaps(row, col, rotation, prim, height, rea
         return
     assert_inside_envelope(plan, cfg)
     assert 0 <= row < hm.shape[0] and 0 <= col < hm.shape[1], "a pixel off the heightmap must be refused"
+
+
+def test_a_push_descends_guarded_and_its_abort_path_is_straight_up_then_home_checked_with_it() -> None:
+    from flgd.plans import ABORT_LABEL, abort_steps
+
+    plan = plan_push(-0.5, 0.05, 0.3, CFG)
+    labels = [s.label for s in plan.steps]
+    i = labels.index("descend")
+    descend, approach = plan.steps[i], plan.steps[labels.index("approach")]
+    assert descend.stop_on_contact == CFG.robot.descent_contact_force > 0 and descend.abort_on_contact
+    back = abort_steps(plan.steps, i)
+    assert [m.label for m in back] == [ABORT_LABEL, "home"]
+    assert back[0].pose == approach.pose and back[1].pose == plan.steps[-1].pose
+    # a shift presses on the object's top on purpose: its descent is not guarded
+    shift = plan_shift(-0.5, 0.05, 0.04, 0.3, CFG)
+    assert not any(s.abort_on_contact or s.stop_on_contact for s in shift.steps if isinstance(s, MoveL))
+    check_plan(plan, CFG)
+    # abort_on_contact on a move that cannot stop is refused
+    unguarded = dataclasses.replace(plan, steps=tuple(dataclasses.replace(s, stop_on_contact=0.0) if k == i else s
+                                                      for k, s in enumerate(plan.steps)))
+    with pytest.raises(PlanRefused, match="not guarded"):
+        check_plan(unguarded, CFG)

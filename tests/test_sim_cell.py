@@ -536,3 +536,22 @@ def test_a_gripper_move_takes_the_rg2s_time_on_the_cells_clock():
         assert result.gripper_time >= (gr.open_width - result.widths[0]) / RG2_STROKE_SPEED
     finally:
         cell.close()
+
+
+def test_a_push_that_comes_down_on_a_block_the_plan_did_not_know_backs_out_instead_of_pressing_it():
+    """The push's descent is guarded and ends the push: no collision stop, the block not dragged, the arm home."""
+    cfg = make_config(objects=0, depth_noise=False, domain_randomization=False)
+    cell = SimCell(cfg)
+    try:
+        body = cube_at(cell, -0.52, 0.04, yaw=0.0)
+        before = state(cell, body)
+        plan = plan_push(before.position[0], before.position[1], 0.0, cfg)   # comes down right on top of it
+        result = cell.execute(check_plan(plan, cfg))
+        assert result.completed, result.failure
+        assert [s.label for s in result.contact_stops] == ["descend"]
+        after = state(cell, body)
+        assert np.linalg.norm(np.asarray(after.position[:2]) - np.asarray(before.position[:2])) < 0.005
+        home = np.asarray(cfg.robot.home.position)
+        assert np.linalg.norm(cell._tcp()[:3, 3] - home) < 0.002
+    finally:
+        cell.close()

@@ -24,7 +24,7 @@ from typing import Callable
 from flgd.cell import STOPPED_ON_REQUEST, Cell, CellFault, ContactStop, ExecutionResult, Frame, StopPending
 from flgd.config import CellConfig
 from flgd.geometry import ToolPose, rotvec_to_matrix
-from flgd.plans import GripperCommand, MeasureWidth, MoveL, Plan, blended_runs, plan_home
+from flgd.plans import GripperCommand, MeasureWidth, MoveL, Plan, abort_steps, blended_runs, plan_home
 from flgd.safety import CheckedPlan, PlanRefused, check_plan
 from flgd.hardware.camera import Camera
 from flgd.hardware.gripper import GripperDriver, GripperFault
@@ -128,6 +128,9 @@ class UR5eCell(Cell):
                                                 min(step.acceleration, sf.max_acceleration), step.label,
                                                 stop_force=step.stop_on_contact):
                             stops.append(ContactStop(step.label, pose_error(self.arm.tcp_pose(), target)[0]))
+                            if step.abort_on_contact:   # the rest of the plan: back up and home, move by move
+                                steps = steps[:i + 1] + abort_steps(steps, i)
+                                runs = {a: b for a, b in runs.items() if b <= i}
                     elif isinstance(step, GripperCommand):
                         self.arm.check()
                         started = self._elapsed(start)
