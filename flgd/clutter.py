@@ -39,6 +39,7 @@ __all__ = [
     "move_mask",
     "action_masks",
     "cell_action_masks",
+    "reachable_objects",
 ]
 
 
@@ -150,8 +151,22 @@ def action_masks(height: np.ndarray, rc: RewardConfig, enabled: bool = True,
         if grasps.shape[1:] != height.shape or moves.shape[1:] != height.shape:
             raise ValueError(f"in_view: {list(grasps.shape)}, {list(moves.shape)} do not match the heightmap "
                              f"{list(height.shape)}")
+        if enabled:   # an object no grasp in view reaches (a sliver at the border) is not pushed at either
+            rho_g = reachable_objects(rho_g, grasps)
+            rho_m = cv2.dilate(rho_g, _kernel(rc.move_mask_dilation))
         rho_g, rho_m = rho_g[None] & grasps, rho_m[None] & moves
     return rho_g, rho_m
+
+
+def reachable_objects(objects_mask: np.ndarray, grasps: np.ndarray) -> np.ndarray:
+    """The objects (8-connected regions of ``objects_mask``) with at least one grasp allowed by ``grasps``
+    ([R,H,W]) on them: an object pushed over the heightmap's border shows as a sliver no grasp can reach, and a
+    push beside it would come down on its unseen part."""
+    count, labels = cv2.connectedComponents(np.ascontiguousarray(objects_mask, dtype=np.uint8), connectivity=8)
+    if count <= 1:
+        return objects_mask
+    reached = np.unique(labels[(grasps.max(axis=0) > 0) & (objects_mask > 0)])
+    return np.isin(labels, reached[reached > 0]).astype(np.uint8)
 
 
 def cell_action_masks(height: np.ndarray, config: CellConfig, rotations: int) -> tuple[np.ndarray, np.ndarray]:

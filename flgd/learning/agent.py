@@ -320,8 +320,9 @@ class Agent:
         self._exhausted = ""
         if not gmask.any() and (ex.grasp_only or not mmask.any()):
             if grasp_mask(height, self.config.rewards, self.config.workspace.resolution).any():
-                self._exhausted = ("every action on what the camera sees would bring the gripper down beyond the "
-                                   "heightmap's edge (exploration.grasp_in_view): clear the table's border")
+                self._exhausted = ("what the camera sees lies at the heightmap's border, where every grasp and push "
+                                   "would bring the gripper down beyond its edge onto what it cannot see "
+                                   "(exploration.grasp_in_view): clear the table's border")
             return None
         masked = masked_maps(q, gmask, mmask)
         if ex.grasp_only:
