@@ -28,15 +28,19 @@ import threading
 import time
 from typing import Callable
 
+import pybullet as p
+
 from flgd.config import CellConfig
 from sim_cell.cell import SimCell
 from sim_cell.stability import Unstable
 
-__all__ = ["EmulatorWorld", "TickCallback", "slow_clock_warning"]
+__all__ = ["EmulatorWorld", "TickCallback", "slow_clock_warning", "in_bin", "BIN_HALF_SIZE"]
 
 log = logging.getLogger(__name__)
 
 TickCallback = Callable[[float], None]   # called with the physics time step (s) before each step
+BIN_HALF_SIZE = 0.10                     # m: the bin under robot.place, 20 cm square, open at the top
+BIN_CHECK_STEPS = 24                     # physics steps between looks into the bin (0.1 s at 240 Hz)
 MAX_BURST_STEPS = 2                      # steps taken at once when behind: the RTDE stream gets its turn between
 MAX_LAG_STEPS = 24                       # steps behind real time before the clock gives up catching up
 RATE_WINDOW_S = 10.0                     # wall seconds over which the recent real-time factor is measured
@@ -60,6 +64,8 @@ class EmulatorWorld:
     """One SimCell, its lock and the physics clock that steps it for the emulated devices."""
 
     def __init__(self, config: CellConfig, *, time_scale: float = 1.0):
+        """``config.robot.place`` stands over a bin (as on a cell): what comes to rest inside its square leaves the
+        table, so placed objects do not pile up beside the workspace."""
         if time_scale <= 0:
             raise ValueError(f"time_scale must be > 0, got {time_scale!r}")
         self.config = config
@@ -103,6 +109,17 @@ class EmulatorWorld:
                     self.cell._world.stats["unstable_resets"] += 1
                     self.cell.reset_scene()
                 self.steps += 1
+                if self.steps % BIN_CHECK_STEPS == 0:
+                    self._empty_bin()
+
+    def _empty_bin(self) -> None:
+        """Take out what lies in the bin under the place pose and touches nothing of the arm (lock held)."""
+        world, ws = self.cell._world, self.config.workspace
+        px, py = self.config.robot.place.position[:2]
+        for body in in_bin(world.client, list(world.objects), world.robot.body, (px, py), BIN_HALF_SIZE):
+            (x, y, _z), _ = p.getBasePositionAndOrientation(body, physicsClientId=world.client)
+            if not (ws.x[0] <= x <= ws.x[1] and ws.y[0] <= y <= ws.y[1]):   # a place over the workspace has no bin
+                world.remove(body, "grasped_out")
 
     # ------------------------------------------------------------------ clock
     def start(self) -> None:
@@ -174,3 +191,15 @@ class EmulatorWorld:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def in_bin(client: int, bodies: list[int], robot: int, centre: tuple[float, float], half: float) -> list[int]:
+    """Of ``bodies``, those whose centre lies within ``half`` (m) of ``centre`` (x, y) and that touch nothing of
+    the robot (an object still in the gripper over the bin has not been let go)."""
+    out = []
+    for body in bodies:
+        (x, y, _z), _ = p.getBasePositionAndOrientation(body, physicsClientId=client)
+        if abs(x - centre[0]) <= half and abs(y - centre[1]) <= half and \
+                not p.getContactPoints(bodyA=body, bodyB=robot, physicsClientId=client):
+            out.append(body)
+    return out
