@@ -389,7 +389,7 @@ def fresh_snapshot(ctl: DaemonControl) -> dict[str, Any]:
     q = ctl.agent.q_maps(hm)
     gmask, mmask = ctl.agent.masks(hm.height)
     action = None
-    if gmask.any():
+    if gmask.any() or mmask.any():   # a move alone may be allowed (grasps on a sliver at the border are not)
         action = greedy_action(q, gmask, mmask, hm.height, ctl.config.rewards.shift_height)
     note = "fresh capture, greedy action (not executed)"
     image = qmap_picture(hm.color, hm.height, q, gmask, mmask, action, caption=note,
