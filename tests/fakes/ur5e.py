@@ -413,9 +413,12 @@ class FakeRTDEFactory:
 
 def real_config(**gripper) -> CellConfig:
     """The real-cell example config, on loopback, with its policy read from this checkout (the example
-    names the installed copy under /opt/flgd)."""
+    names the installed copy under /opt/flgd).  Every move single and slow near the grasp over the whole approach
+    height (no blend, no contact zone): these tests count the moves a plan sends; blended paths and the contact
+    zone have their own tests, which set them."""
     cfg = load_config(ROOT / "cell_config" / "ur5e-d415.yaml")
-    return dataclasses.replace(cfg, robot=dataclasses.replace(cfg.robot, host="127.0.0.1"),
+    return dataclasses.replace(cfg, robot=dataclasses.replace(cfg.robot, host="127.0.0.1", blend_radius=0.0,
+                                                              contact_clearance=0.0, raise_speed=0.0),
                                gripper=dataclasses.replace(cfg.gripper, **gripper),
                                policy=str(ROOT / "policies" / Path(cfg.policy).name))
 
