@@ -448,13 +448,12 @@ class URArm:
             if reason:
                 self._halt()
                 self._latch(f"{reason} during {what}")
-            if guard is not None:
-                change = self._tcp_force() - guard[0]
-                if np.linalg.norm(change) > guard[1]:
-                    self._halt()
-                    log.info("%s stopped on contact: TCP force changed by %s N", what, np.round(change, 1).tolist())
-                    self._wait_until_still(what)
-                    return True
+            change = None if guard is None else self._tcp_force() - guard[0]
+            if change is not None and np.linalg.norm(change) > guard[1]:
+                self._halt()
+                log.info("%s stopped on contact: TCP force changed by %s N", what, np.round(change, 1).tolist())
+                self._wait_until_still(what)
+                return True
             running = self._async_running()
             seen_running = seen_running or running
             here = self.tcp_pose() if tcp is None else for_tcp(self.tcp_pose(), tcp, self.tcp)
