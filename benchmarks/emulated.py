@@ -3,7 +3,7 @@ beside the sim backend on the same scenes and seed; then every fault kind inject
 
     flgd bench emulated --root runs/emulated --cycles 200 --faults 10 [--parts policy faults calibrate] [--serial]
         [--free-speed M_S] [--acceleration M_S2] [--raise-speed M_S] [--contact-clearance M] [--blend-radius M]
-        [--out FILE]
+        [--release-gap M] [--out FILE]
 
 *policy*: ``flgd run`` with the shipped policy, frozen (``finetune.updates_per_action: 0``), on
 cell_config/ur5e-emulated.yaml (backend ur5e against the emulator) and on the same file with ``backend: sim``,
@@ -49,7 +49,8 @@ MARKER_OFFSET = ("-0.08", "0", "-0.02")   # m in the tool frame: beside the wris
 PHASES = ("t_capture", "t_perceive", "t_decide", "t_plan", "t_execute", "t_judge", "t_store")
 
 
-def _write_config(root: Path, backend: str, host: str, robot: dict[str, Any] | None = None) -> Path:
+def _write_config(root: Path, backend: str, host: str, robot: dict[str, Any] | None = None,
+                  gripper: dict[str, Any] | None = None) -> Path:
     from flgd.config import load_config
 
     data = yaml.safe_load(EMULATED.read_text())
@@ -57,6 +58,7 @@ def _write_config(root: Path, backend: str, host: str, robot: dict[str, Any] | N
     data.update(backend=backend, state_dir=str(root / "state"), policy=str(shipped.policy))
     data["robot"]["host"] = host
     data["robot"].update(robot or {})
+    data["gripper"].update(gripper or {})
     for key, cap in (("speed", "max_speed"), ("raise_speed", "max_speed"), ("acceleration", "max_acceleration"),
                      ("blend_radius", "max_blend_radius")):
         if key in (robot or {}):
@@ -204,11 +206,11 @@ def _restarted(daemon: _Daemon, config: Path, root: Path) -> _Daemon:
 
 
 def run_policy(root: Path, cycles: int, time_scale: float, host: str,
-               robot: dict[str, Any] | None = None) -> dict[str, Any]:
+               robot: dict[str, Any] | None = None, gripper: dict[str, Any] | None = None) -> dict[str, Any]:
     out: dict[str, Any] = {}
     for backend in ("sim", "ur5e"):
         row = root / ("sim" if backend == "sim" else "emulated")
-        config = _write_config(row, backend, host, robot)
+        config = _write_config(row, backend, host, robot, gripper)
         done = len(_rows(row / "state")) if (row / "state" / "flgd.sqlite").exists() else 0
         if done < cycles:
             emu = _emulator(config, row, time_scale) if backend == "ur5e" else None
@@ -403,6 +405,8 @@ def main(argv: list[str] | None = None) -> int:
                    help="robot.contact_clearance (m): a grasp slow only this far above the highest point around it")
     p.add_argument("--blend-radius", type=float, default=None,
                    help="robot.blend_radius (m): free moves of a plan blended into one path")
+    p.add_argument("--release-gap", type=float, default=None,
+                   help="gripper.release_gap (m): a release goes on once the fingers opened this far")
     p.add_argument("--serial", action="store_true", help="robot.decide_while_placing off: the arm goes home after "
                                                          "each place and waits there for the next decision")
     args = p.parse_args(argv)
@@ -421,7 +425,8 @@ def main(argv: list[str] | None = None) -> int:
             robot["contact_clearance"] = args.contact_clearance
         if args.blend_radius is not None:
             robot["blend_radius"] = args.blend_radius
-        summary["policy"] = run_policy(root / "policy", args.cycles, args.time_scale, args.host, robot)
+        gripper = {} if args.release_gap is None else {"release_gap": args.release_gap}
+        summary["policy"] = run_policy(root / "policy", args.cycles, args.time_scale, args.host, robot, gripper)
     if "faults" in args.parts:
         previous = root / "faults" / "faults.json"
         resume = json.loads(previous.read_text()) if previous.exists() else {}

@@ -98,11 +98,16 @@ class MoveL:
 
 @dataclass(frozen=True)
 class GripperCommand:
-    """Move the fingers to ``width`` (m) with at most ``force`` (N)."""
+    """Move the fingers to ``width`` (m) with at most ``force`` (N).
+
+    ``proceed_after`` (m, 0 = off): the plan goes on once the fingers have travelled this far and they finish the
+    move while the arm moves on; the cell's next gripper step waits for them.  A release needs the pads only off
+    the object (``gripper.release_gap``), not the whole opening."""
 
     width: float
     force: float
     label: str = ""
+    proceed_after: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -247,9 +252,11 @@ def plan_grasp(x: float, y: float, surface_height: float, angle: float, config: 
                blend=_corner(rb.blend_radius, lifted - clear, _distance((x, y, lifted), home.position))))
         if rb.raise_speed > 0.0 and clear < lifted - 0.01 else
         (MoveL(ToolPose.top_down(x, y, lifted, yaw), rb.approach_speed, rb.acceleration, LIFT_LABEL),))
+    # the fingers open at the approach pose, above everything the descent passes: a release at the place that
+    # went on before they were open (gripper.release_gap) finishes during the approach
     steps: tuple[Step, ...] = (
-        GripperCommand(gr.open_width, gr.force, "open"),
         MoveL(ToolPose.top_down(x, y, above, yaw), rb.speed, rb.acceleration, "approach"),
+        GripperCommand(gr.open_width, gr.force, "open"),
         *((MoveL(ToolPose.top_down(x, y, contact_top, yaw), rb.raise_speed, rb.acceleration, LOWER_LABEL,
                  stop_on_contact=rb.descent_contact_force),)
           if rb.raise_speed > 0.0 and contact_top < above - 0.01 else ()),
@@ -405,13 +412,14 @@ def plan_release(held: bool, config: CellConfig, home: bool = True) -> Plan:
     slipped out between the home pose and the place was not picked, on any cell.  ``home=False`` leaves the
     arm at the place (out of the camera's view, as home is): the next plan starts from there."""
     gr, rb = config.gripper, config.robot
+    release = GripperCommand(gr.open_width, gr.force, "open", proceed_after=gr.release_gap)
     if not held:
-        return Plan("release", (GripperCommand(gr.open_width, gr.force, "open"),))
+        return Plan("release", (release,))
     place = rb.place
     steps: tuple[Step, ...] = (
         MoveL(ToolPose.top_down(*place.position, place.yaw), rb.speed, rb.acceleration, "place"),
         MeasureWidth(PLACE_CHECK_LABEL),
-        GripperCommand(gr.open_width, gr.force, "open"),
+        release,
     )
     if home:
         steps += (MoveL(ToolPose.top_down(*rb.home.position, rb.home.yaw), rb.speed, rb.acceleration, "home"),)

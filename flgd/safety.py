@@ -120,6 +120,8 @@ def _check_gripper(step: GripperCommand, cfg: CellConfig) -> str | None:
         return f"gripper width {step.width!r} m is outside [0, {GRIPPER_STROKE}] m"
     if not (_finite([step.force]) and 0.0 < step.force <= cfg.gripper.force):
         return f"gripper force {step.force!r} N is outside (0, {cfg.gripper.force}] N"
+    if not (_finite([step.proceed_after]) and 0.0 <= step.proceed_after <= GRIPPER_STROKE):
+        return f"gripper proceed_after {step.proceed_after!r} m is outside [0, {GRIPPER_STROKE}] m"
     return None
 
 

@@ -91,6 +91,7 @@ class ArmDriver:
         self._home_joints = home_joints
         self._press_allowance = 0.0           # m of intended press of the running plan (a shift's press)
         self._press_yield = 0.0               # m the compliant wrist has given way during that press
+        self._fingers_until: tuple[float, float] | None = None   # (sim_time of a move that went on early, its end)
 
     @property
     def contacts(self) -> GripperContacts:
@@ -232,7 +233,14 @@ class ArmDriver:
             return False
         return not self._contacts.touching(carried) and not self._world.stability.moving(exclude=carried)
 
-    def run_gripper(self, width: float, force: float) -> None:
+    def run_gripper(self, width: float, force: float, proceed_after: float = 0.0) -> None:
+        """The fingers to ``width``, on the RG2's time; with ``proceed_after`` (m) a move with nothing in reach
+        charges only that much travel and the rest to the next gripper command (the arm moves meanwhile)."""
+        if self._fingers_until is not None:   # a move that went on early: its end first (a reset clock owes none)
+            began, end = self._fingers_until
+            if began <= self._world.sim_time < end:
+                self._world.sim_time = end
+            self._fingers_until = None
         opening = width > self._robot.finger_target_width() + 1e-4 or width > self._robot.width() + 1e-3
         if opening and self._world.held:
             self._release_held()
@@ -242,6 +250,10 @@ class ArmDriver:
             # nothing within reach of the fingers: set them without stepping the physics
             travel = abs(width - self._robot.width())
             self._robot.set_fingers(width, force)
+            began = self._world.sim_time
+            if 0.0 < proceed_after < travel:
+                self._fingers_until = (began, began + travel / RG2_STROKE_SPEED)
+                travel = proceed_after
             self._world.sim_time += travel / RG2_STROKE_SPEED
             return
         started, start_width = self._world.sim_time, self._robot.width()

@@ -192,7 +192,7 @@ class SimCell(Cell):
                             self._world.lifted = self._arm.in_gripper() | self._arm.contacts.held()
                     elif isinstance(step, GripperCommand):
                         started = self._sim_time
-                        self._arm.run_gripper(step.width, step.force)
+                        self._arm.run_gripper(step.width, step.force, step.proceed_after)
                         gripper += self._sim_time - started
                     elif isinstance(step, MeasureWidth):
                         started = self._sim_time

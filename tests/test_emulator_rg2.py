@@ -94,6 +94,25 @@ def test_closing_on_a_block_stops_at_its_width(world, rg2):
         d.close()
 
 
+def test_a_release_goes_on_once_the_fingers_opened_its_gap_and_the_next_move_waits_for_them(world, rg2):
+    """gripper.release_gap: the arm may leave once the pads are off the object; the fingers finish opening
+    meanwhile, and the next gripper command starts only once they have stopped."""
+    d = driver(rg2)
+    _tcp_down_to(world, 0.20)
+    d.move(0.0, 40.0)
+    d.move(0.085, 40.0, proceed_after=0.010)
+    assert rg2.busy, "returned while the fingers were still opening"
+    opened = d.width()
+    assert 0.008 < opened < 0.060, f"returned at {opened * 1000:.1f} mm, not once 10 mm were open"
+    grips = rg2.calls.count("rg_grip")
+    d.move(0.085, 40.0)   # the grasp's open: waits for the release to end, then finds the fingers open already
+    assert not rg2.busy and d.width() == pytest.approx(0.085, abs=0.002)
+    assert rg2.calls.count("rg_grip") == grips, "an open gripper is not sent the same open again"
+    d.move(0.030, 40.0)
+    assert d.width() == pytest.approx(0.030, abs=0.002)
+    d.close()
+
+
 def test_a_tripped_safety_switch_is_a_gripper_fault_until_reset(world, rg2):
     d = driver(rg2)
     _tcp_down_to(world, 0.20)

@@ -30,7 +30,7 @@ def _driver(server: LoopbackRG2, timeout: float = 2.0) -> RG2XmlRpcDriver:
 def test_grip_sends_mm_and_newton_waits_until_not_busy_and_reads_width(rg2):
     drv = _driver(rg2)
     drv.move(0.085, 40.0)
-    assert rg2.calls[0] == ("rg_grip", 0, pytest.approx(85.0), pytest.approx(40.0))
+    assert [c for c in rg2.calls if c[0] == "rg_grip"] == [("rg_grip", 0, pytest.approx(85.0), pytest.approx(40.0))]
     assert drv.width() == pytest.approx(0.085)
     # Closing on a 32 mm object: the fingers stop on it and the measured width says "held".
     rg2.object_width_mm = 32.0

@@ -296,7 +296,7 @@ def test_starting_while_protective_stopped_reports_and_recovers(ctl, rg2):
 def test_gripper_failure_latches_the_fault_too(ctl, rg2):
     cell = make_ur5e(ctl, rg2)
     rg2.fault = "tool not connected"
-    with pytest.raises(CellFault, match="step 0 \\(open\\).*tool not connected"):
+    with pytest.raises(CellFault, match="step 1 \\(open\\).*tool not connected"):
         cell.execute(grasp(cell.config))
     rg2.fault = None
     n = len(ctl.log)

@@ -48,9 +48,9 @@ def assert_inside_envelope(plan: Plan, cfg) -> None:
 def test_with_a_raise_speed_a_grasp_lifts_slowly_only_up_to_the_approach_height() -> None:
     cfg = dataclasses.replace(CFG, robot=dataclasses.replace(CFG.robot, raise_speed=0.4))
     plan = plan_grasp(-0.5, 0.05, 0.05, 0.0, cfg)
-    assert [s.label for s in plan.steps] == ["open", "approach", "descend", "close", "lift", "raise", "home", "held"]
+    assert [s.label for s in plan.steps] == ["approach", "open", "descend", "close", "lift", "raise", "home", "held"]
     lift, raise_ = plan.steps[4], plan.steps[5]
-    assert lift.pose.position == pytest.approx(plan.steps[1].pose.position) and lift.speed == cfg.robot.approach_speed
+    assert lift.pose.position == pytest.approx(plan.steps[0].pose.position) and lift.speed == cfg.robot.approach_speed
     assert raise_.pose.position[2] == pytest.approx(cfg.workspace.table_z + cfg.robot.lift_height)
     assert raise_.speed == 0.4
     check_plan(plan, cfg)
@@ -59,7 +59,7 @@ def test_with_a_raise_speed_a_grasp_lifts_slowly_only_up_to_the_approach_height(
 def test_a_grasp_whose_approach_height_reaches_the_lift_height_lifts_slowly_all_the_way() -> None:
     cfg = dataclasses.replace(CFG, robot=dataclasses.replace(CFG.robot, approach_height=0.24, raise_speed=0.4))
     plan = plan_grasp(-0.5, 0.05, 0.05, 0.0, cfg)
-    assert [s.label for s in plan.steps] == ["open", "approach", "descend", "close", "lift", "home", "held"]
+    assert [s.label for s in plan.steps] == ["approach", "open", "descend", "close", "lift", "home", "held"]
     assert plan.steps[4].pose.position[2] == pytest.approx(cfg.workspace.table_z + cfg.robot.lift_height)
     assert plan.steps[4].speed == cfg.robot.approach_speed
 
@@ -79,7 +79,7 @@ def test_with_a_contact_clearance_a_grasps_slow_lift_ends_once_the_object_clears
     z = steps["descend"].pose.position[2]
     assert z == pytest.approx(table + cfg.safety.min_table_clearance)
     assert steps["approach"].pose.position[2] == pytest.approx(z + cfg.robot.approach_height)   # unchanged
-    assert [s.label for s in plan.steps][1:4] == ["approach", "lower", "descend"]
+    assert [s.label for s in plan.steps][:4] == ["approach", "open", "lower", "descend"]
     assert steps["lower"].pose.position[2] == pytest.approx(table + 0.04 + 0.02)   # fingertips clear the neighbour
     assert steps["lower"].pose.position[:2] == pytest.approx(steps["approach"].pose.position[:2])   # straight down
     assert steps["lower"].speed == 0.4 and steps["lower"].stop_on_contact > 0.0   # guarded: a part not seen
@@ -113,7 +113,7 @@ def test_with_a_blend_radius_a_grasp_runs_its_raise_and_home_as_one_checked_path
     assert (moves["lift"].blend, moves["raise"].blend, moves["home"].blend) == (0.0, 0.03, 0.0)
     assert moves["approach"].blend == 0.0 and moves["descend"].blend == 0.0
     labels = [s.label for s in plan.steps]
-    assert blended_runs(plan.steps) == [(1, 1), (2, 2), (4, 4), (labels.index("raise"), labels.index("home"))]
+    assert blended_runs(plan.steps) == [(0, 0), (2, 2), (4, 4), (labels.index("raise"), labels.index("home"))]
     check_plan(plan, cfg)
     # a radius larger than half the raise is cut to fit its corner
     near = plan_grasp(-0.5, 0.05, 0.05, 0.3, dataclasses.replace(
@@ -151,8 +151,14 @@ def test_one_bad_corner_refuses_the_whole_blended_plan() -> None:
     with pytest.raises(PlanRefused, match="step that is not a move"):   # the descent is followed by the close
         check_plan(with_step(d, dataclasses.replace(plan.steps[d], blend=0.01)), cfg)
     a = [s.label for s in plan.steps].index("approach")
-    with pytest.raises(PlanRefused, match="guarded move"):
+    with pytest.raises(PlanRefused, match="step that is not a move"):   # the approach is followed by the open
         check_plan(with_step(a, dataclasses.replace(plan.steps[a], blend=0.01)), cfg)
+    push = plan_push(-0.5, 0.05, 0.3, cfg)   # its approach runs into the guarded descent
+    pa = [s.label for s in push.steps].index("approach")
+    steps = list(push.steps)
+    steps[pa] = dataclasses.replace(steps[pa], blend=0.01)
+    with pytest.raises(PlanRefused, match="guarded move"):
+        check_plan(dataclasses.replace(push, steps=tuple(steps)), cfg)
     first = Plan("home", (MoveL(plan.steps[a].pose, 0.2, 1.0, "a", blend=0.01), MoveL(lift.pose, 0.2, 1.0, "b")))
     with pytest.raises(PlanRefused, match="first move cannot blend"):
         check_plan(first, cfg)
@@ -195,10 +201,10 @@ def test_a_grasp_near_the_end_of_a_bar_moves_along_the_pads_to_its_middle_by_at_
 def test_grasp_plan_shape() -> None:
     plan = plan_grasp(-0.5, 0.05, 0.05, math.radians(30), CFG)
     labels = [s.label for s in plan.steps]
-    assert labels == ["open", "approach", "descend", "close", "lift", "home", "held"]
+    assert labels == ["approach", "open", "descend", "close", "lift", "home", "held"]
     descend = plan.steps[2].pose
     assert descend.position == pytest.approx((-0.5, 0.05, 0.05 - CFG.robot.grasp_depth))
-    assert plan.steps[1].pose.position[2] == pytest.approx(descend.position[2] + CFG.robot.approach_height)
+    assert plan.steps[0].pose.position[2] == pytest.approx(descend.position[2] + CFG.robot.approach_height)
     assert plan.steps[4].speed == CFG.robot.approach_speed   # the whole lift slow: raise_speed is off by default
     # Fingers close along theta: tool x axis = (cos, sin, 0); tool z points down.
     r = descend.matrix
@@ -260,6 +266,13 @@ def test_release_places_a_held_object_and_only_opens_otherwise() -> None:
     assert isinstance(held.steps[1], MeasureWidth)  # still held at the place pose, read before the fingers open
     assert plan_release(False, CFG).steps == (GripperCommand(CFG.gripper.open_width, CFG.gripper.force, "open"),)
     check_plan(held, CFG)
+    # gripper.release_gap: both releases go on once the fingers opened that far; nothing else does
+    gap = dataclasses.replace(CFG, gripper=dataclasses.replace(CFG.gripper, release_gap=0.01))
+    opens = [s for p in (plan_release(True, gap), plan_release(False, gap)) for s in p.steps
+             if isinstance(s, GripperCommand)]
+    assert [s.proceed_after for s in opens] == [0.01, 0.01]
+    grasp = plan_grasp(-0.5, 0.05, 0.05, 0.0, gap)
+    assert all(s.proceed_after == 0.0 for s in grasp.steps if isinstance(s, GripperCommand))
 
 
 @pytest.mark.parametrize("mutate,needle", [
@@ -275,6 +288,8 @@ def test_release_places_a_held_object_and_only_opens_otherwise() -> None:
     (lambda p: _replace_move(p, rotation=((2.0, 0, 0), (0, -1.0, 0), (0, 0, -1.0))), "rotation"),
     (lambda p: dataclasses.replace(p, steps=p.steps + (GripperCommand(0.5, 10.0),)), "gripper width"),
     (lambda p: dataclasses.replace(p, steps=p.steps + (GripperCommand(0.05, 400.0),)), "gripper force"),
+    (lambda p: dataclasses.replace(p, steps=p.steps + (GripperCommand(0.05, 10.0, proceed_after=-0.01),)),
+     "proceed_after"),
     (lambda p: dataclasses.replace(p, steps=p.steps + ("moveJ",)), "unknown step"),
 ])
 def test_bad_plans_are_refused_with_a_reason(mutate, needle) -> None:

@@ -538,6 +538,34 @@ def test_a_gripper_move_takes_the_rg2s_time_on_the_cells_clock():
         cell.close()
 
 
+def test_a_release_with_a_gap_charges_the_rest_of_its_opening_to_the_next_gripper_step_not_the_arm():
+    """gripper.release_gap on the sim backend's clock: the release ends once the gap is open; the next gripper
+    command waits out what is left of the opening, unless the arm's moves meanwhile took longer."""
+    from flgd.plans import GripperCommand
+    from sim_cell.robot import RG2_STROKE_SPEED
+
+    base = make_config(objects=0, depth_noise=False, domain_randomization=False)
+    cfg = dataclasses.replace(base, gripper=dataclasses.replace(base.gripper, release_gap=0.01))
+    gr = cfg.gripper
+    cell = SimCell(cfg)
+    try:
+        close = check_plan(Plan("close", (GripperCommand(gr.closed_width, gr.force, "close"),)), cfg)
+        cell.execute(close)
+        release = cell.execute(check_plan(plan_release(False, cfg), cfg))
+        assert release.gripper_time == pytest.approx(0.01 / RG2_STROKE_SPEED, rel=0.05)
+        opened = cell.execute(check_plan(Plan("open", (GripperCommand(gr.open_width, gr.force, "open"),)), cfg))
+        rest = (gr.open_width - gr.closed_width - 0.01) / RG2_STROKE_SPEED
+        assert opened.gripper_time == pytest.approx(rest, rel=0.05), "the next gripper step waits for the fingers"
+        grasp = check_plan(plan_grasp(-0.5, 0.0, 0.02, 0.0, cfg), cfg)   # on nothing: closes all the way
+        reference = cell.execute(grasp).gripper_time   # after the open above had ended
+        cell.execute(check_plan(plan_release(False, cfg), cfg))
+        moved = cell.execute(grasp)   # its approach takes longer than the rest of the release's opening
+        assert moved.completed, moved.failure
+        assert moved.gripper_time == pytest.approx(reference, abs=0.01), "the fingers opened during the approach"
+    finally:
+        cell.close()
+
+
 def test_a_push_that_comes_down_on_a_block_the_plan_did_not_know_backs_out_instead_of_pressing_it():
     """The push's descent is guarded and ends the push: no collision stop, the block not dragged, the arm home."""
     cfg = make_config(objects=0, depth_noise=False, domain_randomization=False)

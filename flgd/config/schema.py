@@ -173,6 +173,9 @@ class GripperConfig:
     xmlrpc_port: int = param(41414, gt=0, lt=65536)
     digital_output: int = param(0, ge=0, le=7, help="tool output that closes the gripper")
     timeout: float = param(5.0, unit="s", gt=0.0)
+    release_gap: float = param(0.0, unit="m", ge=0.0, le=0.110,
+                               help="a release goes on once the fingers opened this far (the object is let go): "
+                                    "the arm moves on while they open the rest of the way (0 = wait until open)")
 
 
 @dataclass(frozen=True)

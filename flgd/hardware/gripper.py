@@ -24,8 +24,10 @@ class GripperDriver(abc.ABC):
     measures_width: bool = True
 
     @abc.abstractmethod
-    def move(self, width: float, force: float) -> None:
-        """Move the fingers towards ``width`` (m) with at most ``force`` (N); return when they stopped."""
+    def move(self, width: float, force: float, proceed_after: float = 0.0) -> None:
+        """Move the fingers towards ``width`` (m) with at most ``force`` (N); return when they stopped, or once
+        they travelled ``proceed_after`` (m, > 0) towards it, leaving them to finish: the next move waits for
+        them.  A driver that cannot see the fingers travel waits for the whole move."""
 
     @abc.abstractmethod
     def width(self) -> float:

@@ -48,6 +48,7 @@ __all__ = [
 RG2_MAX_FORCE = 40.0       # N
 _BUSY_START_DELAY = 0.05   # s before the first busy poll: the URCap needs a moment to start the move
 _WIDTH_SANITY_MM = (-5.0, 120.0)
+_ALREADY_THERE = 0.0015    # m: fingers this close to a repeated width are not sent it (an RG2 stops within 1 mm)
 
 
 def _check_command(width: float, force: float) -> None:
@@ -86,6 +87,8 @@ class RG2XmlRpcDriver(GripperDriver):
         self.host, self.port, self.timeout = host, int(port), float(timeout)
         self.tool_index = int(tool_index)
         self._clock, self._sleep, self._poll = clock, sleep, poll_interval
+        self._moving: str | None = None   # the command the fingers may still be finishing (a move went on early)
+        self._last_width: float | None = None   # the width last sent: only a repeat of it may already be there
         self._proxy = self._new_proxy(timeout)
 
     def _new_proxy(self, timeout: float) -> xmlrpc.client.ServerProxy:
@@ -108,16 +111,38 @@ class RG2XmlRpcDriver(GripperDriver):
         except (OSError, http.client.HTTPException, xmlrpc.client.ResponseError) as exc:
             raise GripperFault(f"{where}: {type(exc).__name__}: {exc}") from exc
 
-    def move(self, width: float, force: float) -> None:
+    def move(self, width: float, force: float, proceed_after: float = 0.0) -> None:
         _check_command(width, force)
+        if self._moving is not None:   # the last move went on before the fingers stopped: they finish first
+            self._wait_stopped(self._moving)
+        repeat = self._last_width is not None and abs(self._last_width - width) <= _ALREADY_THERE
+        start = self.width() if repeat or proceed_after > 0.0 else math.nan
+        if repeat and abs(start - width) <= _ALREADY_THERE:
+            return   # an open gripper told to open again: no move, no busy cycle
+        self._last_width = None
         self._rpc("rg_grip", float(width * 1000.0), float(force))
+        self._last_width = width
+        command = f"rg_grip({width * 1000:.1f} mm, {force:.0f} N)"
         self._sleep(_BUSY_START_DELAY)
+        if proceed_after > 0.0:
+            deadline = self._clock() + self.timeout
+            while self._rpc("rg_get_busy"):
+                if abs(self.width() - start) >= proceed_after:
+                    self._moving = command
+                    return
+                if self._clock() > deadline:
+                    break
+                self._sleep(self._poll)
+        self._wait_stopped(command)
+
+    def _wait_stopped(self, command: str) -> None:
+        """Until the busy flag drops (at most ``timeout``), then the safety switch's state."""
+        self._moving = None
         deadline = self._clock() + self.timeout
         while self._rpc("rg_get_busy"):
             if self._clock() > deadline:
                 self.stop()
-                raise GripperFault(f"RG2 at {self.host}:{self.port}: still moving {self.timeout} s after "
-                                   f"rg_grip({width * 1000:.1f} mm, {force:.0f} N)")
+                raise GripperFault(f"RG2 at {self.host}:{self.port}: still moving {self.timeout} s after {command}")
             self._sleep(self._poll)
         if self._rpc("rg_get_safety_failed"):
             raise GripperFault(f"RG2 at {self.host}:{self.port}: safety switch tripped; power-cycle the tool "
@@ -138,6 +163,7 @@ class RG2XmlRpcDriver(GripperDriver):
         waiting for a reply on the shared connection; http.client cannot put a second request on it
         (the stop would be lost) and xmlrpc then closes it under the waiting call.
         """
+        self._last_width = None
         proxy = self._new_proxy(min(self.timeout, STOP_TIMEOUT))
         try:
             self._rpc("rg_stop", proxy=proxy)
@@ -166,7 +192,7 @@ class ToolDigitalOutputDriver(GripperDriver):
         self._settle = settle_time
         self._sleep = sleep
 
-    def move(self, width: float, force: float) -> None:
+    def move(self, width: float, force: float, proceed_after: float = 0.0) -> None:
         _check_command(width, force)
         # The force is set on the gripper itself in this wiring; only open/close can be commanded.
         self._set_output(self.output, width < self._threshold)

@@ -134,7 +134,7 @@ class UR5eCell(Cell):
                     elif isinstance(step, GripperCommand):
                         self.arm.check()
                         started = self._elapsed(start)
-                        self.gripper.move(step.width, min(step.force, gr.force))
+                        self.gripper.move(step.width, min(step.force, gr.force), step.proceed_after)
                         gripper += self._elapsed(start) - started
                     elif isinstance(step, MeasureWidth):
                         started = self._elapsed(start)
