@@ -5,7 +5,7 @@ execute the same motions.  Plans are pure data; ``flgd.safety.check_plan``
 must pass before a cell runs one.
 
 Distances (defaults in ``RobotConfig``, all configurable):
-  * grasp: open, approach ``approach_height`` above the grasp point, descend to
+  * grasp: approach ``approach_height`` above the grasp point, open there, descend to
     ``grasp_depth`` below the surface (never below the table clearance; the
     descent stops early where the fingers meet ``descent_contact_force``; with
     ``contact_clearance`` and ``raise_speed`` it is slow only from that clearance
@@ -15,7 +15,7 @@ Distances (defaults in ``RobotConfig``, all configurable):
     ``raise_speed``), go home (the raise blended into it with ``blend_radius``),
     measure the width (the paper's success test).
   * place (after a grasp measured as held): carry to ``robot.place``, measure the
-    width again, open, go home.  Only an object still between the fingers at the
+    width again, open (the arm goes on once ``gripper.release_gap`` is open), go home.  Only an object still between the fingers at the
     place pose was picked: one that slipped out on the way is a failed grasp.
   * push (the point is background): close, descend beside the objects to
     ``push_height`` above the table (guarded: a contact on the way down means the

@@ -122,6 +122,9 @@ def _check_gripper(step: GripperCommand, cfg: CellConfig) -> str | None:
         return f"gripper force {step.force!r} N is outside (0, {cfg.gripper.force}] N"
     if not (_finite([step.proceed_after]) and 0.0 <= step.proceed_after <= GRIPPER_STROKE):
         return f"gripper proceed_after {step.proceed_after!r} m is outside [0, {GRIPPER_STROKE}] m"
+    if step.proceed_after > 0.0 and step.width < cfg.gripper.open_width:
+        return (f"gripper proceed_after {step.proceed_after!r} m on a move to {step.width!r} m: only an opening "
+                f"to gripper.open_width ({cfg.gripper.open_width} m) may go on before the fingers stop")
     return None
 
 

@@ -69,6 +69,16 @@ def test_a_gripper_driver_the_backend_cannot_drive_is_a_config_error():
     assert p.startswith("gripper.driver: got 'sim'") and "'rg2_xmlrpc'" in p and "backend 'ur5e'" in p
 
 
+@pytest.mark.parametrize("gap", [0.002, 0.1])
+def test_a_release_gap_within_the_pads_give_or_past_the_stroke_is_a_config_error(gap):
+    data = yaml.safe_load((REPO / "cell_config" / "ur5e-d415.yaml").read_text())
+    data["gripper"]["release_gap"] = gap
+    (p,) = problems_of(data)
+    assert p.startswith(f"gripper.release_gap: got {gap!r}") and "0.005" in p
+    data["gripper"]["release_gap"] = 0.0   # wait until open
+    config_from_dict(data, "cell.yaml")
+
+
 def test_the_simulator_accepts_a_real_driver_so_a_real_config_can_swap_to_sim():
     data = sim_data()
     data["gripper"]["driver"] = "rg2_xmlrpc"

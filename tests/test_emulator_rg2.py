@@ -108,6 +108,12 @@ def test_a_release_goes_on_once_the_fingers_opened_its_gap_and_the_next_move_wai
     d.move(0.085, 40.0)   # the grasp's open: waits for the release to end, then finds the fingers open already
     assert not rg2.busy and d.width() == pytest.approx(0.085, abs=0.002)
     assert rg2.calls.count("rg_grip") == grips, "an open gripper is not sent the same open again"
+    rg2.trip_safety()   # a tool that trips while open: the next open is not sent, and is still a fault
+    try:
+        with pytest.raises(GripperFault, match="safety switch tripped"):
+            d.move(0.085, 40.0)
+    finally:
+        rg2.reset_safety()
     d.move(0.030, 40.0)
     assert d.width() == pytest.approx(0.030, abs=0.002)
     d.close()

@@ -288,8 +288,10 @@ def test_release_places_a_held_object_and_only_opens_otherwise() -> None:
     (lambda p: _replace_move(p, rotation=((2.0, 0, 0), (0, -1.0, 0), (0, 0, -1.0))), "rotation"),
     (lambda p: dataclasses.replace(p, steps=p.steps + (GripperCommand(0.5, 10.0),)), "gripper width"),
     (lambda p: dataclasses.replace(p, steps=p.steps + (GripperCommand(0.05, 400.0),)), "gripper force"),
-    (lambda p: dataclasses.replace(p, steps=p.steps + (GripperCommand(0.05, 10.0, proceed_after=-0.01),)),
+    (lambda p: dataclasses.replace(p, steps=p.steps + (GripperCommand(0.085, 10.0, proceed_after=-0.01),)),
      "proceed_after"),
+    (lambda p: dataclasses.replace(p, steps=p.steps + (GripperCommand(0.0, 10.0, proceed_after=0.01),)),
+     "only an opening"),
     (lambda p: dataclasses.replace(p, steps=p.steps + ("moveJ",)), "unknown step"),
 ])
 def test_bad_plans_are_refused_with_a_reason(mutate, needle) -> None:

@@ -15,7 +15,9 @@ from flgd.config.reach import check_reach
 from flgd.config.schema import CellConfig
 from flgd.disk_budget import MIN_STORE_BYTES
 
-__all__ = ["check_relations", "parse_emulator_address", "parse_metrics_address"]
+__all__ = ["check_relations", "parse_emulator_address", "parse_metrics_address", "RELEASE_GAP_MIN"]
+
+RELEASE_GAP_MIN = 0.005   # m: a release gap below this is within the pads' give as a grip relaxes
 
 
 def check_relations(cfg: CellConfig, problems: list[str]) -> None:
@@ -109,6 +111,10 @@ def check_relations(cfg: CellConfig, problems: list[str]) -> None:
     if not gr.closed_width < gr.success_threshold < gr.open_width:
         problems.append(f"gripper.success_threshold: got {gr.success_threshold!r}, expected between "
                         f"closed_width and open_width")
+    if gr.release_gap and not RELEASE_GAP_MIN <= gr.release_gap <= gr.open_width - gr.closed_width:
+        problems.append(f"gripper.release_gap: got {gr.release_gap!r} m, expected 0 (wait until open) or between "
+                        f"{RELEASE_GAP_MIN} m (below it the pads may still hold the object as the grip relaxes) "
+                        f"and the stroke open_width - closed_width ({gr.open_width - gr.closed_width!r} m)")
     ex = cfg.exploration
     if ex.epsilon_end > ex.epsilon_start:
         problems.append(f"exploration.epsilon_end: got {ex.epsilon_end!r}, expected <= epsilon_start "

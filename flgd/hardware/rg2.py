@@ -114,11 +114,12 @@ class RG2XmlRpcDriver(GripperDriver):
     def move(self, width: float, force: float, proceed_after: float = 0.0) -> None:
         _check_command(width, force)
         if self._moving is not None:   # the last move went on before the fingers stopped: they finish first
-            self._wait_stopped(self._moving)
+            self._wait_stopped(f"the earlier {self._moving}, which the plan went on from before it ended")
         repeat = self._last_width is not None and abs(self._last_width - width) <= _ALREADY_THERE
         start = self.width() if repeat or proceed_after > 0.0 else math.nan
         if repeat and abs(start - width) <= _ALREADY_THERE:
-            return   # an open gripper told to open again: no move, no busy cycle
+            self._check_safety()   # an open gripper told to open again: no move, but a tripped tool is a fault
+            return
         self._last_width = None
         self._rpc("rg_grip", float(width * 1000.0), float(force))
         self._last_width = width
@@ -144,6 +145,9 @@ class RG2XmlRpcDriver(GripperDriver):
                 self.stop()
                 raise GripperFault(f"RG2 at {self.host}:{self.port}: still moving {self.timeout} s after {command}")
             self._sleep(self._poll)
+        self._check_safety()
+
+    def _check_safety(self) -> None:
         if self._rpc("rg_get_safety_failed"):
             raise GripperFault(f"RG2 at {self.host}:{self.port}: safety switch tripped; power-cycle the tool "
                                f"(rg_get_safety_failed is true)")
