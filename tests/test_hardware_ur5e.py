@@ -81,6 +81,40 @@ def test_the_width_is_read_once_the_fingers_stop_so_a_block_slipping_out_at_home
     assert ctl.clock() > t0
 
 
+def test_a_release_lets_the_arm_leave_while_the_fingers_open_and_the_next_grasp_descends_only_once_open(ctl, rg2):
+    """gripper.release_gap on the real cell: the place plan ends while the RG2 still opens, the next grasp's
+    approach runs meanwhile, and its descent starts only after the fingers have stopped."""
+    import time
+
+    from flgd.plans import plan_release
+
+    rg2.move_time = 0.4
+    cell = make_ur5e(ctl, rg2, real_config(xmlrpc_port=rg2.port, release_gap=0.01))
+    busy_at: list[tuple[int, bool]] = []   # (move index, RG2 busy when the move was sent)
+    record = ctl.record
+
+    def watching(iface, method, *args):
+        if method == "moveL":
+            busy_at.append((ctl.moves, time.monotonic() < rg2._busy_until))
+        record(iface, method, *args)
+
+    ctl.record = watching
+    rg2.object_width_mm = 31.0
+    assert cell.execute(grasp(cell.config)).completed
+    released = cell.execute(check_plan(plan_release(True, cell.config, home=False), cell.config))
+    assert released.completed and released.widths == [pytest.approx(0.031)]
+    assert time.monotonic() < rg2._busy_until, "the place plan ended before the fingers were open"
+    assert released.gripper_time < 0.3, "the release waited for the whole opening"
+    rg2.object_width_mm = None
+    busy_at.clear()
+    plan = grasp(cell.config)
+    moves = [s.label for s in plan.plan.steps if isinstance(s, MoveL)]
+    assert cell.execute(plan).completed
+    sent = dict(zip(moves, (busy for _, busy in busy_at)))
+    assert sent["approach"], "the approach ran while the release's opening went on"
+    assert not sent["descend"], "the descent started with the fingers still opening"
+
+
 def test_a_plan_outside_the_envelope_never_reaches_the_robot(ctl, rg2):
     cell = make_ur5e(ctl, rg2)
     cfg = cell.config

@@ -125,21 +125,19 @@ class RG2XmlRpcDriver(GripperDriver):
         self._last_width = width
         command = f"rg_grip({width * 1000:.1f} mm, {force:.0f} N)"
         self._sleep(_BUSY_START_DELAY)
+        deadline = self._clock() + self.timeout
         if proceed_after > 0.0:
-            deadline = self._clock() + self.timeout
-            while self._rpc("rg_get_busy"):
+            while self._rpc("rg_get_busy") and self._clock() <= deadline:
                 if abs(self.width() - start) >= proceed_after:
                     self._moving = command
                     return
-                if self._clock() > deadline:
-                    break
                 self._sleep(self._poll)
-        self._wait_stopped(command)
+        self._wait_stopped(command, deadline)
 
-    def _wait_stopped(self, command: str) -> None:
-        """Until the busy flag drops (at most ``timeout``), then the safety switch's state."""
+    def _wait_stopped(self, command: str, deadline: float | None = None) -> None:
+        """Until the busy flag drops (by ``deadline``, or ``timeout`` from now), then the safety switch's state."""
         self._moving = None
-        deadline = self._clock() + self.timeout
+        deadline = self._clock() + self.timeout if deadline is None else deadline
         while self._rpc("rg_get_busy"):
             if self._clock() > deadline:
                 self.stop()

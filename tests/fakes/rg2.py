@@ -20,7 +20,7 @@ class _ThreadingXMLRPCServer(ThreadingMixIn, SimpleXMLRPCServer):
 class LoopbackRG2:
     """An XML-RPC server on 127.0.0.1 implementing the OnRobot URCap's RG2 functions.
 
-    The fingers take ``move_time`` seconds to travel; closing stops at
+    The fingers take ``move_time`` seconds to travel, at a steady speed; closing stops at
     ``object_width_mm`` when an object is between them.  ``delay`` makes every
     reply slow, ``fault`` makes calls answer with an XML-RPC fault.  ``slip_mm``:
     replies of the next ``rg_get_width`` calls (an object slipping out of the
@@ -36,7 +36,7 @@ class LoopbackRG2:
         self.fault: str | None = None
         self.safety_failed = False
         self.slip_mm: list[float] = []
-        self._target = self.width_mm
+        self._target = self._from = self.width_mm
         self._busy_until = 0.0
         self._lock = threading.Lock()
         self.server = _ThreadingXMLRPCServer(("127.0.0.1", 0), requestHandler=_QuietHandler, logRequests=False,
@@ -61,8 +61,12 @@ class LoopbackRG2:
         return handler
 
     def _settle(self) -> None:
-        if time.monotonic() >= self._busy_until:
+        now = time.monotonic()
+        if now >= self._busy_until:
             self.width_mm = self._target
+        elif self.move_time > 0:   # on the way: the fingers travel at a steady speed
+            done = 1.0 - (self._busy_until - now) / self.move_time
+            self.width_mm = self._from + (self._target - self._from) * max(0.0, min(1.0, done))
 
     def _rg_grip(self, tool_index: int, width: float, force: float) -> int:
         if not isinstance(tool_index, int) or not isinstance(width, float) or not isinstance(force, float):
@@ -70,7 +74,7 @@ class LoopbackRG2:
         target = width
         if self.object_width_mm is not None and width < self.object_width_mm:
             target = self.object_width_mm
-        self._target = target
+        self._from, self._target = self.width_mm, target
         self._busy_until = time.monotonic() + self.move_time
         return 0
 
