@@ -3,7 +3,7 @@ beside the sim backend on the same scenes and seed; then every fault kind inject
 
     flgd bench emulated --root runs/emulated --cycles 200 --faults 10 [--parts policy faults calibrate] [--serial]
         [--free-speed M_S] [--acceleration M_S2] [--raise-speed M_S] [--contact-clearance M] [--blend-radius M]
-        [--release-gap M] [--out FILE]
+        [--release-gap M] [--home-at-place] [--carry-at-grasp-yaw] [--out FILE]
 
 *policy*: ``flgd run`` with the shipped policy, frozen (``finetune.updates_per_action: 0``), on
 cell_config/ur5e-emulated.yaml (backend ur5e against the emulator) and on the same file with ``backend: sim``,
@@ -407,6 +407,11 @@ def main(argv: list[str] | None = None) -> int:
                    help="robot.blend_radius (m): free moves of a plan blended into one path")
     p.add_argument("--release-gap", type=float, default=None,
                    help="gripper.release_gap (m): a release goes on once the fingers opened this far")
+    p.add_argument("--home-at-place", action="store_true",
+                   help="robot.home = robot.place: the arm waits and the camera takes its pictures with the arm over "
+                        "the bin, so a pick goes from its raise straight to where it is placed")
+    p.add_argument("--carry-at-grasp-yaw", action="store_true",
+                   help="robot.carry_at_grasp_yaw: the wrist keeps the grasp's angle to home and the place")
     p.add_argument("--serial", action="store_true", help="robot.decide_while_placing off: the arm goes home after "
                                                          "each place and waits there for the next decision")
     args = p.parse_args(argv)
@@ -425,6 +430,10 @@ def main(argv: list[str] | None = None) -> int:
             robot["contact_clearance"] = args.contact_clearance
         if args.blend_radius is not None:
             robot["blend_radius"] = args.blend_radius
+        if args.home_at_place:
+            robot["home"] = yaml.safe_load(EMULATED.read_text())["robot"]["place"]
+        if args.carry_at_grasp_yaw:
+            robot["carry_at_grasp_yaw"] = True
         gripper = {} if args.release_gap is None else {"release_gap": args.release_gap}
         summary["policy"] = run_policy(root / "policy", args.cycles, args.time_scale, args.host, robot, gripper)
     if "faults" in args.parts:

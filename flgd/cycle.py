@@ -317,7 +317,7 @@ class CycleRunner:
         returned, so a drop found at the place can take that outcome back.  The arm stays at the place when a
         decision follows (the next plan starts there) and goes home when the workspace is empty."""
         done = self._empty(after)
-        plan = plan_release(True, self.config, home=done)
+        plan = plan_release(True, self.config, home=done, grasp_angle=action.angle)
         if self._stop.is_set():
             return ExecutionResult(False, [], f"release: {STOPPED_ON_REQUEST}"), None
         try:
@@ -483,8 +483,8 @@ class CycleRunner:
                             self.agent.restore_outcome_state(provisional)
                             provisional, self._ahead = None, None
                     else:
-                        released = on_cell_clock(record, self._run_checked(plan_release(held, self.config),
-                                                                            "release"))
+                        release = plan_release(held, self.config, grasp_angle=action.angle)
+                        released = on_cell_clock(record, self._run_checked(release, "release"))
                     if was_stopped(released):
                         return self._stopped(record, released.failure, finish, timer)
                     unstable = unstable_failure(released)

@@ -264,7 +264,8 @@ def plan_grasp(x: float, y: float, surface_height: float, angle: float, config: 
               stop_on_contact=rb.descent_contact_force),
         GripperCommand(gr.closed_width, gr.force, "close"),
         *lift,
-        MoveL(ToolPose.top_down(*home.position, home.yaw), rb.speed, rb.acceleration, "home"),
+        MoveL(ToolPose.top_down(*home.position, yaw if rb.carry_at_grasp_yaw else home.yaw), rb.speed,
+              rb.acceleration, "home"),
         MeasureWidth("held"),
     )
     return Plan("grasp", steps, target=(x, y, z), angle=angle)
@@ -405,24 +406,28 @@ def plan_action(action: Action, height_map: np.ndarray, config: CellConfig) -> P
     return plan_push(x, y, action.angle, config)
 
 
-def plan_release(held: bool, config: CellConfig, home: bool = True) -> Plan:
+def plan_release(held: bool, config: CellConfig, home: bool = True, grasp_angle: float | None = None) -> Plan:
     """After a grasp: carry a held object to the place pose, read the width there and open; otherwise just open.
 
     The width at the place pose (``PLACE_CHECK_LABEL``) is the grasp's final judgement: an object that
     slipped out between the home pose and the place was not picked, on any cell.  ``home=False`` leaves the
-    arm at the place (out of the camera's view, as home is): the next plan starts from there."""
+    arm at the place (out of the camera's view, as home is): the next plan starts from there.  With
+    ``robot.carry_at_grasp_yaw`` the place and home poses take the wrist angle of ``grasp_angle`` (the grasp's)."""
     gr, rb = config.gripper, config.robot
     release = GripperCommand(gr.open_width, gr.force, "open", proceed_after=gr.release_gap)
     if not held:
         return Plan("release", (release,))
     place = rb.place
+    carry = wrap_symmetric_yaw(grasp_angle) if rb.carry_at_grasp_yaw and grasp_angle is not None else None
     steps: tuple[Step, ...] = (
-        MoveL(ToolPose.top_down(*place.position, place.yaw), rb.speed, rb.acceleration, "place"),
+        MoveL(ToolPose.top_down(*place.position, place.yaw if carry is None else carry), rb.speed,
+              rb.acceleration, "place"),
         MeasureWidth(PLACE_CHECK_LABEL),
         release,
     )
     if home:
-        steps += (MoveL(ToolPose.top_down(*rb.home.position, rb.home.yaw), rb.speed, rb.acceleration, "home"),)
+        steps += (MoveL(ToolPose.top_down(*rb.home.position, rb.home.yaw if carry is None else carry), rb.speed,
+                        rb.acceleration, "home"),)
     return Plan("place", steps, target=tuple(place.position))
 
 

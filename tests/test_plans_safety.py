@@ -260,6 +260,23 @@ def test_move_becomes_push_or_shift_by_height_at_its_point() -> None:
     assert on.target[:2] == pytest.approx((x, y))
 
 
+def test_with_carry_at_grasp_yaw_the_wrist_keeps_the_grasps_angle_to_home_and_the_place() -> None:
+    carry = dataclasses.replace(CFG, robot=dataclasses.replace(CFG.robot, carry_at_grasp_yaw=True))
+    angle = math.radians(120)   # the RG2 is symmetric: the wrist turns to -60 degrees
+    for cfg, expected in ((carry, math.radians(-60)), (CFG, CFG.robot.home.yaw)):
+        grasp = plan_grasp(-0.5, 0.05, 0.05, angle, cfg)
+        moves = {s.label: s for s in grasp.steps if isinstance(s, MoveL)}
+        place = {s.label: s for s in plan_release(True, cfg, grasp_angle=angle).steps if isinstance(s, MoveL)}
+
+        def yaw(m: MoveL) -> float:
+            r = np.asarray(m.pose.matrix)
+            return math.atan2(r[1, 0], r[0, 0])
+
+        assert yaw(moves["descend"]) == pytest.approx(math.radians(-60))
+        assert [yaw(moves["home"]), yaw(place["place"]), yaw(place["home"])] == pytest.approx([expected] * 3)
+        check_plan(grasp, cfg)
+
+
 def test_release_places_a_held_object_and_only_opens_otherwise() -> None:
     held = plan_release(True, CFG)
     assert [s.label for s in held.steps] == ["place", PLACE_CHECK_LABEL, "open", "home"]

@@ -157,6 +157,9 @@ class RobotConfig:
         help="a grasp descent stops where the fingers meet this much resistance and closes there (0 = no guard)")
     acceleration: float = param(0.8, unit="m/s^2", gt=0.0)
     tcp_offset: Vec3 = param((0.0, 0.0, 0.20), unit="m", help="flange to fingertip centre")
+    carry_at_grasp_yaw: bool = param(
+        False, help="a picked object is carried home and to the place at the wrist angle it was grasped at, so the "
+                    "wrist turns once a pick instead of three times (its yaw in the bin does not matter)")
     decide_while_placing: bool = param(
         True, help="after a grasp held at home: take the next picture there, decide while the arm places, and start "
                    "the next plan from the place pose instead of going home first (flgd train: always off)")
