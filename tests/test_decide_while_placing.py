@@ -108,6 +108,39 @@ def test_the_next_decision_is_made_while_the_arm_places_on_a_picture_taken_at_ho
         cell.close()
 
 
+class _Posed(_Watched):
+    """Keeps each plan's moves too."""
+
+    def __init__(self, cfg):
+        super().__init__(cfg)
+        self.moves: list[tuple[str, dict[str, MoveL]]] = []
+
+    def execute(self, plan):
+        self.moves.append((plan.plan.primitive, {s.label: s for s in plan.plan.steps if isinstance(s, MoveL)}))
+        return super().execute(plan)
+
+
+@pytest.mark.parametrize("overlap", [True, False])
+def test_with_carry_at_grasp_yaw_the_pick_reaches_home_and_the_place_at_the_grasps_wrist_angle(tmp_path, overlap):
+    cfg, cell, _ = _cell_and_agent(tmp_path, _Posed)
+    cfg = dataclasses.replace(cfg, robot=dataclasses.replace(cfg.robot, carry_at_grasp_yaw=True,
+                                                             decide_while_placing=overlap))
+    row, col = base_to_pixel(-0.50, 0.05, cfg.workspace)
+    agent = _Scripted([Action("grasp", int(row), int(col), 3, 16)])   # 67.5 degrees
+    try:
+        assert CycleRunner(cfg, cell, agent).run_once().success is True
+        moves = dict(cell.moves)
+
+        def yaw(m: MoveL) -> float:
+            r = np.asarray(m.pose.matrix)
+            return float(np.degrees(np.arctan2(r[1, 0], r[0, 0])))
+
+        assert yaw(moves["grasp"]["home"]) == pytest.approx(67.5)
+        assert yaw(moves["place"]["place"]) == pytest.approx(67.5), "the place plan got the grasp's angle"
+    finally:
+        cell.close()
+
+
 class _QuickPlace(_Watched):
     """A place that takes 0.1 s on the cell's clock, whatever the simulator took."""
 
