@@ -107,8 +107,8 @@ def trial(cell: SimCell, cfg: CellConfig, shape: str, mode: str, rng: np.random.
     lowest = [math.inf]
     run_line = cell._arm.run_line
 
-    def watched_line(traj, stop_force=0.0):
-        stopped = run_line(traj, stop_force)
+    def watched_line(traj, stop_force=0.0, **kwargs):
+        stopped = run_line(traj, stop_force, **kwargs)
         lowest[0] = min(lowest[0], float(cell._tcp()[2, 3]))
         return stopped
 
@@ -120,7 +120,7 @@ def trial(cell: SimCell, cfg: CellConfig, shape: str, mode: str, rng: np.random.
         del cell._arm.run_line
     width = result.widths[-1] if result.widths else math.nan
     held = grasp_reward(width, cfg.gripper) > 0
-    cell.execute(check_plan(plan_release(held, cfg), cfg))
+    cell.execute(check_plan(plan_release(held, cfg, grasp_angle=plan.angle), cfg))
     target_out = body not in {s.body for s in cell.object_states()}
     if held and target_out and cell.stats["left_workspace"] == before["left_workspace"]:
         return "held"

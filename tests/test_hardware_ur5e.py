@@ -104,7 +104,6 @@ def test_a_release_lets_the_arm_leave_while_the_fingers_open_and_the_next_grasp_
     released = cell.execute(check_plan(plan_release(True, cell.config, home=False), cell.config))
     assert released.completed and released.widths == [pytest.approx(0.031)]
     assert time.monotonic() < rg2._busy_until, "the place plan ended before the fingers were open"
-    assert released.gripper_time < 0.3, "the release waited for the whole opening"
     rg2.object_width_mm = None
     busy_at.clear()
     plan = grasp(cell.config)

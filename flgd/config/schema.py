@@ -159,7 +159,8 @@ class RobotConfig:
     tcp_offset: Vec3 = param((0.0, 0.0, 0.20), unit="m", help="flange to fingertip centre")
     carry_at_grasp_yaw: bool = param(
         False, help="a picked object is carried home and to the place at the wrist angle it was grasped at, so the "
-                    "wrist turns once a pick instead of three times (its yaw in the bin does not matter)")
+                    "wrist turns once a pick (from the last grasp's angle to the next) instead of twice (its yaw in "
+                    "the bin does not matter)")
     decide_while_placing: bool = param(
         True, help="after a grasp held at home: take the next picture there, decide while the arm places, and start "
                    "the next plan from the place pose instead of going home first (flgd train: always off)")

@@ -83,13 +83,14 @@ class LoopbackRG2:
 
     def _rg_get_width(self, tool_index: int) -> float:
         if self.slip_mm:
-            self.width_mm = self._target = self.slip_mm.pop(0)
+            self.width_mm = self._target = self._from = self.slip_mm.pop(0)
         return float(self.width_mm)
 
     def _rg_get_safety_failed(self, tool_index: int) -> bool:
         return self.safety_failed
 
     def _rg_stop(self, tool_index: int) -> int:
+        self._target = self._from = self.width_mm   # halted where the fingers are
         self._busy_until = 0.0
         return 0
 
