@@ -15,12 +15,14 @@ Distances (defaults in ``RobotConfig``, all configurable):
     ``raise_speed``), go home (the raise blended into it with ``blend_radius``),
     measure the width (the paper's success test).
   * place (after a grasp measured as held): carry to ``robot.place``, measure the
-    width again, open (the arm goes on once ``gripper.release_gap`` is open), go home.  Only an object still between the fingers at the
-    place pose was picked: one that slipped out on the way is a failed grasp.
+    width again, open (the arm goes on once ``gripper.release_gap`` is open), go
+    home.  Only an object still between the fingers at the place pose was picked:
+    one that slipped out on the way is a failed grasp.
   * push (the point is background): close, descend beside the objects to
     ``push_height`` above the table (guarded: a contact on the way down means the
-    heightmap missed something there, and the push backs out and goes home), travel ``push_distance`` (10 cm) along
-    theta, rise, go home.  The end point is clamped to the workspace.
+    heightmap missed something there, and the push backs out and goes home),
+    travel ``push_distance`` (10 cm) along theta, rise, go home.  The end point is
+    clamped to the workspace.
   * shift (the point is on an object): close, press ``shift_press`` below the
     object's top surface, drag ``shift_distance`` (6 cm) along theta, rise, go
     home.  Friction between the closed fingers and the top of the object drags it.
