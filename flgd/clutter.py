@@ -21,6 +21,7 @@ import cv2
 import numpy as np
 
 from flgd.config import CellConfig, GripperConfig, RewardConfig
+from flgd.finger_clearance import fingers_clear
 from flgd.grasp_view import grasps_in_view, moves_in_view
 
 __all__ = [
@@ -134,12 +135,16 @@ def move_mask(height: np.ndarray, rc: RewardConfig, resolution: float = DEFAULT_
 
 def action_masks(height: np.ndarray, rc: RewardConfig, enabled: bool = True,
                  resolution: float = DEFAULT_RESOLUTION,
-                 in_view: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
+                 in_view: tuple[np.ndarray, np.ndarray] | None = None,
+                 free: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(rho_g, rho_m) as the agent acts and the learner bootstraps; all ones when ``enabled`` is off
     (the DPEN ablation).  One function, so that the two can never mask differently.
 
     ``in_view`` (two uint8 [R,H,W], ``flgd.grasp_view``): the grasps and the moves whose fingers stay inside the
-    heightmap; given, rho_g and rho_m are per rotation, [R,H,W] (a geometric limit, kept in the DPEN ablation too)."""
+    heightmap; given, rho_g and rho_m are per rotation, [R,H,W] (a geometric limit, kept in the DPEN ablation too).
+    ``free`` (uint8 [R,H,W], ``flgd.finger_clearance``): the grasps whose fingers come down free; given, rho_g is
+    limited to them after the objects to push are chosen, so an object none of whose grasps is free can still be
+    pushed or shifted apart."""
     if enabled:
         rho_g = grasp_mask(height, rc, resolution)
         rho_m = cv2.dilate(rho_g, _kernel(rc.move_mask_dilation))
@@ -155,6 +160,12 @@ def action_masks(height: np.ndarray, rc: RewardConfig, enabled: bool = True,
             rho_g = reachable_objects(rho_g, grasps)
             rho_m = cv2.dilate(rho_g, _kernel(rc.move_mask_dilation))
         rho_g, rho_m = rho_g[None] & grasps, rho_m[None] & moves
+    if free is not None:
+        if free.shape[1:] != height.shape:
+            raise ValueError(f"free: {list(free.shape)} does not match the heightmap {list(height.shape)}")
+        if rho_m.ndim == 2:
+            rho_m = np.repeat(rho_m[None], free.shape[0], axis=0)
+        rho_g = rho_g & free if rho_g.ndim == 3 else rho_g[None] & free
     return rho_g, rho_m
 
 
@@ -170,10 +181,14 @@ def reachable_objects(objects_mask: np.ndarray, grasps: np.ndarray) -> np.ndarra
 
 
 def cell_action_masks(height: np.ndarray, config: CellConfig, rotations: int) -> tuple[np.ndarray, np.ndarray]:
-    """``action_masks`` with the cell's settings (``exploration.masks``, ``exploration.grasp_in_view``): what
-    the agent and the learner both call."""
+    """``action_masks`` with the cell's settings (``exploration.masks``, ``exploration.grasp_in_view``,
+    ``exploration.finger_clearance``): what the agent and the learner both call."""
     rows, cols, res, rb = height.shape[0], height.shape[1], config.workspace.resolution, config.robot
+    ex = config.exploration
     in_view = ((grasps_in_view(rows, cols, rotations, res, config.gripper.open_width),
                 moves_in_view(rows, cols, rotations, res, max(rb.push_distance, rb.shift_distance)))
-               if config.exploration.grasp_in_view else None)
-    return action_masks(height, config.rewards, config.exploration.masks, config.workspace.resolution, in_view)
+               if ex.grasp_in_view else None)
+    free = (fingers_clear(height, rotations, res, config.gripper.open_width, ex.finger_clearance,
+                          config.rewards.min_height)
+            if ex.finger_clearance > 0.0 else None)
+    return action_masks(height, config.rewards, ex.masks, res, in_view, free)

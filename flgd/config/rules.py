@@ -119,6 +119,9 @@ def check_relations(cfg: CellConfig, problems: list[str]) -> None:
     if ex.epsilon_end > ex.epsilon_start:
         problems.append(f"exploration.epsilon_end: got {ex.epsilon_end!r}, expected <= epsilon_start "
                         f"({ex.epsilon_start!r})")
+    if ex.finger_clearance > rb.grasp_depth:
+        problems.append(f"exploration.finger_clearance: got {ex.finger_clearance!r} m, expected 0 (off) or at most "
+                        f"robot.grasp_depth ({rb.grasp_depth!r} m): the fingertips go no deeper below the surface")
     if cfg.rewards.shift_height < cfg.rewards.min_height:
         problems.append(f"rewards.shift_height: got {cfg.rewards.shift_height!r}, expected >= "
                         f"rewards.min_height ({cfg.rewards.min_height!r})")

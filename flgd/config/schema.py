@@ -232,6 +232,10 @@ class ExplorationConfig:
     grasp_in_view: bool = param(True, help="a grasp only at rotations whose open fingers come down inside the "
                                            "heightmap: a finger beyond its edge lands where the camera has no "
                                            "height (on an object pushed out of the workspace)")
+    finger_clearance: float = param(0.0, unit="m", ge=0.0, le=0.1,
+                                    help="a grasp only where nothing under either open finger stands higher than "
+                                         "the grasped surface less this: the fingertips get this far down the "
+                                         "object before they touch anything (0 = off; at most robot.grasp_depth)")
     twin_grasps: bool = param(False, help="act on the mean of a grasp's two rotations (theta and theta + pi close "
                                           "the two-finger gripper the same way) instead of each alone")
     failure_memory: bool = param(True, help="remember, per scene, where a grasp failed and where a move changed "
