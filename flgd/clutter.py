@@ -188,7 +188,12 @@ def cell_action_masks(height: np.ndarray, config: CellConfig, rotations: int) ->
     in_view = ((grasps_in_view(rows, cols, rotations, res, config.gripper.open_width),
                 moves_in_view(rows, cols, rotations, res, max(rb.push_distance, rb.shift_distance)))
                if ex.grasp_in_view else None)
-    free = (fingers_clear(height, rotations, res, config.gripper.open_width, ex.finger_clearance,
-                          config.rewards.min_height)
-            if ex.finger_clearance > 0.0 else None)
-    return action_masks(height, config.rewards, ex.masks, res, in_view, free)
+    if ex.finger_clearance > 0.0:
+        free = fingers_clear(height, rotations, res, config.gripper.open_width, ex.finger_clearance,
+                             config.rewards.min_height)
+        rho_g, rho_m = action_masks(height, config.rewards, ex.masks, res, in_view, free)
+        if rho_g.any() or (rho_m.any() and not ex.grasp_only):
+            return rho_g, rho_m
+        # no grasp comes down free and no move may free one: the clearance predicts a poor grasp, it bounds
+        # nothing, so the cell grasps as it would without it rather than stop
+    return action_masks(height, config.rewards, ex.masks, res, in_view)
