@@ -192,8 +192,21 @@ def cell_action_masks(height: np.ndarray, config: CellConfig, rotations: int) ->
         free = fingers_clear(height, rotations, res, config.gripper.open_width, ex.finger_clearance,
                              config.rewards.min_height)
         rho_g, rho_m = action_masks(height, config.rewards, ex.masks, res, in_view, free)
-        if rho_g.any() or (rho_m.any() and not ex.grasp_only):
+        if _can_act(rho_g, rho_m, ex.grasp_only):
             return rho_g, rho_m
         # no grasp comes down free and no move may free one: the clearance predicts a poor grasp, it bounds
         # nothing, so the cell grasps as it would without it rather than stop
-    return action_masks(height, config.rewards, ex.masks, res, in_view)
+    rho_g, rho_m = action_masks(height, config.rewards, ex.masks, res, in_view)
+    if in_view is None or not ex.last_resort_grasps or _can_act(rho_g, rho_m, ex.grasp_only):
+        return rho_g, rho_m
+    objects_seen = grasp_mask(height, config.rewards, res)
+    if not objects_seen.any():
+        return rho_g, rho_m
+    # only objects at the border are left: grasp them without the in-view limit (a grasp's descent is guarded,
+    # a finger meeting a hidden part stops on it); moves, whose descent is not guarded, stay limited
+    return (np.repeat(objects_seen[None], rotations, axis=0),
+            np.zeros((rotations,) + height.shape, dtype=np.uint8))
+
+
+def _can_act(rho_g: np.ndarray, rho_m: np.ndarray, grasp_only: bool) -> bool:
+    return bool(rho_g.any() or (not grasp_only and rho_m.any()))

@@ -236,6 +236,11 @@ class ExplorationConfig:
                                     help="a grasp only where nothing under either open finger stands higher than "
                                          "the grasped surface less this: the fingertips get this far down the "
                                          "object before they touch anything (0 = off; at most robot.grasp_depth)")
+    last_resort_grasps: bool = param(False, help="where no grasp and no move is left in view "
+                                                 "(exploration.grasp_in_view) while an object is still seen at the "
+                                                 "border, grasp it without that limit (the descent is guarded: a "
+                                                 "finger meeting a hidden part stops on it) instead of stopping; "
+                                                 "moves stay limited")
     twin_grasps: bool = param(False, help="act on the mean of a grasp's two rotations (theta and theta + pi close "
                                           "the two-finger gripper the same way) instead of each alone")
     failure_memory: bool = param(True, help="remember, per scene, where a grasp failed and where a move changed "
