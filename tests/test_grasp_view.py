@@ -144,3 +144,20 @@ def test_the_learners_a_prime_keeps_the_fingers_on_the_heightmap_as_the_agent_do
     t = Transition(s2, Action("grasp", 150, 150, 0, R), 0.25, s2, False)
     expected = 0.25 + cfg.learning.gamma * target[rot, 0, row, col]
     assert learner.targets([t])[0] == pytest.approx(expected, abs=1e-5)
+
+
+def test_last_resort_grasps_take_a_border_sliver_only_when_nothing_else_is_in_view_and_never_push_there():
+    q = np.zeros((R, 2, N, N), np.float32)
+    q[:, 1] = 1.0                 # moves the best choice anywhere
+    sliver = sliver_scene(216)    # no grasp rotation keeps the fingers in view
+    agent = Agent(config(last_resort_grasps=True), build_network("fast", R, seed=0), seed=0)
+    d = agent.select(q, sliver, 0)
+    assert d is not None and d.action.primitive == "grasp" and d.action.row >= 216, d
+    assert agent.stuck_reason() == ""
+    # an object in view besides: the sliver waits, the limit holds
+    both = sliver.copy()
+    both[100:120, 100:120] = 0.04
+    for step in range(20):
+        d = agent.select(q + np.random.default_rng(step).normal(size=q.shape).astype(np.float32) * 0.01, both, step)
+        agent.previous = None
+        assert d is not None and 80 <= d.action.row <= 140 and 80 <= d.action.col <= 140, d.action
