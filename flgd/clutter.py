@@ -189,8 +189,8 @@ def cell_action_masks(height: np.ndarray, config: CellConfig, rotations: int) ->
                 moves_in_view(rows, cols, rotations, res, max(rb.push_distance, rb.shift_distance)))
                if ex.grasp_in_view else None)
     if ex.finger_clearance > 0.0:
-        free = fingers_clear(height, rotations, res, config.gripper.open_width, ex.finger_clearance,
-                             config.rewards.min_height)
+        free = fingers_clear(height, objects(height, config.rewards, res), rotations, res,
+                             config.gripper.open_width, ex.finger_clearance, config.rewards.min_height)
         rho_g, rho_m = action_masks(height, config.rewards, ex.masks, res, in_view, free)
         if _can_act(rho_g, rho_m, ex.grasp_only):
             return rho_g, rho_m

@@ -51,18 +51,26 @@ def finger_kernels(rotations: int, resolution: float, open_width: float) -> tupl
     return tuple(kernels)
 
 
-def fingers_clear(height: np.ndarray, rotations: int, resolution: float, open_width: float, clearance: float,
-                  floor: float) -> np.ndarray:
+def fingers_clear(height: np.ndarray, objects: np.ndarray, rotations: int, resolution: float, open_width: float,
+                  clearance: float, floor: float) -> np.ndarray:
     """uint8 [rotations, rows, cols]: 1 where a grasp at that pixel and rotation brings both fingers at least
     ``clearance`` (m) below the surface there before they touch anything, or, on a surface lower than
-    ``floor`` + ``clearance``, down on nothing higher than ``floor`` (m above the table).  Beyond the heightmap's
-    border counts as free (``flgd.grasp_view`` keeps fingers away from it)."""
+    ``floor`` + ``clearance``, down on nothing higher than ``floor`` (m above the table).
+
+    Only ``objects`` (uint8 [rows, cols], the filtered object mask of ``flgd.clutter``) can stand under a finger:
+    a depth camera's specks above ``floor`` elsewhere do not refuse a grasp.  Unknown heights (NaN) and a depth
+    hole read as table, and beyond the heightmap's border counts as free: with ``exploration.grasp_in_view`` off,
+    what the camera does not see is not checked."""
     if not clearance > 0.0:
         raise ValueError(f"finger clearance {clearance} m: expected > 0")
-    h = np.ascontiguousarray(height, dtype=np.float32)
-    allowed = np.maximum(h - np.float32(clearance), np.float32(floor))
+    h = np.nan_to_num(np.asarray(height, dtype=np.float32), nan=0.0)
+    if objects.shape != h.shape:
+        raise ValueError(f"objects {list(objects.shape)} does not match the heightmap {list(h.shape)}")
+    floor32 = np.float32(floor)
+    standing = np.ascontiguousarray(np.where(objects > 0, h, np.minimum(h, floor32)))
+    allowed = np.maximum(h - np.float32(clearance), floor32)
     out = np.empty((rotations,) + h.shape, dtype=np.uint8)
     for i, kernel in enumerate(finger_kernels(int(rotations), float(resolution), float(open_width))):
-        highest = cv2.dilate(h, kernel, borderType=cv2.BORDER_CONSTANT, borderValue=-np.inf)
+        highest = cv2.dilate(standing, kernel, borderType=cv2.BORDER_CONSTANT, borderValue=-np.inf)
         out[i] = highest <= allowed
     return out

@@ -7,8 +7,9 @@ import dataclasses
 import numpy as np
 import pytest
 
-from flgd.clutter import cell_action_masks
+from flgd.clutter import cell_action_masks, objects
 from flgd.config import CellConfig, ConfigError, config_from_dict
+from flgd.config.schema import RewardConfig
 from flgd.finger_clearance import fingers_clear
 from flgd.learning.agent import Agent
 from flgd.learning.networks import build_network
@@ -25,6 +26,10 @@ def config(clearance: float, **exploration) -> CellConfig:
                                learning=dataclasses.replace(cfg.learning, device="cpu"))
 
 
+def free(height: np.ndarray, clearance: float) -> np.ndarray:
+    return fingers_clear(height, objects(height, RewardConfig(), RES), R, RES, OPEN, clearance, 0.01)
+
+
 def packed_pair(neighbour_height: float = 0.05) -> np.ndarray:
     """Two 40 x 30 mm blocks laid flush along x, 5 cm tall (the second ``neighbour_height``)."""
     h = np.zeros((N, N), np.float32)
@@ -34,31 +39,50 @@ def packed_pair(neighbour_height: float = 0.05) -> np.ndarray:
 
 
 def test_a_finger_landing_on_a_flush_neighbour_refuses_that_rotation_only():
-    free = fingers_clear(packed_pair(), R, RES, OPEN, 0.01, 0.01)
+    limited = free(packed_pair(), 0.01)
     # the first block's middle: closing along x brings one finger down on the neighbour, closing along y on table
-    assert free[ALONG_X, 107, 90] == 0 and free[ALONG_X + R // 2, 107, 90] == 0
-    assert free[ALONG_Y, 107, 90] == 1 and free[ALONG_Y + R // 2, 107, 90] == 1
+    assert limited[ALONG_X, 107, 90] == 0 and limited[ALONG_X + R // 2, 107, 90] == 0
+    assert limited[ALONG_Y, 107, 90] == 1 and limited[ALONG_Y + R // 2, 107, 90] == 1
     # the pair's middle closing along x: 80 mm between the outer faces, both fingers (42.5 mm out) on table
-    assert free[ALONG_X, 107, 100] == 1
-    # a block 1 cm beside the grasped one is beyond the 22 mm finger's reach only when closing along x
-    alone = np.zeros((N, N), np.float32)
-    alone[100:115, 80:100] = 0.05
-    assert fingers_clear(alone, R, RES, OPEN, 0.01, 0.01)[:, 107, 90].all()
+    assert limited[ALONG_X, 107, 100] == 1
+    # the neighbour moved 6 cm away along x: beyond the finger (42.5 mm + 15 mm from the grasp), every rotation free
+    apart = np.zeros((N, N), np.float32)
+    apart[100:115, 80:100] = 0.05
+    apart[100:115, 130:150] = 0.05
+    assert free(apart, 0.01)[:, 107, 90].all()
 
 
 def test_a_lower_neighbour_is_allowed_as_far_as_the_clearance_reaches():
     lower = packed_pair(neighbour_height=0.035)    # 15 mm below the grasped top
-    assert fingers_clear(lower, R, RES, OPEN, 0.01, 0.01)[ALONG_X, 107, 90] == 1
-    assert fingers_clear(lower, R, RES, OPEN, 0.02, 0.01)[ALONG_X, 107, 90] == 0
+    assert free(lower, 0.01)[ALONG_X, 107, 90] == 1
+    assert free(lower, 0.02)[ALONG_X, 107, 90] == 0
 
 
 def test_a_low_object_needs_table_under_the_fingers():
     h = np.zeros((N, N), np.float32)
     h[100:110, 100:110] = 0.015            # 15 mm tall: 15 mm - 10 mm is below the 10 mm object threshold
-    assert fingers_clear(h, R, RES, OPEN, 0.01, 0.01)[:, 105, 105].all()
+    assert free(h, 0.01)[:, 105, 105].all()
     h[100:110, 120:140] = 0.012            # a flat part where the x-closing finger comes down
-    free = fingers_clear(h, R, RES, OPEN, 0.01, 0.01)
-    assert free[ALONG_X, 105, 105] == 0 and free[ALONG_Y, 105, 105] == 1
+    limited = free(h, 0.01)
+    assert limited[ALONG_X, 105, 105] == 0 and limited[ALONG_Y, 105, 105] == 1
+
+
+def test_the_kernels_turn_with_the_closing_line_not_against_it():
+    h = np.zeros((N, N), np.float32)
+    h[100:110, 100:110] = 0.05
+    h[120:126, 120:126] = 0.05             # a neighbour diagonally towards +x, +y (columns x, rows y)
+    limited = free(h, 0.01)
+    # closing at 45 degrees (rotation 2, and its twin 10) brings a finger down on it; at 135 degrees neither
+    assert limited[2, 105, 105] == 0 and limited[10, 105, 105] == 0
+    assert limited[6, 105, 105] == 1 and limited[14, 105, 105] == 1
+
+
+def test_depth_specks_under_a_finger_refuse_nothing():
+    h = np.zeros((N, N), np.float32)
+    h[100:110, 100:110] = 0.05
+    h[105, 129] = 0.05                     # one pixel where the x-closing finger comes down: noise, not an object
+    h[104, 90] = np.nan                    # and an unknown height under the other finger
+    assert free(h, 0.01)[ALONG_X, 105, 105] == 1
 
 
 def wide_disc() -> np.ndarray:

@@ -161,3 +161,13 @@ def test_last_resort_grasps_take_a_border_sliver_only_when_nothing_else_is_in_vi
         d = agent.select(q + np.random.default_rng(step).normal(size=q.shape).astype(np.float32) * 0.01, both, step)
         agent.previous = None
         assert d is not None and 80 <= d.action.row <= 140 and 80 <= d.action.col <= 140, d.action
+
+
+def test_exploration_never_draws_a_move_where_no_move_is_allowed():
+    sliver = sliver_scene(216)
+    agent = Agent(config(last_resort_grasps=True, epsilon_start=1.0, epsilon_end=1.0), build_network("fast", R, seed=0),
+                  seed=0)
+    for step in range(20):
+        d = agent.select(np.zeros((R, 2, N, N), np.float32), sliver, step)
+        agent.previous = None
+        assert d is not None and d.action.primitive == "grasp" and d.rule == "epsilon", d

@@ -43,7 +43,8 @@ the mask, and dueling Q-values are often negative inside it (Q = V + A -
 mean(A) is centred), so the argmax would land on a masked-out pixel.  -inf
 can never win and keeps ties inside the mask.
 
-``exploration.masks = False`` is the DPEN ablation: both masks are all ones.
+``exploration.masks = False`` is the DPEN ablation: both masks are all ones, less the geometric limits
+(``exploration.grasp_in_view``, ``exploration.finger_clearance``), which hold in it too.
 The returned ``Decision`` carries the masks that were applied.
 
 Champion and challenger (flgd/gate/keeper.py): ``network`` is the champion; with a
@@ -92,7 +93,7 @@ LADDER_REACH = 0.02
 class Decision:
     action: Action
     q_maps: np.ndarray  # float32 [R,2,H,W], heightmap frame
-    grasp_mask: np.ndarray  # uint8 [H,W], or [R,H,W] with exploration.grasp_in_view, as applied
+    grasp_mask: np.ndarray  # uint8 [H,W], or [R,H,W] where a limit is per rotation (flgd.clutter), as applied
     move_mask: np.ndarray
     q_value: float  # Q of the chosen action
     rule: str
@@ -359,7 +360,7 @@ class Agent:
             self._exhausted = "every grasp lies in a region where a grasp failed in this scene (grasp-only)"
             return None
         elif self.rng.random() < eps:
-            channel, rule = (0 if ex.grasp_only else int(self.rng.integers(2))), "epsilon"
+            channel, rule = (0 if ex.grasp_only or not mmask.any() else int(self.rng.integers(2))), "epsilon"
             index = self._random_inside(gmask if channel == 0 else mmask, channel)
             greedy_choice = False
         else:
