@@ -104,6 +104,16 @@ def test_the_agent_never_brings_a_finger_down_beyond_the_edge_however_tempting_i
     assert grasps > 10 and moves > 10
 
 
+def acts_only_in_the_middle(agent: Agent, q: np.ndarray, sliver: np.ndarray) -> None:
+    """With a box in the middle beside the sliver, 20 decisions all act at the box."""
+    both = sliver.copy()
+    both[100:120, 100:120] = 0.04
+    for step in range(20):
+        d = agent.select(q + np.random.default_rng(step).normal(size=q.shape).astype(np.float32) * 0.01, both, step)
+        agent.previous = None
+        assert d is not None and 80 <= d.action.row <= 140 and 80 <= d.action.col <= 140, d.action
+
+
 def test_a_sliver_at_the_border_is_neither_grasped_nor_pushed_at_and_the_cell_says_why_it_stops():
     q = np.zeros((R, 2, N, N), np.float32)
     q[:, 1] = 1.0                 # moves the best choice anywhere
@@ -112,12 +122,7 @@ def test_a_sliver_at_the_border_is_neither_grasped_nor_pushed_at_and_the_cell_sa
     assert agent.select(q, sliver, 0) is None
     assert "border" in agent.stuck_reason() and "beyond its edge" in agent.stuck_reason()
     # beside an object in the middle, the agent acts there and never beside the sliver
-    both = sliver.copy()
-    both[100:120, 100:120] = 0.04
-    for step in range(20):
-        d = agent.select(q + np.random.default_rng(step).normal(size=q.shape).astype(np.float32) * 0.01, both, step)
-        agent.previous = None
-        assert d is not None and 80 <= d.action.row <= 140 and 80 <= d.action.col <= 140, d.action
+    acts_only_in_the_middle(agent, q, sliver)
     only = Agent(config(grasp_only=True), build_network("fast", R, seed=0), seed=0)
     assert only.select(q, sliver, 0) is None and "border" in only.stuck_reason()
 
@@ -155,12 +160,7 @@ def test_last_resort_grasps_take_a_border_sliver_only_when_nothing_else_is_in_vi
     assert d is not None and d.action.primitive == "grasp" and d.action.row >= 216, d
     assert agent.stuck_reason() == ""
     # an object in view besides: the sliver waits, the limit holds
-    both = sliver.copy()
-    both[100:120, 100:120] = 0.04
-    for step in range(20):
-        d = agent.select(q + np.random.default_rng(step).normal(size=q.shape).astype(np.float32) * 0.01, both, step)
-        agent.previous = None
-        assert d is not None and 80 <= d.action.row <= 140 and 80 <= d.action.col <= 140, d.action
+    acts_only_in_the_middle(agent, q, sliver)
 
 
 def test_exploration_never_draws_a_move_where_no_move_is_allowed():
