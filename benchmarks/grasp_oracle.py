@@ -33,7 +33,7 @@ from flgd.actions import Action
 from flgd.clutter import grasp_reward
 from flgd.config import CellConfig, load_config
 from flgd.perception import base_to_pixel, frame_heightmaps
-from flgd.plans import plan_action, plan_release
+from flgd.plans import end_yaw, plan_action, plan_release
 from flgd.safety import check_plan
 from sim_cell import objects, shapes
 from sim_cell.cell import SimCell
@@ -120,7 +120,7 @@ def trial(cell: SimCell, cfg: CellConfig, shape: str, mode: str, rng: np.random.
         del cell._arm.run_line
     width = result.widths[-1] if result.widths else math.nan
     held = grasp_reward(width, cfg.gripper) > 0
-    cell.execute(check_plan(plan_release(held, cfg, grasp_angle=plan.angle), cfg))
+    cell.execute(check_plan(plan_release(held, cfg, carry_yaw=end_yaw(plan)), cfg))
     target_out = body not in {s.body for s in cell.object_states()}
     if held and target_out and cell.stats["left_workspace"] == before["left_workspace"]:
         return "held"

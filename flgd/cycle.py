@@ -72,10 +72,10 @@ from flgd.config import CellConfig
 from flgd.cycle_record import (UNSTABLE_MARK, CycleOutcome, CycleRecord, float_or_none, held_at_place, on_cell_clock,
                                 unstable_failure, was_stopped)
 from flgd.perception import Heightmaps, frame_heightmaps
-from flgd.plans import plan_action, plan_home, plan_release
+from flgd.plans import end_yaw, plan_action, plan_home, plan_release
 from flgd.cycle_commit import commit_cycle
 from flgd.cycle_parts import CycleAgent, CycleLearner, CycleStore
-from flgd.safety import PlanRefused, check_plan
+from flgd.safety import CheckedPlan, PlanRefused, check_plan
 
 if TYPE_CHECKING:
     from flgd.plans import Plan
@@ -173,6 +173,9 @@ class CycleRunner:
                                      else bool(decide_while_placing))
         self._ahead: _Ahead | None = None
         self.frames_refused = 0   # frames taken with the tool in view, never used
+        # the tool's yaw where the last plan left it (None: not known, as after a plan cut short; a new state
+        # starts with the arm sent home): the next plan turns the wrist from there (``flgd.plans.tool_yaw``)
+        self._wrist_yaw: float | None = None
 
     # ------------------------------------------------------------------ helpers
     def request_stop(self) -> None:
@@ -198,6 +201,7 @@ class CycleRunner:
         """The next cycle starts from a fresh capture (after a reset, a swap of cell or agent)."""
         self.current = None
         self._ahead = None
+        self._wrist_yaw = None
         if self.store is not None:
             self.store.forget_last_state()
 
@@ -244,7 +248,18 @@ class CycleRunner:
             checked = check_plan(plan, self.config)
         except PlanRefused as exc:
             raise CellFault(f"{what} plan refused by the safety envelope: {exc}") from exc
-        return self.cell.execute(checked)
+        return self._execute(checked)
+
+    def _execute(self, checked: CheckedPlan) -> ExecutionResult:
+        """Run a checked plan on the cell and note the wrist yaw it left the tool at (a plan without moves leaves
+        it where it was; one cut short, unknown)."""
+        if not checked.plan.poses:
+            return self.cell.execute(checked)
+        self._wrist_yaw = None   # until the plan is known to have ended where it meant to
+        result = self.cell.execute(checked)
+        if result.completed:
+            self._wrist_yaw = end_yaw(checked.plan)
+        return result
 
     def _empty(self, hm: Heightmaps) -> bool:
         hint = self.cell.workspace_empty_hint()
@@ -317,7 +332,7 @@ class CycleRunner:
         returned, so a drop found at the place can take that outcome back.  The arm stays at the place when a
         decision follows (the next plan starts there) and goes home when the workspace is empty."""
         done = self._empty(after)
-        plan = plan_release(True, self.config, home=done, grasp_angle=action.angle)
+        plan = plan_release(True, self.config, home=done, carry_yaw=self._wrist_yaw)
         if self._stop.is_set():
             return ExecutionResult(False, [], f"release: {STOPPED_ON_REQUEST}"), None
         try:
@@ -328,7 +343,7 @@ class CycleRunner:
 
         def place() -> None:
             try:
-                outcome["result"] = self.cell.execute(checked)
+                outcome["result"] = self._execute(checked)
             except BaseException as exc:   # re-raised in the cycle's thread, after the decision
                 outcome["error"] = exc
 
@@ -434,7 +449,7 @@ class CycleRunner:
         self.step += 1
 
         with timer.phase("plan"):
-            plan = plan_action(action, state.height, self.config)
+            plan = plan_action(action, state.height, self.config, wrist_yaw=self._wrist_yaw)
             record.kind = plan.primitive
             try:
                 checked = check_plan(plan, self.config)
@@ -463,7 +478,7 @@ class CycleRunner:
         provisional = None   # the agent before the outcome measured at home was recorded (decided ahead on it)
         try:
             with timer.phase("execute"):
-                result = on_cell_clock(record, self.cell.execute(checked))
+                result = on_cell_clock(record, self._execute(checked))
                 if result.contact_stops:
                     record.contact_stop_mm = round(1000.0 * result.contact_stops[0].short_by, 1)
                 if was_stopped(result) or self._stop.is_set():
@@ -483,7 +498,7 @@ class CycleRunner:
                             self.agent.restore_outcome_state(provisional)
                             provisional, self._ahead = None, None
                     else:
-                        release = plan_release(held, self.config, grasp_angle=action.angle)
+                        release = plan_release(held, self.config, carry_yaw=self._wrist_yaw)
                         released = on_cell_clock(record, self._run_checked(release, "release"))
                     if was_stopped(released):
                         return self._stopped(record, released.failure, finish, timer)

@@ -38,7 +38,7 @@ import numpy as np
 
 from flgd.actions import Action, move_kind_at
 from flgd.config import CellConfig
-from flgd.geometry import ToolPose, wrap_symmetric_yaw
+from flgd.geometry import ToolPose, nearest_symmetric_yaw, top_down_yaw
 from flgd.grasp_view import FINGER_DEPTH, FINGER_HALF_WIDTH
 from flgd.perception import pixel_to_base
 
@@ -66,7 +66,15 @@ __all__ = [
     "plan_home",
     "abort_steps",
     "ABORT_LABEL",
+    "WRIST_YAW_LIMIT",
+    "tool_yaw",
+    "end_yaw",
 ]
+
+# How far (rad) a plan turns the wrist from the home pose's yaw at most: every grasp angle has an equivalent within
+# a quarter turn of any wrist angle, and within this limit the turn from one plan's last pose to the next plan's
+# first is always shorter than half a turn (``flgd.geometry.nearest_symmetric_yaw``).
+WRIST_YAW_LIMIT = 0.75 * math.pi
 
 
 @dataclass(frozen=True)
@@ -145,6 +153,20 @@ class Plan:
     @property
     def poses(self) -> list[ToolPose]:
         return [s.pose for s in self.steps if isinstance(s, MoveL)]
+
+
+def tool_yaw(angle: float, wrist_yaw: float | None, config: CellConfig) -> float:
+    """The wrist yaw a grasp or move along ``angle`` is made at: the equivalent (turned by pi) nearest
+    ``wrist_yaw``, the yaw the tool has where the plan starts (None: the home pose's), within
+    ``WRIST_YAW_LIMIT`` of the home pose's yaw."""
+    home = config.robot.home.yaw
+    return nearest_symmetric_yaw(angle, home if wrist_yaw is None else wrist_yaw, home, WRIST_YAW_LIMIT)
+
+
+def end_yaw(plan: Plan) -> float | None:
+    """The wrist yaw at the plan's last pose (None for a plan without moves)."""
+    poses = plan.poses
+    return top_down_yaw(poses[-1].matrix) if poses else None
 
 
 def _distance(a, b) -> float:
@@ -229,16 +251,17 @@ def contact_zone_radius(config: CellConfig) -> float:
 
 
 def plan_grasp(x: float, y: float, surface_height: float, angle: float, config: CellConfig,
-               surroundings_top: float = math.nan) -> Plan:
+               surroundings_top: float = math.nan, wrist_yaw: float | None = None) -> Plan:
     """Top-down grasp with the fingers closing along ``angle`` at (x, y); heights above the table.
 
     ``surroundings_top``: the highest point within ``contact_zone_radius`` (``slow_lift_top``; NaN = unknown: the
-    whole lift up to the approach height slow)."""
+    whole lift up to the approach height slow).  ``wrist_yaw``: the tool's yaw where the plan starts (``tool_yaw``;
+    None: the home pose's)."""
     if not all(map(math.isfinite, (x, y, surface_height, angle))):
         return _refused("grasp", f"non-finite grasp request x={x!r} y={y!r} "
                                  f"height={surface_height!r} angle={angle!r}")
     rb, gr, table = config.robot, config.gripper, config.workspace.table_z
-    yaw = wrap_symmetric_yaw(angle)
+    yaw = tool_yaw(angle, wrist_yaw, config)
     z = table + max(surface_height - rb.grasp_depth, config.safety.min_table_clearance)
     above, clear = z + rb.approach_height, slow_lift_top(z, surroundings_top, config)
     contact_top = slow_descent_top(z, max(surroundings_top, surface_height), config)
@@ -294,11 +317,11 @@ def abort_steps(steps: tuple[Step, ...], i: int) -> tuple[MoveL, ...]:
 
 
 def _travel_plan(primitive: str, x: float, y: float, z: float, angle: float, distance: float,
-                 config: CellConfig) -> Plan:
+                 config: CellConfig, wrist_yaw: float | None) -> Plan:
     if not all(map(math.isfinite, (x, y, z, angle))):
         return _refused(primitive, f"non-finite {primitive} request x={x!r} y={y!r} z={z!r} angle={angle!r}")
     rb, gr, ws = config.robot, config.gripper, config.workspace
-    yaw = wrap_symmetric_yaw(angle)
+    yaw = tool_yaw(angle, wrist_yaw, config)
     # Keep the end of the travel over the table the camera sees.
     ex = min(max(x + distance * math.cos(angle), ws.x[0]), ws.x[1])
     ey = min(max(y + distance * math.sin(angle), ws.y[0]), ws.y[1])
@@ -321,17 +344,18 @@ def _travel_plan(primitive: str, x: float, y: float, z: float, angle: float, dis
                 notes={"end": (ex, ey, z)})
 
 
-def plan_push(x: float, y: float, angle: float, config: CellConfig) -> Plan:
-    """Push along ``angle`` starting at (x, y), near table level."""
+def plan_push(x: float, y: float, angle: float, config: CellConfig, wrist_yaw: float | None = None) -> Plan:
+    """Push along ``angle`` starting at (x, y), near table level (``wrist_yaw``: as for ``plan_grasp``)."""
     z = config.workspace.table_z + max(config.robot.push_height, config.safety.min_table_clearance)
-    return _travel_plan("push", x, y, z, angle, config.robot.push_distance, config)
+    return _travel_plan("push", x, y, z, angle, config.robot.push_distance, config, wrist_yaw)
 
 
-def plan_shift(x: float, y: float, surface_height: float, angle: float, config: CellConfig) -> Plan:
-    """Press on the object top at (x, y) and drag it along ``angle``."""
+def plan_shift(x: float, y: float, surface_height: float, angle: float, config: CellConfig,
+               wrist_yaw: float | None = None) -> Plan:
+    """Press on the object top at (x, y) and drag it along ``angle`` (``wrist_yaw``: as for ``plan_grasp``)."""
     table = config.workspace.table_z
     z = table + max(surface_height - config.robot.shift_press, config.safety.min_table_clearance)
-    return _travel_plan("shift", x, y, z, angle, config.robot.shift_distance, config)
+    return _travel_plan("shift", x, y, z, angle, config.robot.shift_distance, config, wrist_yaw)
 
 
 CENTRING_TOLERANCE = 0.015  # m: a pixel this much below the chosen one's height is off the surface the fingers grip
@@ -385,8 +409,9 @@ def highest_around(height_map: np.ndarray, row: float, col: float, radius: float
     return float(values.max()) if values.size else math.nan
 
 
-def plan_action(action: Action, height_map: np.ndarray, config: CellConfig) -> Plan:
-    """The plan for an action chosen on ``height_map`` (metres above the table).
+def plan_action(action: Action, height_map: np.ndarray, config: CellConfig, wrist_yaw: float | None = None) -> Plan:
+    """The plan for an action chosen on ``height_map`` (metres above the table), from a tool at ``wrist_yaw``
+    (``tool_yaw``; None: the home pose's).
 
     A move action is turned into a push or shift here (from the height at its
     pixel), whatever primitive the caller put in ``action``.
@@ -402,25 +427,26 @@ def plan_action(action: Action, height_map: np.ndarray, config: CellConfig) -> P
             x, y, _z = pixel_to_base(row, col, h, config.workspace)
         return plan_grasp(x, y, h, action.angle, config,
                           surroundings_top=highest_around(height_map, row, col, contact_zone_radius(config),
-                                                          config.workspace.resolution))
+                                                          config.workspace.resolution), wrist_yaw=wrist_yaw)
     if move_kind(h, config) == "shift":
-        return plan_shift(x, y, h, action.angle, config)
-    return plan_push(x, y, action.angle, config)
+        return plan_shift(x, y, h, action.angle, config, wrist_yaw)
+    return plan_push(x, y, action.angle, config, wrist_yaw)
 
 
-def plan_release(held: bool, config: CellConfig, home: bool = True, grasp_angle: float | None = None) -> Plan:
+def plan_release(held: bool, config: CellConfig, home: bool = True, carry_yaw: float | None = None) -> Plan:
     """After a grasp: carry a held object to the place pose, read the width there and open; otherwise just open.
 
     The width at the place pose (``PLACE_CHECK_LABEL``) is the grasp's final judgement: an object that
     slipped out between the home pose and the place was not picked, on any cell.  ``home=False`` leaves the
     arm at the place (out of the camera's view, as home is): the next plan starts from there.  With
-    ``robot.carry_at_grasp_yaw`` the place and home poses take the wrist angle of ``grasp_angle`` (the grasp's)."""
+    ``robot.carry_at_grasp_yaw`` the place and home poses keep ``carry_yaw``, the wrist yaw the grasp ended at
+    (``end_yaw`` of its plan)."""
     gr, rb = config.gripper, config.robot
     release = GripperCommand(gr.open_width, gr.force, "open", proceed_after=gr.release_gap)
     if not held:
         return Plan("release", (release,))
     place = rb.place
-    carry = wrap_symmetric_yaw(grasp_angle) if rb.carry_at_grasp_yaw and grasp_angle is not None else None
+    carry = carry_yaw if rb.carry_at_grasp_yaw and carry_yaw is not None else None
     steps: tuple[Step, ...] = (
         MoveL(ToolPose.top_down(*place.position, place.yaw if carry is None else carry), rb.speed,
               rb.acceleration, "place"),

@@ -13,10 +13,10 @@ from hypothesis import strategies as st
 
 from flgd.actions import Action
 from flgd.config import load_config
-from flgd.geometry import ToolPose
-from flgd.perception import pixel_to_base
-from flgd.plans import PLACE_CHECK_LABEL, GripperCommand, MeasureWidth, MoveL, Plan, blended_runs, move_kind, \
-    plan_action, plan_grasp, plan_push, plan_release, plan_shift
+from flgd.geometry import ToolPose, top_down_yaw
+from flgd.perception import base_to_pixel, pixel_to_base
+from flgd.plans import PLACE_CHECK_LABEL, GripperCommand, MeasureWidth, MoveL, Plan, blended_runs, end_yaw, \
+    move_kind, plan_action, plan_grasp, plan_push, plan_release, plan_shift
 from flgd.safety import CheckedPlan, PlanRefused, check_plan
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -266,7 +266,8 @@ def test_with_carry_at_grasp_yaw_the_wrist_keeps_the_grasps_angle_to_home_and_th
     for cfg, expected in ((carry, math.radians(-60)), (CFG, CFG.robot.home.yaw)):
         grasp = plan_grasp(-0.5, 0.05, 0.05, angle, cfg)
         moves = {s.label: s for s in grasp.steps if isinstance(s, MoveL)}
-        place = {s.label: s for s in plan_release(True, cfg, grasp_angle=angle).steps if isinstance(s, MoveL)}
+        place = {s.label: s for s in plan_release(True, cfg, carry_yaw=end_yaw(grasp)).steps
+                 if isinstance(s, MoveL)}
 
         def yaw(m: MoveL) -> float:
             r = np.asarray(m.pose.matrix)
@@ -275,6 +276,40 @@ def test_with_carry_at_grasp_yaw_the_wrist_keeps_the_grasps_angle_to_home_and_th
         assert yaw(moves["descend"]) == pytest.approx(math.radians(-60))
         assert [yaw(moves["home"]), yaw(place["place"]), yaw(place["home"])] == pytest.approx([expected] * 3)
         check_plan(grasp, cfg)
+
+
+def _yaw(m: MoveL) -> float:
+    return top_down_yaw(m.pose.matrix)
+
+
+@pytest.mark.parametrize("start, angle, turned_to", [
+    (67.5, -67.5, 112.5),    # the equivalent a quarter turn away, not 135 degrees back
+    (0.0, 90.0, 90.0),       # from the home angle: as wrap_symmetric_yaw (a tie goes to +90)
+    (-22.5, 90.0, -90.0),
+    (112.5, 157.5, 157.5 - 180.0),   # 157.5 is past WRIST_YAW_LIMIT (135) from home: the other equivalent
+    (-135.0, 0.0, 0.0),
+])
+def test_a_plan_turns_the_wrist_to_the_grasps_equivalent_nearest_where_it_stands(start, angle, turned_to) -> None:
+    hm = np.zeros(CFG.workspace.shape)
+    row, col = base_to_pixel(-0.5, 0.05, CFG.workspace)
+    rotation = round(math.radians(angle) / (2 * math.pi / 16)) % 16
+    for primitive in ("grasp", "push"):
+        plan = plan_action(Action(primitive, row, col, rotation), hm, CFG, wrist_yaw=math.radians(start))
+        first = next(s for s in plan.steps if isinstance(s, MoveL))
+        assert math.degrees(_yaw(first)) == pytest.approx(turned_to), primitive
+        # the turn the controller makes (the shorter way round) is the one the plan names
+        assert abs(turned_to - start) < 180.0
+        assert abs(math.degrees(math.remainder(math.radians(turned_to - angle), math.pi))) == pytest.approx(0.0,
+                                                                                                        abs=1e-6)
+        check_plan(plan, CFG)
+
+
+def test_the_place_keeps_a_carried_yaw_beyond_a_quarter_turn() -> None:
+    carry = dataclasses.replace(CFG, robot=dataclasses.replace(CFG.robot, carry_at_grasp_yaw=True))
+    grasp = plan_grasp(-0.5, 0.05, 0.05, math.radians(-67.5), carry, wrist_yaw=math.radians(90.0))
+    assert math.degrees(end_yaw(grasp)) == pytest.approx(112.5)   # carried home at the angle it grasped at
+    place = [s for s in plan_release(True, carry, carry_yaw=end_yaw(grasp)).steps if isinstance(s, MoveL)]
+    assert [math.degrees(_yaw(m)) for m in place] == pytest.approx([112.5, 112.5])
 
 
 def test_release_places_a_held_object_and_only_opens_otherwise() -> None:

@@ -34,8 +34,11 @@ from flgd.hardware.ur_arm import MotionStopped, PoseUnreachable, RTDEFactory, UR
 __all__ = ["UR5eCell"]
 
 
-WIDTH_SETTLE_INTERVAL = 0.1  # s between width readings at a MeasureWidth step
-WIDTH_STEADY = 0.0005        # m: two readings this close mean the fingers have stopped
+# A MeasureWidth step reads until two readings WIDTH_SETTLE_INTERVAL apart differ by at most WIDTH_STEADY: fingers
+# slower than 5 mm/s, an eighth of the RG2's slowest gripping speed (38 mm/s), have stopped.  A pick is judged
+# again at the place (``flgd.plans.PLACE_CHECK_LABEL``), so a slip that starts after this reading still counts.
+WIDTH_SETTLE_INTERVAL = 0.04  # s between width readings at a MeasureWidth step
+WIDTH_STEADY = 0.0002        # m: two readings this close mean the fingers have stopped
 WIDTH_SETTLE_TIMEOUT = 1.0   # s: after this the last reading counts
 FLOOR_MEASUREMENT_TOLERANCE = 0.0005  # m below the table clearance floor an arm stopped on it may read
 
