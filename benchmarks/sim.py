@@ -99,7 +99,7 @@ def actions_per_second(cfg, actions: int, seed: int) -> tuple[float, float, dict
                 counts["grasp"] += 1
                 held = bool(result.widths) and grasp_reward(result.widths[-1], cfg.gripper) > 0
                 counts["grasp_ok"] += int(held)
-                cell.execute(check_plan(plan_release(held, cfg, carry_yaw=end_yaw(plan)), cfg))
+                cell.execute(check_plan(plan_release(held, cfg, carry_yaw=end_yaw(plan, cfg)), cfg))
             else:
                 counts["push"] += 1
             counts["failed"] += int(not result.completed)
@@ -138,7 +138,7 @@ def oracle_success(cfg, trials: int, seed: int) -> tuple[float, dict]:
             result = cell.execute(check_plan(plan, cfg))
             ok = result.completed and bool(result.widths) and grasp_reward(result.widths[-1], cfg.gripper) > 0
             per_shape[shape].append(int(ok))
-            cell.execute(check_plan(plan_release(ok, cfg, carry_yaw=end_yaw(plan)), cfg))
+            cell.execute(check_plan(plan_release(ok, cfg, carry_yaw=end_yaw(plan, cfg)), cfg))
     rate = sum(sum(v) for v in per_shape.values()) / trials
     return rate, {k: f"{sum(v)}/{len(v)}" for k, v in per_shape.items() if v}
 

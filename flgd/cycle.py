@@ -258,7 +258,7 @@ class CycleRunner:
         self._wrist_yaw = None   # until the plan is known to have ended where it meant to
         result = self.cell.execute(checked)
         if result.completed:
-            self._wrist_yaw = end_yaw(checked.plan)
+            self._wrist_yaw = end_yaw(checked.plan, self.config)
         return result
 
     def _empty(self, hm: Heightmaps) -> bool:

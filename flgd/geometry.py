@@ -84,29 +84,41 @@ def wrap_symmetric_yaw(yaw: float) -> float:
     return math.pi / 2 if y <= -math.pi / 2 + 1e-12 else y
 
 
+# How far (rad) a plan turns the wrist from the home pose's yaw at most: at least a quarter turn, so that every
+# grasp angle has an equivalent (the RG2 is symmetric) within reach of any wrist angle, and under half a turn, so
+# that the way back to the home yaw is always the shorter way round.
+WRIST_YAW_LIMIT = 0.75 * math.pi
+# A turn between two plans is kept this much under half a turn: a controller that turns the shorter way round
+# must never face a near tie.
+TURN_MARGIN = 0.1   # rad
+
+
 def nearest_symmetric_yaw(yaw: float, current: float, centre: float, limit: float) -> float:
     """Of the wrist angles that grip like ``yaw`` (it plus any multiple of pi), the one nearest ``current``
     (the wrist's yaw where the move starts) that lies within ``limit`` of ``centre``.
 
-    Why: a parallel gripper needs at most a quarter turn to any grasp from wherever the wrist stands, and at an
-    integrator's speeds a moveL is bound by the wrist's turn.  The limit keeps the wrist within one turn of its
-    home angle, and the turn from ``current`` stays shorter than pi, so a controller that turns the shorter way
-    round turns the way the plan names.  With ``current`` at ``centre`` it is ``wrap_symmetric_yaw`` about it."""
+    Why: a parallel gripper needs at most a quarter turn to any grasp from wherever the wrist stands, and at high
+    speeds a moveL is bound by the wrist's turn.  With ``current`` within ``limit`` of ``centre`` (``limit`` at
+    least a quarter turn) the turn from it is always under half a turn less ``TURN_MARGIN``, so a controller that
+    turns the shorter way round turns the way the plan names.  With ``current`` at ``centre`` it is
+    ``wrap_symmetric_yaw`` about it."""
     if not all(map(math.isfinite, (yaw, current, centre, limit))):
         raise ValueError(f"nearest_symmetric_yaw: non-finite yaw={yaw!r} current={current!r} centre={centre!r} "
                          f"limit={limit!r}")
     base = current + wrap_symmetric_yaw(yaw - current)
     candidates = sorted((base + k * math.pi for k in (0, -1, 1)), key=lambda c: (abs(c - current), -c))
     for c in candidates:
-        if abs(c - centre) <= limit + 1e-9 and abs(c - current) < math.pi - 1e-9:
+        if abs(c - centre) <= limit + 1e-9 and abs(c - current) <= math.pi - TURN_MARGIN:
             return c
     return centre + wrap_symmetric_yaw(yaw - centre)
 
 
-def top_down_yaw(rotation: np.ndarray) -> float:
-    """The yaw of a top-down tool orientation (``top_down_rotation``'s argument, in (-pi, pi])."""
+def top_down_yaw(rotation: np.ndarray, centre: float = 0.0) -> float:
+    """The yaw of a top-down tool orientation (``top_down_rotation``'s argument), the one within half a turn of
+    ``centre``: a plan's yaws all lie within ``WRIST_YAW_LIMIT`` of the home yaw, so about it this is the yaw the
+    plan named, whatever the home yaw."""
     r = np.asarray(rotation, dtype=float)
-    return math.atan2(float(r[1, 0]), float(r[0, 0]))
+    return centre + math.remainder(math.atan2(float(r[1, 0]), float(r[0, 0])) - centre, 2 * math.pi)
 
 
 @dataclass(frozen=True)

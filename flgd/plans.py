@@ -38,7 +38,7 @@ import numpy as np
 
 from flgd.actions import Action, move_kind_at
 from flgd.config import CellConfig
-from flgd.geometry import ToolPose, nearest_symmetric_yaw, top_down_yaw
+from flgd.geometry import WRIST_YAW_LIMIT, ToolPose, nearest_symmetric_yaw, top_down_yaw
 from flgd.grasp_view import FINGER_DEPTH, FINGER_HALF_WIDTH
 from flgd.perception import pixel_to_base
 
@@ -71,10 +71,6 @@ __all__ = [
     "end_yaw",
 ]
 
-# How far (rad) a plan turns the wrist from the home pose's yaw at most: every grasp angle has an equivalent within
-# a quarter turn of any wrist angle, and within this limit the turn from one plan's last pose to the next plan's
-# first is always shorter than half a turn (``flgd.geometry.nearest_symmetric_yaw``).
-WRIST_YAW_LIMIT = 0.75 * math.pi
 
 
 @dataclass(frozen=True)
@@ -163,10 +159,10 @@ def tool_yaw(angle: float, wrist_yaw: float | None, config: CellConfig) -> float
     return nearest_symmetric_yaw(angle, home if wrist_yaw is None else wrist_yaw, home, WRIST_YAW_LIMIT)
 
 
-def end_yaw(plan: Plan) -> float | None:
-    """The wrist yaw at the plan's last pose (None for a plan without moves)."""
+def end_yaw(plan: Plan, config: CellConfig) -> float | None:
+    """The wrist yaw at the plan's last pose, as ``tool_yaw`` named it (None for a plan without moves)."""
     poses = plan.poses
-    return top_down_yaw(poses[-1].matrix) if poses else None
+    return top_down_yaw(poses[-1].matrix, config.robot.home.yaw) if poses else None
 
 
 def _distance(a, b) -> float:

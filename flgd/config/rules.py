@@ -8,12 +8,14 @@ imports no cell, safety or plan module), and a CUDA device where one is asked fo
 from __future__ import annotations
 
 import difflib
+import math
 
 from flgd.backends import BACKEND_GRIPPER_DRIVERS, backend_names
 from flgd.config.messages import quote
 from flgd.config.reach import check_reach
 from flgd.config.schema import CellConfig
 from flgd.disk_budget import MIN_STORE_BYTES
+from flgd.geometry import WRIST_YAW_LIMIT
 
 __all__ = ["check_relations", "parse_emulator_address", "parse_metrics_address", "RELEASE_GAP_MIN"]
 
@@ -84,6 +86,13 @@ def check_relations(cfg: CellConfig, problems: list[str]) -> None:
             problems.append(f"robot.{pose_key}.position: z = {pose.position[2]!r} is below the table clearance "
                             f"floor {floor:.4f} m (workspace.z[0] {ws.table_z!r} + safety.min_table_clearance "
                             f"{sf.min_table_clearance!r}); expected z >= {floor:.4f}")
+    # every plan turns the wrist within WRIST_YAW_LIMIT of the home yaw (flgd.plans.tool_yaw); a place outside it
+    # would leave the next plan a turn of half a turn or more, which a controller may make the other way round
+    turn = abs(math.remainder(cfg.robot.place.yaw - cfg.robot.home.yaw, 2 * math.pi))
+    if turn > WRIST_YAW_LIMIT + 1e-9:
+        problems.append(f"robot.place.yaw: {cfg.robot.place.yaw!r} rad is {math.degrees(turn):.1f} deg from "
+                        f"robot.home.yaw {cfg.robot.home.yaw!r}; expected at most {math.degrees(WRIST_YAW_LIMIT):g} deg, the "
+                        "wrist's range around its home angle")
     check_reach(cfg, problems)
     hx, hy = cfg.robot.home.position[0], cfg.robot.home.position[1]
     if ws.x[0] <= hx <= ws.x[1] and ws.y[0] <= hy <= ws.y[1]:
