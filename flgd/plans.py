@@ -72,7 +72,6 @@ __all__ = [
 ]
 
 
-
 @dataclass(frozen=True)
 class MoveL:
     """Linear tool move to ``pose`` at ``speed`` (m/s) and ``acceleration`` (m/s^2).
