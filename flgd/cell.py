@@ -27,6 +27,7 @@ __all__ = [
     "ExecutionResult",
     "ContactStop",
     "Cell",
+    "FrameOnTheWay",
     "WrappedCell",
     "CellFault",
     "StopPending",
@@ -120,6 +121,11 @@ class StopPending(CellFault):
     """
 
 
+# Called with a frame taken while a plan was still running and the seconds on the cell's clock from the plan's start
+# to when the frame was there (``Cell.execute_and_capture``); from any thread, at most once per plan.
+FrameOnTheWay = Callable[[Frame, float], None]
+
+
 class Cell(abc.ABC):
     """A robot cell: camera + arm + gripper behind one small interface."""
 
@@ -142,6 +148,16 @@ class Cell(abc.ABC):
         Implementations must call ``plan.verify(self.config)`` first, so an
         unchecked or tampered plan never moves the arm.
         """
+
+    def execute_and_capture(self, plan: CheckedPlan, on_frame: FrameOnTheWay) -> ExecutionResult:
+        """Run ``plan`` as ``execute`` does and, during its last move, take a frame as soon as the tool has left the
+        camera's view (``flgd.camera_view``) and hand it to ``on_frame`` while the arm moves on.
+
+        Why: the next picture, and the decision on it, then overlap the end of the carry instead of following it.
+        The frame's ``tool_position`` is where the tool was when it was taken; the caller checks it as for any
+        frame.  This default (a cell that cannot take a picture while its arm moves, or a wrapper that changes
+        ``execute``) runs the plan and takes none: the caller captures after it, as without."""
+        return self.execute(plan)
 
     def stop_motion(self) -> None:
         """Halt the motion in flight now; callable from a signal handler or another thread.

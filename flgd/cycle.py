@@ -56,21 +56,19 @@ Outcomes of a cycle (``CycleRecord.outcome``):
 from __future__ import annotations
 
 import logging
-import math
 import threading
 import time
-from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Callable
 
-import numpy as np
 
 from flgd.actions import Action
 from flgd.camera_view import tool_in_view
-from flgd.cell import STOPPED_ON_REQUEST, Cell, CellFault, ExecutionResult, Frame
-from flgd.clutter import grasp_mask, grasp_reward, judge_move
+from flgd.cell import STOPPED_ON_REQUEST, Cell, CellFault, ExecutionResult, Frame, FrameOnTheWay
+from flgd.clutter import grasp_mask, judge_move
 from flgd.config import CellConfig
-from flgd.cycle_record import (UNSTABLE_MARK, CycleOutcome, CycleRecord, float_or_none, held_at_place, on_cell_clock,
-                                unstable_failure, was_stopped)
+from flgd.cycle_record import (UNSTABLE_MARK, CycleOutcome, CycleRecord, PhaseTimer, float_or_none, held_at_place,
+                                on_cell_clock, unstable_failure, was_stopped)
+from flgd.deciding_ahead import Ahead, DecidingAhead, Thought, ToolInView, record_outcome
 from flgd.perception import Heightmaps, frame_heightmaps
 from flgd.plans import end_yaw, plan_action, plan_home, plan_release
 from flgd.cycle_commit import commit_cycle
@@ -90,56 +88,13 @@ log = logging.getLogger("flgd.cycle")
 LEARNER_WAIT_LIMIT = 600.0
 
 
-class _Timer:
-    def __init__(self, timings: dict[str, float], on_phase: Callable[[str], None] | None):
-        self.timings = timings
-        self.on_phase = on_phase
-
-    def phase(self, name: str) -> "_Phase":
-        return _Phase(self, name)
-
-    def discount(self, name: str, seconds: float) -> None:
-        """Take ``seconds`` out of phase ``name``: time inside it that the cell stood waiting for the controller
-        (it stays in the cycle's duration, as the controller's own time)."""
-        self.timings[name] = self.timings.get(name, 0.0) - seconds
-
-
-class _Phase:
-    def __init__(self, timer: _Timer, name: str):
-        self.timer, self.name = timer, name
-
-    def __enter__(self) -> None:
-        self.t0 = time.perf_counter()
-
-    def __exit__(self, *exc: object) -> None:
-        t = self.timer.timings
-        t[self.name] = t.get(self.name, 0.0) + time.perf_counter() - self.t0
-        if self.timer.on_phase is not None:
-            self.timer.on_phase(self.name)
-
-
 def _make_transition(state: Heightmaps, action: Action, reward: float, next_state: Heightmaps | None,
                      done: bool) -> Any:
     from flgd.learning.replay import Transition
     return Transition(state=state, action=action, reward=reward, next_state=next_state, done=done)
 
 
-class ToolInView(CellFault):
-    """A frame was taken with the tool between the camera and the workspace (``flgd.camera_view``): never used."""
-
-
-@dataclass(frozen=True)
-class _Ahead:
-    """The next decision, made on ``state`` while the arm placed the last pick (``decide_while_placing``)."""
-
-    state: Heightmaps
-    decision: Decision | None
-    stuck: str
-    seconds: float   # what deciding took
-    hidden: float    # the part of it the place's motion covered
-
-
-class CycleRunner:
+class CycleRunner(DecidingAhead):
     """Runs cycles on one cell with one agent; optional store, replay and learner.
 
     ``agent``   -- decides and learns outcomes (``flgd.cycle_parts.CycleAgent``).
@@ -171,7 +126,7 @@ class CycleRunner:
         self._stop = threading.Event()
         self.decide_while_placing = (config.robot.decide_while_placing if decide_while_placing is None
                                      else bool(decide_while_placing))
-        self._ahead: _Ahead | None = None
+        self._ahead: Ahead | None = None
         self.frames_refused = 0   # frames taken with the tool in view, never used
         # the tool's yaw where the last plan left it (None: not known, as after a plan cut short; a new state
         # starts with the arm sent home): the next plan turns the wrist from there (``flgd.plans.tool_yaw``)
@@ -205,10 +160,14 @@ class CycleRunner:
         if self.store is not None:
             self.store.forget_last_state()
 
-    def perceive(self, timer: _Timer) -> Heightmaps:
+    def perceive(self, timer: PhaseTimer) -> Heightmaps:
         """Capture and heightmaps; ToolInView (a CellFault) for a frame the cell took with the tool in view."""
         with timer.phase("capture"):
             frame = self.cell.capture()
+        return self._heightmaps(frame, timer)
+
+    def _heightmaps(self, frame: Frame, timer: PhaseTimer) -> Heightmaps:
+        """The heightmaps of ``frame``; ToolInView for a frame taken with the tool in view."""
         why = "" if frame.tool_position is None else tool_in_view(frame.tool_position, self.config)
         if why:
             self.frames_refused += 1
@@ -223,9 +182,9 @@ class CycleRunner:
 
     def perceive_now(self) -> Heightmaps:
         """A fresh capture and its heightmaps, outside any cycle (for snapshots); keeps the cycle's state."""
-        return self.perceive(_Timer({}, None))
+        return self.perceive(PhaseTimer({}, None))
 
-    def _reset_scene(self, timer: _Timer, record: CycleRecord) -> None:
+    def _reset_scene(self, timer: PhaseTimer, record: CycleRecord) -> None:
         """A new scene laid out by the cell; its time counts in ``cell_time`` as the PC spent it (a scene reset
         has no motion on the cell's clock)."""
         started = time.perf_counter()
@@ -250,13 +209,15 @@ class CycleRunner:
             raise CellFault(f"{what} plan refused by the safety envelope: {exc}") from exc
         return self._execute(checked)
 
-    def _execute(self, checked: CheckedPlan) -> ExecutionResult:
-        """Run a checked plan on the cell and note the wrist yaw it left the tool at (a plan without moves leaves
-        it where it was; one cut short, unknown)."""
+    def _execute(self, checked: CheckedPlan, on_frame: FrameOnTheWay | None = None) -> ExecutionResult:
+        """Run a checked plan on the cell (``on_frame``: with a picture taken on its last move once the arm is out
+        of view) and note the wrist yaw it left the tool at (a plan without moves leaves it where it was; one cut
+        short, unknown)."""
+        run = self.cell.execute if on_frame is None else (lambda c: self.cell.execute_and_capture(c, on_frame))
         if not checked.plan.poses:
-            return self.cell.execute(checked)
+            return run(checked)
         self._wrist_yaw = None   # until the plan is known to have ended where it meant to
-        result = self.cell.execute(checked)
+        result = run(checked)
         if result.completed:
             self._wrist_yaw = end_yaw(checked.plan, self.config)
         return result
@@ -265,6 +226,9 @@ class CycleRunner:
         hint = self.cell.workspace_empty_hint()
         if hint is True:
             return True
+        return self._nothing_to_grasp(hm)
+
+    def _nothing_to_grasp(self, hm: Heightmaps) -> bool:
         return not bool(grasp_mask(hm.height, self.config.rewards, self.config.workspace.resolution).any())
 
     def _check_space(self) -> None:
@@ -280,14 +244,14 @@ class CycleRunner:
         if self.store is not None:
             self.store.record_intent(record.row())
 
-    def _commit(self, record: CycleRecord, transition: Transition | None, timer: _Timer) -> None:
+    def _commit(self, record: CycleRecord, transition: Transition | None, timer: PhaseTimer) -> None:
         committed = commit_cycle(record.row(), transition, store=self.store, replay=self.replay, learner=self.learner)
         record.transition_id, record.timings["store"] = committed.transition_id, committed.seconds
         if timer.on_phase is not None:
             timer.on_phase("store")
 
     def _stopped(self, record: CycleRecord, why: str, finish: Callable[[], CycleRecord],
-                 timer: _Timer) -> CycleRecord:
+                 timer: PhaseTimer) -> CycleRecord:
         """A stop request interrupted the action: log it, learn nothing, forget the (moved) scene."""
         record.outcome = CycleOutcome.STOPPED
         record.failure = why if STOPPED_ON_REQUEST in why else f"{why}: {STOPPED_ON_REQUEST}"
@@ -313,84 +277,13 @@ class CycleRunner:
             stuck = self.agent.stuck_reason()  # the decision found nothing left to try
         return decision, stuck
 
-    def _capture_at_home(self, timer: _Timer) -> Heightmaps | None:
-        """The next picture, taken at home with the picked object held (the arm out of view), or None when this
-        cell cannot show where the tool was (``Frame.tool_position``) or showed it in view: then the arm places
-        first and the picture is taken after, as without ``decide_while_placing``."""
-        try:
-            after = self.perceive(timer)
-        except CellFault as exc:   # the tool in view, or a camera fault: place the pick first, capture after
-            log.warning("decide while placing: %s", exc)
-            return None
-        return after if self.last_frame is not None and self.last_frame.tool_position is not None else None
-
-    def _place_and_decide(self, record: CycleRecord, action: Action, after: Heightmaps,
-                          timer: _Timer) -> tuple[ExecutionResult, object | None]:
-        """Place the picked object in a thread of its own while the next decision is made on ``after``.
-
-        The decision rests on the outcome measured at home (held), recorded first; the agent as it was before is
-        returned, so a drop found at the place can take that outcome back.  The arm stays at the place when a
-        decision follows (the next plan starts there) and goes home when the workspace is empty."""
-        done = self._empty(after)
-        plan = plan_release(True, self.config, home=done, carry_yaw=self._wrist_yaw)
-        if self._stop.is_set():
-            return ExecutionResult(False, [], f"release: {STOPPED_ON_REQUEST}"), None
-        try:
-            checked = check_plan(plan, self.config)
-        except PlanRefused as exc:
-            raise CellFault(f"release plan refused by the safety envelope: {exc}") from exc
-        outcome: dict[str, Any] = {}
-
-        def place() -> None:
-            try:
-                outcome["result"] = self._execute(checked)
-            except BaseException as exc:   # re-raised in the cycle's thread, after the decision
-                outcome["error"] = exc
-
-        mover = threading.Thread(target=place, name="flgd-place", daemon=True)
-        mover.start()
-        provisional: object | None = None  # the agent's outcome state, opaque here
-        decided: tuple[Any, ...] | None = None
-        failed: BaseException | None = None
-        try:
-            if not done and not self._stop.is_set():
-                busy_from = time.perf_counter()
-                provisional = self.agent.outcome_state()
-                _record_outcome(self.agent, action, True, True, after.height, record.kind)
-                self.wait_for_learner()
-                if not self._stop.is_set():
-                    started = time.perf_counter()
-                    decision, stuck = self._decide(after)
-                    decided = (decision, stuck, time.perf_counter() - started, time.perf_counter() - busy_from)
-        except BaseException as exc:   # raised once the arm has placed (or failed to): the cell's fault first
-            failed = exc
-        finally:
-            mover.join()
-        if "error" in outcome or failed is not None:
-            if provisional is not None:
-                self.agent.restore_outcome_state(provisional)
-            if "error" in outcome and failed is not None:
-                log.error("deciding while placing failed too: %r", failed)
-            first = outcome["error"] if "error" in outcome else failed
-            assert isinstance(first, BaseException)
-            raise first
-        released = on_cell_clock(record, outcome["result"])
-        if decided is not None:
-            decision, stuck, seconds, busy = decided
-            before = busy - seconds   # the outcome and the learner's wait came first, the decision last
-            hidden = min(seconds, max(0.0, released.duration - before))
-            # the arm waited at the place for what the motion did not cover: the controller's time, not the cell's
-            timer.discount("execute", max(0.0, busy - released.duration))
-            self._ahead = _Ahead(after, decision, stuck, seconds, hidden)
-        return released, provisional
-
     # ------------------------------------------------------------------ the cycle
     def run_once(self) -> CycleRecord:
         """One cycle.  Raises CellFault (after logging the action) and store errors."""
         self._check_space()
         t_start = time.perf_counter()
         timings: dict[str, float] = {}
-        timer = _Timer(timings, self.on_phase)
+        timer = PhaseTimer(timings, self.on_phase)
         record = CycleRecord(outcome=CycleOutcome.EMPTY, time=time.time(), backend=self.backend, timings=timings)
 
         def finish() -> CycleRecord:
@@ -462,7 +355,7 @@ class CycleRunner:
             record.reward = 0.0
             if action.primitive == "grasp":
                 record.success = False
-            _record_outcome(self.agent, action, False if action.primitive == "grasp" else None, False,
+            record_outcome(self.agent, action, False if action.primitive == "grasp" else None, False,
                             state.height, record.kind)
             self._commit(finish(), _make_transition(state, action, 0.0, state, False), timer)
             return finish()
@@ -476,23 +369,41 @@ class CycleRunner:
             raise
         after: Heightmaps | None = None   # the picture the action is judged on
         provisional = None   # the agent before the outcome measured at home was recorded (decided ahead on it)
+        thought: Thought | None = None   # made while the arm carried the pick home
         try:
             with timer.phase("execute"):
-                result = on_cell_clock(record, self._execute(checked))
+                if action.primitive == "grasp" and self.decide_while_placing:
+                    result, thought = self._grasp_and_think(record, action, checked, timer)
+                else:
+                    result = self._execute(checked)
+                on_cell_clock(record, result)
                 if result.contact_stops:
                     record.contact_stop_mm = round(1000.0 * result.contact_stops[0].short_by, 1)
                 if was_stopped(result) or self._stop.is_set():
+                    if thought is not None and thought.provisional is not None:
+                        self.agent.restore_outcome_state(thought.provisional)
                     return self._stopped(record, result.failure or "after execution", finish, timer)
-                held = False
-                if action.primitive == "grasp" and result.completed:
-                    width = float(result.widths[-1]) if result.widths else math.nan
-                    held = grasp_reward(width, self.config.gripper) > 0
+                held = self._held(action, result)
                 unstable = unstable_failure(result)
-            if held and not unstable and self.decide_while_placing:
+            if held and not unstable and self.decide_while_placing and thought is None:
                 after = self._capture_at_home(timer)
             with timer.phase("execute"):
                 if not unstable and action.primitive == "grasp":
-                    if after is not None:
+                    if thought is not None:
+                        after, provisional = thought.state, thought.provisional
+                        done = thought.done or self.cell.workspace_empty_hint() is True
+                        if done and provisional is not None:   # nothing left to decide on: recorded at the judge
+                            self.agent.restore_outcome_state(provisional)
+                            provisional = None
+                        elif not done:
+                            self._ahead = Ahead(after, thought.decision, thought.stuck, thought.seconds,
+                                                 thought.hidden)
+                        release = plan_release(True, self.config, home=done, carry_yaw=self._wrist_yaw)
+                        released = on_cell_clock(record, self._run_checked(release, "release"))
+                        if provisional is not None and not released.completed:   # no outcome: take it back
+                            self.agent.restore_outcome_state(provisional)
+                            provisional, self._ahead = None, None
+                    elif after is not None:
                         released, provisional = self._place_and_decide(record, action, after, timer)
                         if provisional is not None and not released.completed:   # no outcome: take it back
                             self.agent.restore_outcome_state(provisional)
@@ -552,7 +463,7 @@ class CycleRunner:
                 record.failure = result.failure
             record.done = self._empty(after)
             if provisional is None:   # else recorded before deciding ahead, and the place confirmed it
-                _record_outcome(self.agent, action, record.success if action.primitive == "grasp" else None,
+                record_outcome(self.agent, action, record.success if action.primitive == "grasp" else None,
                                 bool(record.reward), after.height, record.kind)
         record.outcome = CycleOutcome.EXECUTED
         transition = _make_transition(state, action, float(record.reward),
@@ -563,9 +474,3 @@ class CycleRunner:
         else:
             self.current = after
         return finish()
-
-
-def _record_outcome(agent: CycleAgent, action: Action, grasp_success: bool | None, move_changed: bool,
-                    height_after: np.ndarray, kind: str | None) -> None:
-    """Tell the agent what its action did, and the heightmap that was judged (for its failure memory)."""
-    agent.record_outcome(action, grasp_success, move_changed=move_changed, height_after=height_after, kind=kind)

@@ -3,9 +3,10 @@
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import dataclass, field
 from enum import StrEnum
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
@@ -14,7 +15,7 @@ from flgd.cell import STOPPED_ON_REQUEST, ExecutionResult
 from flgd.clutter import grasp_reward
 from flgd.config import CellConfig
 
-__all__ = ["CycleOutcome", "CycleRecord", "UNSTABLE_MARK", "on_cell_clock", "held_at_place", "was_stopped", "unstable_failure",
+__all__ = ["CycleOutcome", "CycleRecord", "PhaseTimer", "UNSTABLE_MARK", "on_cell_clock", "held_at_place", "was_stopped", "unstable_failure",
            "float_or_none"]
 
 # ExecutionResult.failure containing this word means the simulation blew up: never learn from it.
@@ -126,3 +127,33 @@ def float_or_none(v: Any) -> float | None:
     except (TypeError, ValueError):
         return None
     return f if math.isfinite(f) else None
+
+
+class PhaseTimer:
+    """The cycle's phases timed on the wall clock (``CycleRecord.timings``), each reported to ``on_phase``."""
+
+    def __init__(self, timings: dict[str, float], on_phase: Callable[[str], None] | None):
+        self.timings = timings
+        self.on_phase = on_phase
+
+    def phase(self, name: str) -> "_Phase":
+        return _Phase(self, name)
+
+    def discount(self, name: str, seconds: float) -> None:
+        """Take ``seconds`` out of phase ``name``: time inside it that the cell stood waiting for the controller
+        (it stays in the cycle's duration, as the controller's own time)."""
+        self.timings[name] = self.timings.get(name, 0.0) - seconds
+
+
+class _Phase:
+    def __init__(self, timer: PhaseTimer, name: str):
+        self.timer, self.name = timer, name
+
+    def __enter__(self) -> None:
+        self.t0 = time.perf_counter()
+
+    def __exit__(self, *exc: object) -> None:
+        t = self.timer.timings
+        t[self.name] = t.get(self.name, 0.0) + time.perf_counter() - self.t0
+        if self.timer.on_phase is not None:
+            self.timer.on_phase(self.name)

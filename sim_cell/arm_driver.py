@@ -52,6 +52,8 @@ by the same 6 mm / 100 N rule.  Grasps and pushes get no give.
 
 from __future__ import annotations
 
+from typing import Callable
+
 import numpy as np
 import pybullet as p
 
@@ -92,6 +94,7 @@ class ArmDriver:
         self._press_allowance = 0.0           # m of intended press of the running plan (a shift's press)
         self._press_yield = 0.0               # m the compliant wrist has given way during that press
         self._fingers_until: tuple[float, float] | None = None   # (sim_time of a move that went on early, its end)
+        self._watch: Callable[[], bool] | None = None   # run_line's watch while it has not yet fired
 
     @property
     def contacts(self) -> GripperContacts:
@@ -150,13 +153,32 @@ class ArmDriver:
             self._world.stability.wake(body)
         self._world.sim_time += seconds
 
-    def run_line(self, traj: motion.Trajectory, stop_force: float = 0.0, settle: bool = True) -> bool:
+    def run_line(self, traj: motion.Trajectory, stop_force: float = 0.0, settle: bool = True,
+                 watch: Callable[[], bool] | None = None) -> bool:
         """Follow ``traj``; True when a guarded line (``stop_force`` N > 0) stopped at a contact.  ``settle=False``:
-        the motion goes on into the next trajectory (a blended path), so the servos' last error is not waited out."""
+        the motion goes on into the next trajectory (a blended path), so the servos' last error is not waited out.
+        ``watch``: called after every tick (and after a jump) until it returns True (a picture taken on the way)."""
         joints = traj.joints
         n = len(joints) - 1
         if n <= 0:
+            if watch is not None:
+                watch()
             return False
+        self._watch = watch
+        try:
+            stopped = self._follow(traj, stop_force, settle)
+            self._watched()   # not yet taken (or the line was a jump): the end of the line is the last chance
+            return stopped
+        finally:
+            self._watch = None
+
+    def _watched(self) -> None:
+        if self._watch is not None and self._watch():
+            self._watch = None
+
+    def _follow(self, traj: motion.Trajectory, stop_force: float, settle: bool) -> bool:
+        joints = traj.joints
+        n = len(joints) - 1
         carried = self.in_gripper()
         # whatever the gripper carries is simulated, so that a weak grip can slip (only a lift may jump, below)
         first = 0
@@ -188,6 +210,7 @@ class ArmDriver:
                     self._hold_still()
                     return True
             target = nxt
+            self._watched()
             force, depth = self._contacts.pressing()
             give = self._press_allowance - self._press_yield
             if force > PROTECTIVE_STOP_FORCE or depth > PRESS_DEPTH + give:

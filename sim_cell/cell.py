@@ -38,11 +38,13 @@ clutter that alone aborted about half of all evaluation runs).
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 import pybullet as p
 
-from flgd.cell import Cell, CellFault, ContactStop, ExecutionResult, Frame
+from flgd.camera_view import tool_in_view
+from flgd.cell import Cell, CellFault, ContactStop, ExecutionResult, Frame, FrameOnTheWay
 from flgd.config import CellConfig
 from flgd.geometry import ToolPose, pose_matrix
 from flgd.plans import LIFT_LABEL, GripperCommand, MeasureWidth, MoveL, abort_steps
@@ -68,6 +70,7 @@ class SimCell(Cell):
 
     def __init__(self, config: CellConfig):
         super().__init__(config)
+        self._frame_on_the_way: FrameOnTheWay | None = None   # execute_and_capture's, for the plan it runs
         off = np.asarray(config.robot.tcp_offset, dtype=float)
         if np.max(np.abs(off - np.asarray(GRIPPER_TCP_OFFSET))) > 1e-3:
             raise ValueError(f"{config.source}: robot.tcp_offset: got {list(config.robot.tcp_offset)!r}, "
@@ -157,11 +160,36 @@ class SimCell(Cell):
 
     def execute(self, plan: CheckedPlan) -> ExecutionResult:
         """Run a checked plan; ``duration`` is the simulated time the motions took."""
+        on_frame, self._frame_on_the_way = self._frame_on_the_way, None
+        return self._run(plan, on_frame)
+
+    def execute_and_capture(self, plan: CheckedPlan, on_frame: FrameOnTheWay) -> ExecutionResult:
+        """Run a checked plan; on its last move, the first tick with the tool out of the camera's view renders a
+        frame for ``on_frame`` (with the simulated seconds since the plan started) and the motion goes on.  The plan
+        runs through ``execute``, so a subclass that wraps it wraps this plan too."""
+        self._frame_on_the_way = on_frame
+        try:
+            return self.execute(plan)
+        finally:
+            self._frame_on_the_way = None
+
+    def _watch_view(self, on_frame: FrameOnTheWay, t0: float) -> Callable[[], bool]:
+        """A check for each tick of the last move: True once the frame has been taken and handed over."""
+        def watch() -> bool:
+            if tool_in_view(tuple(float(v) for v in self._tcp()[:3, 3]), self.config):
+                return False
+            on_frame(self._capture(labelled=False)[0], self._sim_time - t0)
+            return True
+        return watch
+
+    def _run(self, plan: CheckedPlan, on_frame: FrameOnTheWay | None) -> ExecutionResult:
         planned = plan.verify(self.config)
         steps = planned.steps
         with self._lock:
             self._check_open()
             t0 = self._sim_time
+            moves = [k for k, s in enumerate(steps) if isinstance(s, MoveL)]
+            watch = None if on_frame is None or not moves else self._watch_view(on_frame, t0)
             try:
                 lines = self._arm.plan_lines(steps)
             except motion.Unreachable as exc:
@@ -181,7 +209,8 @@ class SimCell(Cell):
                     step = steps[i]
                     if isinstance(step, MoveL):
                         blends_on = step.blend > 0.0 and i + 1 < len(steps) and isinstance(steps[i + 1], MoveL)
-                        if self._arm.run_line(lines[i], step.stop_on_contact, settle=not blends_on):
+                        watching = watch if watch is not None and i == moves[-1] else None
+                        if self._arm.run_line(lines[i], step.stop_on_contact, settle=not blends_on, watch=watching):
                             short = float(np.linalg.norm(self._tcp()[:3, 3] - np.asarray(step.pose.position)))
                             stops.append(ContactStop(step.label, short))
                             if step.abort_on_contact:   # the rest of the plan: back up and home

@@ -1,8 +1,10 @@
-"""The cycle decides while the arm places a pick: the picture is taken at home, never with the tool in view."""
+"""The cycle decides while the arm carries a pick home and places it: the picture is taken on the way home once the
+arm is out of view (or at home, by a cell that cannot take one while its arm moves), never with the tool in view."""
 
 from __future__ import annotations
 
 import dataclasses
+import math
 import time
 from types import SimpleNamespace
 
@@ -48,9 +50,16 @@ class _Scripted(ScriptedAgentBase):
 
 
 class _Watched(SimCell):
-    """The simulated cell, keeping when each plan ran, what it was and where the tool stood as it began."""
+    """The simulated cell, keeping when each plan ran, what it was and where the tool stood as it began.
+
+    ``on_the_way`` False: a cell that cannot take a picture while its arm moves (``Cell.execute_and_capture``'s
+    default), so the cycle takes it at home."""
 
     grip_gives_way = False
+    on_the_way = False
+
+    def execute_and_capture(self, plan, on_frame):
+        return super().execute_and_capture(plan, on_frame) if self.on_the_way else self.execute(plan)
 
     def __init__(self, cfg):
         super().__init__(cfg)
@@ -105,6 +114,68 @@ def test_the_next_decision_is_made_while_the_arm_places_on_a_picture_taken_at_ho
         assert [row["success"] for row in logged] == [1, 1]
     finally:
         store.close()
+        cell.close()
+
+
+class _OnTheWay(_Watched):
+    on_the_way = True
+
+
+def test_the_next_decision_is_made_on_a_picture_taken_on_the_way_home_once_the_arm_is_out_of_view(tmp_path):
+    cfg, cell, agent = _cell_and_agent(tmp_path, _OnTheWay)
+    store = Store(tmp_path)
+    try:
+        runner = CycleRunner(cfg, cell, agent, store=store)
+        first = runner.run_once()
+        assert first.success is True and agent.outcomes == [True]
+        taken_at = runner.last_frame.tool_position
+        assert tool_in_view(taken_at, cfg) == ""
+        # taken on the way, short of home: the carry went on after it
+        assert math.dist(taken_at, cfg.robot.home.position) > 0.02
+        place = [plan for plan in cell.plans if plan[0] == "place"]
+        decided_at, decided_on = agent.decisions[1]
+        assert decided_at < place[0][2] and decided_on is runner.current   # decided before the place began
+        second = runner.run_once()
+        assert len(agent.decisions) == 3 and second.success is True
+        assert second.decide_hidden is not None and second.decide_hidden > 0.0
+        assert store.action_log()[-1]["decide_hidden"] == pytest.approx(second.decide_hidden)
+    finally:
+        store.close()
+        cell.close()
+
+
+def test_a_grasp_that_lifted_nothing_takes_back_the_decision_made_on_the_way_home(tmp_path):
+    cfg, cell, _ = _cell_and_agent(tmp_path, _OnTheWay)
+    empty = base_to_pixel(-0.62, 0.12, cfg.workspace)
+    agent = _Scripted([Action("grasp", int(empty[0]), int(empty[1]), 0, 16)])
+    try:
+        runner = CycleRunner(cfg, cell, agent)
+        record = runner.run_once()
+        assert record.success is False and agent.outcomes == [False]   # "held" was taken back
+        assert len(agent.decisions) == 2 and agent.taken == 1   # the decision made on the way is discarded
+        assert runner.current is not agent.decisions[1][1]
+        assert np.allclose(runner.last_frame.tool_position, cfg.robot.home.position, atol=0.01)
+    finally:
+        cell.close()
+
+
+class _ToolInViewOnTheWay(_OnTheWay):
+    def execute_and_capture(self, plan, on_frame):
+        def shows_the_tool(frame, at):
+            on_frame(dataclasses.replace(frame, tool_position=(-0.50, 0.0, 0.30)), at)
+        return super().execute_and_capture(plan, shows_the_tool)
+
+
+def test_a_picture_on_the_way_that_shows_the_tool_is_refused_and_the_picture_is_taken_at_home(tmp_path):
+    cfg, cell, agent = _cell_and_agent(tmp_path, _ToolInViewOnTheWay)
+    try:
+        runner = CycleRunner(cfg, cell, agent)
+        record = runner.run_once()
+        assert record.success is True and runner.frames_refused == 1
+        assert np.allclose(runner.last_frame.tool_position, cfg.robot.home.position, atol=0.01)
+        place = [plan for plan in cell.plans if plan[0] == "place"]
+        assert place[0][2] < agent.decisions[1][0] < place[0][3]   # decided on the picture at home, while placing
+    finally:
         cell.close()
 
 
@@ -267,8 +338,9 @@ def test_a_picture_at_home_that_shows_the_tool_is_not_decided_on_the_arm_places_
         cell.close()
 
 
-def test_a_pick_dropped_on_the_way_to_the_place_takes_back_the_decision_made_on_it(tmp_path):
-    cfg, cell, agent = _cell_and_agent(tmp_path)
+@pytest.mark.parametrize("cls", [_Watched, _OnTheWay])
+def test_a_pick_dropped_on_the_way_to_the_place_takes_back_the_decision_made_on_it(tmp_path, cls):
+    cfg, cell, agent = _cell_and_agent(tmp_path, cls)
     cell.grip_gives_way = True
     try:
         runner = CycleRunner(cfg, cell, agent)

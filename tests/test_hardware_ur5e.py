@@ -12,13 +12,15 @@ reached the "robot" and in which order.
 from __future__ import annotations
 
 import dataclasses
+import math
 import threading
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from flgd.cell import CellFault, make_cell
+from flgd.camera_view import tool_in_view
+from flgd.cell import CellFault, Frame, make_cell
 from flgd.config import load_config
 from flgd.geometry import ToolPose
 from flgd.clutter import grasp_reward
@@ -574,3 +576,53 @@ def test_a_push_that_comes_down_on_something_backs_straight_up_and_goes_home_wit
     np.testing.assert_allclose(moves[2][0], approach.pose.as_ur_pose())
     np.testing.assert_allclose(ctl.tcp[:3], cfg.robot.home.position, atol=1e-9)
     assert not ctl.calls("triggerProtectiveStop", since)
+
+
+class _CameraWatchingTheArm:
+    """A camera that notes where the fake arm's TCP was at each capture and returns a blank frame."""
+
+    def __init__(self, ctl, broken: bool = False):
+        self.ctl, self.broken, self.tool_at = ctl, broken, []
+
+    def capture(self) -> Frame:
+        self.tool_at.append(tuple(float(v) for v in self.ctl.tcp[:3]))
+        if self.broken:
+            raise CellFault("the camera stopped delivering frames")
+        return Frame(color=np.zeros((4, 4, 3), np.uint8), depth=np.zeros((4, 4), np.uint16), depth_scale=0.001,
+                     intrinsics=np.eye(3), camera_pose=np.eye(4))
+
+    def close(self) -> None:
+        pass
+
+
+def _watched_cell(ctl, rg2, camera) -> UR5eCell:
+    return UR5eCell(real_config(xmlrpc_port=rg2.port), rtde_factory=FakeRTDEFactory(ctl),
+                    gripper=RG2XmlRpcDriver("127.0.0.1", rg2.port, timeout=2.0, poll_interval=0.002),
+                    camera_factory=lambda c: camera, clock=ctl.clock, sleep=ctl.sleep)
+
+
+def test_a_grasp_takes_its_picture_on_the_way_home_once_the_tool_is_out_of_view(ctl, rg2):
+    camera = _CameraWatchingTheArm(ctl)
+    cell = _watched_cell(ctl, rg2, camera)
+    cfg = cell.config
+    rg2.object_width_mm = 31.0
+    frames: list = []
+    result = cell.execute_and_capture(grasp(cfg), lambda frame, at: frames.append((frame, at)))
+    assert result.completed, result.failure
+    assert len(frames) == 1 and len(camera.tool_at) == 1   # one picture, taken during the plan
+    frame, at = frames[0]
+    assert tool_in_view(frame.tool_position, cfg) == ""   # where the tool was as the capture began: out of view
+    assert tool_in_view(camera.tool_at[0], cfg) == ""
+    assert math.dist(frame.tool_position, cfg.robot.home.position) > 0.02   # short of home: on the way
+    assert 0.0 < at <= result.duration
+    assert cell.execute(grasp(cfg)).completed and len(camera.tool_at) == 1   # a plain execute takes none
+
+
+def test_a_capture_on_the_way_that_fails_hands_nothing_over_and_the_plan_completes(ctl, rg2):
+    camera = _CameraWatchingTheArm(ctl, broken=True)
+    cell = _watched_cell(ctl, rg2, camera)
+    rg2.object_width_mm = 31.0
+    frames: list = []
+    result = cell.execute_and_capture(grasp(cell.config), lambda frame, at: frames.append((frame, at)))
+    assert result.completed, result.failure
+    assert len(camera.tool_at) == 1 and frames == []

@@ -18,10 +18,14 @@ until ``recover()`` has reopened the camera, run the arm's recovery sequence
 from __future__ import annotations
 
 import dataclasses
+import logging
+import threading
 import time
 from typing import Callable
 
-from flgd.cell import STOPPED_ON_REQUEST, Cell, CellFault, ContactStop, ExecutionResult, Frame, StopPending
+from flgd.camera_view import tool_in_view
+from flgd.cell import (STOPPED_ON_REQUEST, Cell, CellFault, ContactStop, ExecutionResult, Frame, FrameOnTheWay,
+                       StopPending)
 from flgd.config import CellConfig
 from flgd.geometry import ToolPose, rotvec_to_matrix
 from flgd.plans import GripperCommand, MeasureWidth, MoveL, Plan, abort_steps, blended_runs, plan_home
@@ -33,6 +37,8 @@ from flgd.hardware.ur_arm import MotionStopped, PoseUnreachable, RTDEFactory, UR
 
 __all__ = ["UR5eCell"]
 
+log = logging.getLogger(__name__)
+
 
 # A MeasureWidth step reads until two readings WIDTH_SETTLE_INTERVAL apart differ by at most WIDTH_STEADY: fingers
 # slower than 5 mm/s, an eighth of the RG2's slowest gripping speed (38 mm/s), have stopped.  A pick is judged
@@ -41,6 +47,7 @@ WIDTH_SETTLE_INTERVAL = 0.04  # s between width readings at a MeasureWidth step
 WIDTH_STEADY = 0.0002        # m: two readings this close mean the fingers have stopped
 WIDTH_SETTLE_TIMEOUT = 1.0   # s: after this the last reading counts
 FLOOR_MEASUREMENT_TOLERANCE = 0.0005  # m below the table clearance floor an arm stopped on it may read
+CAPTURE_ON_THE_WAY_WAIT = 5.0   # s a plan's end waits for a capture started on its last move (a D415 takes < 0.2 s)
 
 
 def _open_d415(config: CellConfig) -> Camera:
@@ -94,6 +101,24 @@ class UR5eCell(Cell):
 
     # ------------------------------------------------------------------ acting
     def execute(self, plan: CheckedPlan) -> ExecutionResult:
+        return self._run(plan, None)
+
+    def execute_and_capture(self, plan: CheckedPlan, on_frame: FrameOnTheWay) -> ExecutionResult:
+        """Run ``plan``; during its last move, the first poll with the tool out of the camera's view starts a
+        capture beside the motion (the camera and the arm are separate devices).  The frame is handed over when it
+        is there, if the tool was out of view both before and after it; ``execute_and_capture`` returns once that
+        capture has ended too."""
+        return self._run(plan, on_frame)
+
+    def _run(self, plan: CheckedPlan, on_frame: FrameOnTheWay | None) -> ExecutionResult:
+        look = None if on_frame is None else _LookOnTheWay(self, on_frame)
+        try:
+            return self._run_steps(plan, look)
+        finally:
+            if look is not None:
+                look.join()
+
+    def _run_steps(self, plan: CheckedPlan, look: "_LookOnTheWay | None") -> ExecutionResult:
         with self._lock:
             steps = plan.verify(self.config).steps  # PlanRefused: nothing has moved
             self.arm.check()
@@ -108,6 +133,9 @@ class UR5eCell(Cell):
             stops: list[ContactStop] = []
             gripper = 0.0   # controller seconds of the gripper's steps
             runs = {a: b for a, b in blended_runs(steps) if b > a}   # blended moves: one path each
+            last_move = max((k for k, s in enumerate(steps) if isinstance(s, MoveL)), default=-1)
+            if look is not None:
+                look.start_clock = start
             i = -1
             while i + 1 < len(steps):
                 i += 1
@@ -122,14 +150,16 @@ class UR5eCell(Cell):
                                            [min(m.speed, sf.max_speed) for m in moves],
                                            [min(m.acceleration, sf.max_acceleration) for m in moves],
                                            [m.blend for m in moves],
-                                           " to ".join(dict.fromkeys(m.label or "move" for m in moves)))
+                                           " to ".join(dict.fromkeys(m.label or "move" for m in moves)),
+                                           on_poll=look.poll if look is not None and runs[i] == last_move else None)
                         i = runs[i]
                     elif isinstance(step, MoveL):
                         # a guarded move may end short of its pose; the next (absolute) pose goes on from there
                         target = step.pose.as_ur_pose()
                         if self.arm.move_linear(target, min(step.speed, sf.max_speed),
                                                 min(step.acceleration, sf.max_acceleration), step.label,
-                                                stop_force=step.stop_on_contact):
+                                                stop_force=step.stop_on_contact,
+                                                on_poll=look.poll if look is not None and i == last_move else None):
                             stops.append(ContactStop(step.label, pose_error(self.arm.tcp_pose(), target)[0]))
                             if step.abort_on_contact:   # the rest of the plan: back up and home, move by move
                                 steps = steps[:i + 1] + abort_steps(steps, i)
@@ -276,3 +306,42 @@ class UR5eCell(Cell):
                     part.close()
                 except CellFault:
                     pass  # closing anyway
+
+
+class _LookOnTheWay:
+    """One picture taken beside a plan's last move, started at the first poll that finds the tool out of view.
+
+    The frame counts only if the tool was out of view when the capture started and still is when the frame is there
+    (``tool_position`` is the first of the two); a capture that fails (a camera fault) hands nothing over, and the
+    cycle then captures at home and meets the fault there."""
+
+    def __init__(self, cell: UR5eCell, on_frame: FrameOnTheWay):
+        self._cell, self._on_frame = cell, on_frame
+        self.start_clock: float | None = None   # the plan's start on the controller's clock
+        self._thread: threading.Thread | None = None
+
+    def poll(self, pose: list[float]) -> None:
+        if self._thread is not None or tool_in_view(pose[:3], self._cell.config):
+            return
+        self._thread = threading.Thread(target=self._capture, args=(tuple(float(v) for v in pose[:3]),),
+                                        name="flgd-capture-on-the-way", daemon=True)
+        self._thread.start()
+
+    def _capture(self, before: tuple[float, float, float]) -> None:
+        cell = self._cell
+        try:
+            if cell.camera is None or cell.arm is None:
+                return
+            frame = cell.camera.capture()
+            after = cell.arm.tcp_pose()[:3]
+            at = cell.arm.controller_time()
+        except Exception as exc:   # the camera's or the link's fault: no frame now; the capture at home reports it
+            log.warning("capture on the way home failed: %s", exc)
+            return
+        if tool_in_view(after, cell.config) or self.start_clock is None:
+            return
+        self._on_frame(dataclasses.replace(frame, tool_position=before), at - self.start_clock)
+
+    def join(self) -> None:
+        if self._thread is not None:
+            self._thread.join(CAPTURE_ON_THE_WAY_WAIT)

@@ -62,6 +62,7 @@ from flgd.hardware.ur_poses import for_tcp, move_duration, pose_error
 __all__ = [
     "URArm",
     "RTDEFactory",
+    "PoseWatch",
     "PoseUnreachable",
     "MotionStopped",
     "SAFETY_MODES",
@@ -69,6 +70,9 @@ __all__ = [
 ]
 
 log = logging.getLogger(__name__)
+
+# Called with the TCP pose [x, y, z, rx, ry, rz] at every poll of a running move (``URArm.move_linear``).
+PoseWatch = Callable[[list[float]], None]
 
 PROTECTIVE_STOP_UNLOCK_DELAY = 5.0  # s; the controller refuses "unlock protective stop" sooner
 _UNLOCK_MARGIN = 0.2                # s on top of it, for clock differences with the controller
@@ -316,14 +320,14 @@ class URArm:
             pass  # the arm is already stopped by the controller, or the link is gone
 
     def move_linear(self, pose: Sequence[float], speed: float, acceleration: float, label: str = "",
-                    stop_force: float = 0.0) -> bool:
+                    stop_force: float = 0.0, on_poll: PoseWatch | None = None) -> bool:
         """moveL to ``pose`` [x, y, z, rx, ry, rz] and wait until it is there.
 
         With ``stop_force`` > 0 (N) the move is guarded: it is halted (stopL) as soon as the
         TCP force differs from its value at the start by more than that, and True is
         returned -- the arm stands somewhere on the line, short of the target.  False: the
-        target was reached.  Raises PoseUnreachable (nothing sent), MotionStopped, or
-        CellFault (latched).
+        target was reached.  ``on_poll``: called with the TCP pose at every poll while the
+        arm moves.  Raises PoseUnreachable (nothing sent), MotionStopped, or CellFault (latched).
         """
         what = f"move '{label}'" if label else "move"
         [target], timeout = self._checked_targets([pose], [speed], [acceleration], what)
@@ -331,7 +335,7 @@ class URArm:
         if stop_force > 0.0:
             guard = (self._tcp_force(), float(stop_force))
         self._require(self._send(what, target, float(speed), float(acceleration), True), f"moveL ({what})")
-        return self._wait_for_move(target, what, timeout, guard)
+        return self._wait_for_move(target, what, timeout, guard, on_poll=on_poll)
 
     def _checked_targets(self, poses: Sequence[Sequence[float]], speeds: Sequence[float],
                          accelerations: Sequence[float], what: str) -> tuple[list[list[float]], float]:
@@ -361,7 +365,7 @@ class URArm:
             return self._call(self.control, "moveL", *args)
 
     def move_path(self, poses: Sequence[Sequence[float]], speeds: Sequence[float], accelerations: Sequence[float],
-                  blends: Sequence[float], label: str = "") -> None:
+                  blends: Sequence[float], label: str = "", on_poll: PoseWatch | None = None) -> None:
         """Blended moveLs through ``poses`` (each [x, y, z, rx, ry, rz] for this arm's TCP) as one motion
         (ur_rtde's ``moveL(path)``): ``blends[k]`` is the radius at ``poses[k]`` (the last one stops).  Waits
         until the last pose is reached.  Raises PoseUnreachable (nothing sent), MotionStopped, or CellFault.
@@ -374,7 +378,7 @@ class URArm:
         installation = self.installation_tcp
         if installation is None:
             for target, v, acc in zip(poses, speeds, accelerations):
-                self.move_linear(target, v, acc, label)
+                self.move_linear(target, v, acc, label, on_poll=on_poll)
             return
         targets, timeout = self._checked_targets(poses, speeds, accelerations, what)
         path = [for_tcp(t, self.tcp, installation) + [float(v), float(acc), float(r)]
@@ -391,7 +395,7 @@ class URArm:
                 self._halt()
                 self._latch(f"{what}: the path's script runs the TCP {running!r}, not the installation's "
                             f"{np.round(installation, 4).tolist()} read before (changed on the pendant?): halted")
-            self._wait_for_move(targets[-1], what, timeout, tcp=installation)
+            self._wait_for_move(targets[-1], what, timeout, tcp=installation, on_poll=on_poll)
         finally:
             if self._fault is None and self.control is not None:
                 self._require(self._call(self.control, "setTcp", list(self.tcp)), "setTcp after a path")
@@ -435,7 +439,8 @@ class URArm:
         return value if math.isfinite(value) else None
 
     def _wait_for_move(self, target: list[float], what: str, timeout: float,
-                       guard: tuple[np.ndarray, float] | None = None, tcp: Sequence[float] | None = None) -> bool:
+                       guard: tuple[np.ndarray, float] | None = None, tcp: Sequence[float] | None = None,
+                       on_poll: PoseWatch | None = None) -> bool:
         """Poll until the move to ``target`` (a pose of this arm's TCP) has ended; ``tcp``: the TCP the controller
         reports poses for meanwhile, when it is not this arm's (a path's script)."""
         start, controller_start = self._clock(), self.controller_time()
@@ -457,6 +462,8 @@ class URArm:
             running = self._async_running()
             seen_running = seen_running or running
             here = self.tcp_pose() if tcp is None else for_tcp(self.tcp_pose(), tcp, self.tcp)
+            if on_poll is not None:
+                on_poll(here)
             dp, dr = pose_error(here, target)
             elapsed = self.controller_time() - controller_start
             if not running:
