@@ -1,9 +1,10 @@
 """Whether the tool stands between the camera and the workspace: a frame taken so is never used.
 
 A heightmap of a frame with the gripper in view shows the gripper as a tall object (and hides what lies under
-it).  The cycle takes its pictures with the arm at home, and, while the arm carries a picked object to the place,
-from the frame taken at home before it leaves; both are checked here, on the tool position the cell read when the
-frame was taken (``flgd.cell.Frame.tool_position``), not assumed from the plan.
+it).  The cycle takes its pictures with the arm at home, or on a grasp's move home once the arm has left the view
+(``flgd.cell.Cell.execute_and_capture``: the cells decide when with this module); every one is checked here, on the
+tool position the cell read when the frame was taken (``flgd.cell.Frame.tool_position``), not assumed from the
+plan.
 
 The tool is modelled as a vertical cylinder around the TCP: ``TOOL_RADIUS`` wide (the RG2 open, with a held
 object), from ``TOOL_BELOW`` under the TCP (an object hanging from the fingers) to ``TOOL_ABOVE`` over it (gripper,

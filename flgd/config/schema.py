@@ -162,8 +162,9 @@ class RobotConfig:
                     "wrist turns once a pick (from the last grasp's angle to the next) instead of twice (its yaw in "
                     "the bin does not matter)")
     decide_while_placing: bool = param(
-        True, help="after a grasp held at home: take the next picture there, decide while the arm places, and start "
-                   "the next plan from the place pose instead of going home first (flgd train: always off)")
+        True, help="take the next picture on a grasp's move home once the arm is out of the camera's view (or at "
+                   "home, on a cell that cannot while its arm moves), decide while the arm carries on and places, "
+                   "and start the next plan from the place pose instead of going home first (flgd train: always off)")
 
 
 @dataclass(frozen=True)

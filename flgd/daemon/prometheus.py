@@ -182,8 +182,8 @@ def cell_metric_families(controller: Controller, state_name: Callable[[], str],
         if value is not None:
             fam.add_metric([part], value)
     yield fam
-    hidden = _gauge("flgd_decide_hidden_ratio", "share of the recent decision time spent while the arm placed the "
-                                                "previous pick", stats["decide_hidden_share"])
+    hidden = _gauge("flgd_decide_hidden_ratio", "share of the recent decision time spent while the arm carried the "
+                                                "previous pick home or placed it", stats["decide_hidden_share"])
     if hidden is not None:
         yield hidden
     phase_family = HistogramMetricFamily("flgd_cycle_phase_seconds", "duration of each phase of a cycle, and of "
