@@ -399,7 +399,13 @@ class CycleRunner(DecidingAhead):
                             self._ahead = Ahead(after, thought.decision, thought.stuck, thought.seconds,
                                                  thought.hidden)
                         release = plan_release(True, self.config, home=done, carry_yaw=self._wrist_yaw)
-                        released = on_cell_clock(record, self._run_checked(release, "release"))
+                        try:
+                            released = on_cell_clock(record, self._run_checked(release, "release"))
+                        except BaseException:   # a fault on the way to the place: no outcome, take it back
+                            if provisional is not None:
+                                self.agent.restore_outcome_state(provisional)
+                            provisional, self._ahead = None, None
+                            raise
                         if provisional is not None and not released.completed:   # no outcome: take it back
                             self.agent.restore_outcome_state(provisional)
                             provisional, self._ahead = None, None

@@ -198,6 +198,8 @@ class DecidingAhead:
                 arrived = time.perf_counter()
                 thought, at = self._think(record, action, item[0], timer), item[1]
                 busy = time.perf_counter() - arrived
+        except Exception as exc:   # the agent's or the perception's: the arm carries on; decided again at home
+            log.error("deciding on the way home failed: %r; the cycle goes on as without it", exc)
         except BaseException as exc:
             failed = exc
         finally:
@@ -237,6 +239,9 @@ class DecidingAhead:
         try:
             record_outcome(self.agent, action, True, True, state.height, record.kind)
             self.wait_for_learner()
+            if self._stop.is_set():
+                self.agent.restore_outcome_state(provisional)
+                return None
             started = time.perf_counter()
             decision, stuck = self._decide(state)
         except BaseException:

@@ -368,8 +368,13 @@ class _FaultAtPlace(_Watched):
         return super().execute(plan)
 
 
-def test_a_fault_on_the_way_to_the_place_takes_back_the_outcome_and_the_decision_and_is_raised(tmp_path):
-    cfg, cell, agent = _cell_and_agent(tmp_path, cls=_FaultAtPlace)
+class _FaultAtPlaceOnTheWay(_FaultAtPlace):
+    on_the_way = True
+
+
+@pytest.mark.parametrize("cls", [_FaultAtPlace, _FaultAtPlaceOnTheWay])
+def test_a_fault_on_the_way_to_the_place_takes_back_the_outcome_and_the_decision_and_is_raised(tmp_path, cls):
+    cfg, cell, agent = _cell_and_agent(tmp_path, cls=cls)
     store = Store(tmp_path)
     try:
         runner = CycleRunner(cfg, cell, agent, store=store)
@@ -417,8 +422,10 @@ class _FailsSecondTime(_Scripted):
         return super().decide(heightmaps, step)
 
 
-def test_a_decision_that_fails_while_the_arm_places_takes_the_provisional_outcome_back(tmp_path):
-    cfg, cell, scripted = _cell_and_agent(tmp_path)
+@pytest.mark.parametrize("cls", [_Watched, _OnTheWay])
+def test_a_decision_that_fails_while_the_arm_places_takes_the_provisional_outcome_back(tmp_path, cls):
+    """On the way home too: the failure is logged, the arm goes on, and the decision made again at home fails."""
+    cfg, cell, scripted = _cell_and_agent(tmp_path, cls)
     agent = _FailsSecondTime(scripted.actions)
     try:
         runner = CycleRunner(cfg, cell, agent)

@@ -27,7 +27,7 @@ from flgd.clutter import grasp_reward
 from flgd.plans import GripperCommand, MeasureWidth, MoveL, Plan, plan_home
 from flgd.safety import CheckedPlan, PlanRefused, check_plan
 from flgd.hardware.rg2 import RG2XmlRpcDriver
-from flgd.hardware.ur5e_cell import UR5eCell
+from flgd.hardware.ur5e_cell import CLEAR_BEFORE_CAPTURE, UR5eCell
 from flgd.hardware.ur_arm import PROTECTIVE_STOP_UNLOCK_DELAY
 from tests.fakes.ur5e import MOTION, FakeRTDEFactory, NoCamera, grasp, make_ur5e, push, real_config
 
@@ -595,10 +595,10 @@ class _CameraWatchingTheArm:
         pass
 
 
-def _watched_cell(ctl, rg2, camera) -> UR5eCell:
-    return UR5eCell(real_config(xmlrpc_port=rg2.port), rtde_factory=FakeRTDEFactory(ctl),
+def _watched_cell(ctl, rg2, camera, cfg=None, sleep=None) -> UR5eCell:
+    return UR5eCell(cfg or real_config(xmlrpc_port=rg2.port), rtde_factory=FakeRTDEFactory(ctl),
                     gripper=RG2XmlRpcDriver("127.0.0.1", rg2.port, timeout=2.0, poll_interval=0.002),
-                    camera_factory=lambda c: camera, clock=ctl.clock, sleep=ctl.sleep)
+                    camera_factory=lambda c: camera, clock=ctl.clock, sleep=sleep or ctl.sleep)
 
 
 def test_a_grasp_takes_its_picture_on_the_way_home_once_the_tool_is_out_of_view(ctl, rg2):
@@ -626,3 +626,46 @@ def test_a_capture_on_the_way_that_fails_hands_nothing_over_and_the_plan_complet
     result = cell.execute_and_capture(grasp(cell.config), lambda frame, at: frames.append((frame, at)))
     assert result.completed, result.failure
     assert len(camera.tool_at) == 1 and frames == []
+
+
+def test_the_capture_on_the_way_waits_until_the_tool_has_been_out_of_view_for_a_streaming_camera_s_frame_age(
+        ctl, rg2):
+    """A D415 may deliver a frame exposed before the request: the capture starts only once the tool has been out of
+    view for ``CLEAR_BEFORE_CAPTURE`` on the controller's clock."""
+    camera = _CameraWatchingTheArm(ctl)
+    seen: list = []   # (controller time, TCP) after every tick of the fake controller
+
+    def sleep(dt):
+        ctl.sleep(dt)
+        seen.append((ctl.controller_now, tuple(float(v) for v in ctl.tcp[:3])))
+
+    cell = _watched_cell(ctl, rg2, camera, sleep=sleep)
+    cfg = cell.config
+    rg2.object_width_mm = 31.0
+    captured_at: list = []
+    honest = camera.capture
+    camera.capture = lambda: (captured_at.append(ctl.controller_now), honest())[1]
+    frames: list = []
+    assert cell.execute_and_capture(grasp(cfg), lambda frame, at: frames.append(frame)).completed
+    assert len(frames) == 1
+    in_view = [t for t, tcp in seen if t <= captured_at[0] and tool_in_view(tcp, cfg)]
+    assert in_view and captured_at[0] - max(in_view) >= CLEAR_BEFORE_CAPTURE
+
+
+def test_a_blended_path_home_takes_its_picture_on_the_way_with_the_fingertips_position(ctl, rg2):
+    """The shipped real-cell config blends the raise into the move home (one path, whose script reports poses for the
+    installation's TCP): the picture is taken on that path too, and its tool position is the arm's TCP."""
+    camera = _CameraWatchingTheArm(ctl)
+    base = real_config(xmlrpc_port=rg2.port)
+    cfg = dataclasses.replace(base, robot=dataclasses.replace(base.robot, blend_radius=0.02, raise_speed=0.25))
+    cell = _watched_cell(ctl, rg2, camera, cfg=cfg)
+    rg2.object_width_mm = 31.0
+    frames: list = []
+    checked = grasp(cfg)
+    assert cell.execute_and_capture(checked, lambda frame, at: frames.append(frame)).completed
+    assert len(ctl.calls("moveL")) < len([s for s in checked.plan.steps if isinstance(s, MoveL)])   # a path ran
+    assert len(frames) == 1
+    lifted = cfg.workspace.table_z + cfg.robot.lift_height
+    # the fingertips' height on the way from the lift to home (the flange is 0.225 m above them)
+    assert lifted - 0.01 <= frames[0].tool_position[2] <= cfg.robot.home.position[2] + 0.01
+    assert tool_in_view(frames[0].tool_position, cfg) == ""

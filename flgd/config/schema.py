@@ -163,8 +163,9 @@ class RobotConfig:
                     "the bin does not matter)")
     decide_while_placing: bool = param(
         True, help="take the next picture on a grasp's move home once the arm is out of the camera's view (or at "
-                   "home, on a cell that cannot while its arm moves), decide while the arm carries on and places, "
-                   "and start the next plan from the place pose instead of going home first (flgd train: always off)")
+                   "home, on a cell that cannot while its arm moves), decide while the arm carries on (or, with "
+                   "the picture taken at home, while it places), and start the next plan from the place pose "
+                   "instead of going home first (flgd train: always off)")
 
 
 @dataclass(frozen=True)

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import math
 import threading
 import time
 from typing import Callable
@@ -48,6 +49,9 @@ WIDTH_STEADY = 0.0002        # m: two readings this close mean the fingers have 
 WIDTH_SETTLE_TIMEOUT = 1.0   # s: after this the last reading counts
 FLOOR_MEASUREMENT_TOLERANCE = 0.0005  # m below the table clearance floor an arm stopped on it may read
 CAPTURE_ON_THE_WAY_WAIT = 5.0   # s a plan's end waits for a capture started on its last move (a D415 takes < 0.2 s)
+# s the tool must have been out of view before a capture on the way starts: a streaming D415 (30 Hz) may deliver a
+# frame whose exposure began up to about two frame periods and the USB transfer before the request
+CLEAR_BEFORE_CAPTURE = 0.1
 
 
 def _open_d415(config: CellConfig) -> Camera:
@@ -104,10 +108,11 @@ class UR5eCell(Cell):
         return self._run(plan, None)
 
     def execute_and_capture(self, plan: CheckedPlan, on_frame: FrameOnTheWay) -> ExecutionResult:
-        """Run ``plan``; during its last move, the first poll with the tool out of the camera's view starts a
-        capture beside the motion (the camera and the arm are separate devices).  The frame is handed over when it
-        is there, if the tool was out of view both before and after it; ``execute_and_capture`` returns once that
-        capture has ended too."""
+        """Run ``plan``; during its last move, once the tool has been out of the camera's view for
+        ``CLEAR_BEFORE_CAPTURE``, a capture starts beside the motion (the camera and the arm are separate devices).
+        The frame is handed over if the tool is still out of view after it (``_LookOnTheWay``);
+        ``execute_and_capture`` returns once that capture has ended too (or ``CAPTURE_ON_THE_WAY_WAIT`` after the
+        plan)."""
         return self._run(plan, on_frame)
 
     def _run(self, plan: CheckedPlan, on_frame: FrameOnTheWay | None) -> ExecutionResult:
@@ -309,39 +314,92 @@ class UR5eCell(Cell):
 
 
 class _LookOnTheWay:
-    """One picture taken beside a plan's last move, started at the first poll that finds the tool out of view.
+    """One picture taken beside a plan's last move.
 
-    The frame counts only if the tool was out of view when the capture started and still is when the frame is there
-    (``tool_position`` is the first of the two); a capture that fails (a camera fault) hands nothing over, and the
+    The capture starts once every poll of the last ``CLEAR_BEFORE_CAPTURE`` seconds (on the controller's clock) found
+    the tool out of view: a camera that streams (the D415) may deliver a frame whose exposure began before the request,
+    and that frame must not show the tool either.  The frame is handed over only if a pose read after it arrived (the
+    next poll of the move, or the arm's pose once the plan has ended) has the tool out of view too; ``tool_position``
+    is where the tool was when the capture started.  A capture that fails (a camera fault) hands nothing over: the
     cycle then captures at home and meets the fault there."""
 
     def __init__(self, cell: UR5eCell, on_frame: FrameOnTheWay):
         self._cell, self._on_frame = cell, on_frame
         self.start_clock: float | None = None   # the plan's start on the controller's clock
+        self._clear_since: float | None = None   # controller time of the first poll of the clear run
+        self._started_at: tuple[float, float, float] | None = None
         self._thread: threading.Thread | None = None
+        self._taken: tuple[Frame, float] | None = None   # (frame, seconds since the plan started), not yet checked
+        self._taken_lock = threading.Lock()
 
     def poll(self, pose: list[float]) -> None:
-        if self._thread is not None or tool_in_view(pose[:3], self._cell.config):
+        """Each poll of the last move, with the TCP pose for this arm's TCP; never raises (the move must go on)."""
+        try:
+            self._poll(pose)
+        except Exception as exc:
+            log.warning("picture on the way home: %s", exc)
+            self._started_at = self._started_at or (math.nan, math.nan, math.nan)   # give up for this plan
+
+    def _poll(self, pose: list[float]) -> None:
+        arm = self._cell.arm
+        if arm is None:
             return
-        self._thread = threading.Thread(target=self._capture, args=(tuple(float(v) for v in pose[:3]),),
-                                        name="flgd-capture-on-the-way", daemon=True)
+        if self._thread is not None:
+            self._check_taken(pose)
+            return
+        if self._started_at is not None:
+            return
+        if tool_in_view(pose[:3], self._cell.config):
+            self._clear_since = None
+            return
+        now = arm.controller_time()
+        if self._clear_since is None:
+            self._clear_since = now
+        if now - self._clear_since < CLEAR_BEFORE_CAPTURE:
+            return
+        self._started_at = (float(pose[0]), float(pose[1]), float(pose[2]))
+        self._thread = threading.Thread(target=self._capture, name="flgd-capture-on-the-way", daemon=True)
         self._thread.start()
 
-    def _capture(self, before: tuple[float, float, float]) -> None:
+    def _capture(self) -> None:
         cell = self._cell
         try:
             if cell.camera is None or cell.arm is None:
                 return
             frame = cell.camera.capture()
-            after = cell.arm.tcp_pose()[:3]
             at = cell.arm.controller_time()
         except Exception as exc:   # the camera's or the link's fault: no frame now; the capture at home reports it
             log.warning("capture on the way home failed: %s", exc)
             return
-        if tool_in_view(after, cell.config) or self.start_clock is None:
+        if self.start_clock is not None:
+            with self._taken_lock:
+                self._taken = (frame, at - self.start_clock)
+
+    def _check_taken(self, pose: list[float]) -> None:
+        """Hand the frame over if the tool at ``pose`` (read after the frame arrived) is out of view."""
+        with self._taken_lock:
+            taken, self._taken = self._taken, None
+        if taken is None:
             return
-        self._on_frame(dataclasses.replace(frame, tool_position=before), at - self.start_clock)
+        why = tool_in_view(pose[:3], self._cell.config)
+        if why:
+            log.warning("picture on the way home dropped: after it was taken, %s", why)
+            return
+        assert self._started_at is not None
+        self._on_frame(dataclasses.replace(taken[0], tool_position=self._started_at), taken[1])
 
     def join(self) -> None:
-        if self._thread is not None:
-            self._thread.join(CAPTURE_ON_THE_WAY_WAIT)
+        """Once the plan has ended: wait for a capture still running (at most ``CAPTURE_ON_THE_WAY_WAIT``) and hand
+        over a frame that no poll has checked yet, against the arm's pose now."""
+        if self._thread is None:
+            return
+        self._thread.join(CAPTURE_ON_THE_WAY_WAIT)
+        if self._thread.is_alive():
+            log.warning("a capture on the way home still runs %.0f s after the plan ended", CAPTURE_ON_THE_WAY_WAIT)
+            return
+        arm = self._cell.arm
+        try:
+            if arm is not None and arm.fault is None:
+                self._check_taken(arm.tcp_pose())
+        except CellFault as exc:
+            log.warning("picture on the way home: %s", exc)
