@@ -412,6 +412,8 @@ def main(argv: list[str] | None = None) -> int:
                         "the bin, so a pick goes from its raise straight to where it is placed")
     p.add_argument("--carry-at-grasp-yaw", action="store_true",
                    help="robot.carry_at_grasp_yaw: the wrist keeps the grasp's angle to home and the place")
+    p.add_argument("--capture-on-the-way", action="store_true",
+                   help="robot.capture_on_the_way: the picture taken on the grasp's move home, the decision during it")
     p.add_argument("--serial", action="store_true", help="robot.decide_while_placing off: the arm goes home after "
                                                          "each place and waits there for the next decision")
     args = p.parse_args(argv)
@@ -434,6 +436,8 @@ def main(argv: list[str] | None = None) -> int:
             robot["home"] = yaml.safe_load(EMULATED.read_text())["robot"]["place"]
         if args.carry_at_grasp_yaw:
             robot["carry_at_grasp_yaw"] = True
+        if args.capture_on_the_way:
+            robot["capture_on_the_way"] = True
         gripper = {} if args.release_gap is None else {"release_gap": args.release_gap}
         summary["policy"] = run_policy(root / "policy", args.cycles, args.time_scale, args.host, robot, gripper)
     if "faults" in args.parts:

@@ -21,19 +21,24 @@ import numpy as np
 
 from flgd.config import CellConfig
 
-__all__ = ["tool_in_view", "TOOL_RADIUS", "TOOL_ABOVE", "TOOL_BELOW", "VIEW_MARGIN"]
+__all__ = ["tool_in_view", "in_view_on_the_way", "TOOL_RADIUS", "HELD_REACH", "TOOL_ABOVE", "TOOL_BELOW",
+           "VIEW_MARGIN"]
 
 TOOL_RADIUS = 0.07   # m: RG2 fingers open (85 mm) plus a held block's overhang
 TOOL_ABOVE = 0.30    # m: gripper (0.2 m flange to fingertips) and the wrist above it
 TOOL_BELOW = 0.05    # m: an object hanging under the fingertips
 VIEW_MARGIN = 0.01   # m around the workspace on the table
+# m: the cylinder a picture on the way home waits for (``in_view_on_the_way``): an object up to 24 cm long held across
+# its middle.  At home the arm stands still where its config put it out of view; on the way, the first pose the 7 cm
+# model calls clear can still show a long held object's end over the workspace.
+HELD_REACH = 0.12
 
 
-def _tool_points(tcp: Sequence[float]) -> np.ndarray:
+def _tool_points(tcp: Sequence[float], radius: float = TOOL_RADIUS) -> np.ndarray:
     """Points on the tool's cylinder: 5 heights x (centre + 8 around the rim)."""
     x, y, z = (float(v) for v in tcp)
     angles = np.linspace(0.0, 2.0 * math.pi, 8, endpoint=False)
-    ring = np.stack([np.cos(angles), np.sin(angles)], axis=1) * TOOL_RADIUS
+    ring = np.stack([np.cos(angles), np.sin(angles)], axis=1) * radius
     points = []
     for dz in np.linspace(-TOOL_BELOW, TOOL_ABOVE, 5):
         points.append((x, y, z + dz))
@@ -41,7 +46,12 @@ def _tool_points(tcp: Sequence[float]) -> np.ndarray:
     return np.asarray(points, dtype=float)
 
 
-def tool_in_view(tcp: Sequence[float], config: CellConfig) -> str:
+def in_view_on_the_way(tcp: Sequence[float], config: CellConfig) -> str:
+    """``tool_in_view`` with the tool widened to ``HELD_REACH``: what a cell waits for before a picture on the way."""
+    return tool_in_view(tcp, config, radius=HELD_REACH)
+
+
+def tool_in_view(tcp: Sequence[float], config: CellConfig, radius: float = TOOL_RADIUS) -> str:
     """Why the tool at ``tcp`` (x, y, z in the base frame) hides part of the workspace from the camera, or ''.
 
     A non-finite position is in view (nothing proves the arm is out of the picture)."""
@@ -50,7 +60,7 @@ def tool_in_view(tcp: Sequence[float], config: CellConfig) -> str:
     camera = np.asarray(config.camera.pose.position, dtype=float)
     ws = config.workspace
     table = ws.table_z
-    for point in _tool_points(tcp):
+    for point in _tool_points(tcp, radius):
         if point[2] >= camera[2] or point[2] <= table:
             continue   # above the camera, or under the table: on no ray from the camera to the workspace
         t = (camera[2] - table) / (camera[2] - point[2])

@@ -372,7 +372,7 @@ class CycleRunner(DecidingAhead):
         thought: Thought | None = None   # made while the arm carried the pick home
         try:
             with timer.phase("execute"):
-                if action.primitive == "grasp" and self.decide_while_placing:
+                if action.primitive == "grasp" and self.decide_while_placing and self.config.robot.capture_on_the_way:
                     result, thought = self._grasp_and_think(record, action, checked, timer)
                 else:
                     result = self._execute(checked)

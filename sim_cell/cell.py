@@ -43,10 +43,11 @@ from typing import Callable
 import numpy as np
 import pybullet as p
 
-from flgd.camera_view import tool_in_view
+from flgd.camera_view import in_view_on_the_way
 from flgd.cell import Cell, CellFault, ContactStop, ExecutionResult, Frame, FrameOnTheWay
 from flgd.config import CellConfig
 from flgd.geometry import ToolPose, pose_matrix
+from flgd.perception import make_heightmaps
 from flgd.plans import LIFT_LABEL, GripperCommand, MeasureWidth, MoveL, abort_steps
 from flgd.safety import CheckedPlan
 from sim_cell import camera as simcam
@@ -61,6 +62,7 @@ from sim_cell.world import ObjectState, World
 __all__ = ["SimCell", "ObjectState", "PRESET_DIR", "preset_scenes"]
 
 MAX_SETTLE_AFTER_PLAN = 1.0  # s the world runs on after a plan while something still moves
+ARM_CHECK_INTERVAL = 0.05   # s of simulated time between renders looked at for the arm on the way home
 
 
 class SimCell(Cell):
@@ -119,23 +121,41 @@ class SimCell(Cell):
     def _capture(self, labelled: bool) -> tuple[Frame, np.ndarray | None]:
         with self._lock:
             self._check_open()
-            cfg = self.config.camera
-            direction, ambient, diffuse = self._randomiser.light
-            if labelled:
-                color, depth, seg = simcam.render_labelled(self._client, self._true_camera, direction, ambient=ambient,
-                                                           diffuse=diffuse)
-                labels = np.where(np.isin(seg, list(self._world.objects)), seg, 0).astype(np.int32)
-            else:
-                color, depth = simcam.render(self._client, self._true_camera, direction, ambient=ambient,
-                                             diffuse=diffuse)
-                labels = None
-            if self.config.sim.depth_noise:
-                depth = simcam.add_depth_noise(depth, self._noise_rng, self._depth_noise,
-                                               fx=float(self._true_camera.intrinsics[0, 0]))
-            raw = simcam.to_raw_depth(depth, cfg.depth_scale, cfg.depth_range)
-            return Frame(color=color, depth=raw, depth_scale=cfg.depth_scale,
-                         intrinsics=self._camera.intrinsics.copy(), camera_pose=self._camera.pose.copy(),
-                         timestamp=self._sim_time, tool_position=tuple(float(v) for v in self._tcp()[:3, 3])), labels
+            color, depth, seg = self._render(segmented=labelled)
+            labels = None if seg is None else np.where(np.isin(seg, list(self._world.objects)), seg, 0).astype(np.int32)
+            return self._frame(color, depth), labels
+
+    def _render(self, segmented: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+        direction, ambient, diffuse = self._randomiser.light
+        if segmented:
+            return simcam.render_labelled(self._client, self._true_camera, direction, ambient=ambient, diffuse=diffuse)
+        color, depth = simcam.render(self._client, self._true_camera, direction, ambient=ambient, diffuse=diffuse)
+        return color, depth, None
+
+    def _frame(self, color: np.ndarray, depth: np.ndarray) -> Frame:
+        """A D415 frame of a render (true depth in metres): the simulated noise, raw units, the tool's position."""
+        cfg = self.config.camera
+        if self.config.sim.depth_noise:
+            depth = simcam.add_depth_noise(depth, self._noise_rng, self._depth_noise,
+                                           fx=float(self._true_camera.intrinsics[0, 0]))
+        raw = simcam.to_raw_depth(depth, cfg.depth_scale, cfg.depth_range)
+        return Frame(color=color, depth=raw, depth_scale=cfg.depth_scale,
+                     intrinsics=self._camera.intrinsics.copy(), camera_pose=self._camera.pose.copy(),
+                     timestamp=self._sim_time, tool_position=tuple(float(v) for v in self._tcp()[:3, 3]))
+
+    def _arm_over_workspace(self, depth: np.ndarray, seg: np.ndarray) -> bool:
+        """Whether a render shows part of the arm, or of what it holds, where the heightmaps look (its surface points
+        fall inside the workspace): the tool model of ``flgd.camera_view`` (a 7 cm cylinder) leaves out a long held
+        object's overhang and the wrist beside the gripper."""
+        carried = list(self._arm.in_gripper() | self._world.held)
+        arm = ((seg == self._world.robot.body) | np.isin(seg, carried)) & (depth > 0)
+        if not arm.any():
+            return False
+        cam = self._true_camera
+        only_arm = np.where(arm, depth, 0.0).astype(np.float32)
+        hm = make_heightmaps(np.zeros((*depth.shape, 3), np.uint8), only_arm, cam.intrinsics, 1.0, cam.pose,
+                             self.config.workspace)
+        return bool(np.nan_to_num(hm.height, nan=0.0).max() > 0.0)
 
     def remove_object(self, body: int, settle: float = 0.25) -> bool:
         """Take one object out of the scene (as if picked) and let the rest settle.
@@ -174,11 +194,22 @@ class SimCell(Cell):
             self._frame_on_the_way = None
 
     def _watch_view(self, on_frame: FrameOnTheWay, t0: float) -> Callable[[], bool]:
-        """A check for each tick of the last move: True once the frame has been taken and handed over."""
+        """A check for each tick of the last move: True once the frame has been taken and handed over.  Once the
+        tool is out of view, a render every ``ARM_CHECK_INTERVAL`` is looked at and handed over only if no part of
+        the arm shows over the workspace."""
+        next_render = -np.inf
+
         def watch() -> bool:
-            if tool_in_view(tuple(float(v) for v in self._tcp()[:3, 3]), self.config):
+            nonlocal next_render
+            if self._sim_time < next_render or in_view_on_the_way(tuple(float(v) for v in self._tcp()[:3, 3]),
+                                                                   self.config):
                 return False
-            on_frame(self._capture(labelled=False)[0], self._sim_time - t0)
+            color, depth, seg = self._render(segmented=True)
+            assert seg is not None
+            if self._arm_over_workspace(depth, seg):
+                next_render = self._sim_time + ARM_CHECK_INTERVAL
+                return False
+            on_frame(self._frame(color, depth), self._sim_time - t0)
             return True
         return watch
 

@@ -79,6 +79,7 @@ class _Watched(SimCell):
 def _cell_and_agent(tmp_path, cls=_Watched):
     cfg = dataclasses.replace(make_config(objects=0, depth_noise=False, domain_randomization=False),
                               state_dir=str(tmp_path))
+    cfg = dataclasses.replace(cfg, robot=dataclasses.replace(cfg.robot, capture_on_the_way=cls.on_the_way))
     cell = cls(cfg)
     cube_at(cell, -0.50, 0.05, size=(0.04, 0.04, 0.04))
     cube_at(cell, -0.40, -0.12, size=(0.04, 0.04, 0.04))
@@ -141,6 +142,42 @@ def test_the_next_decision_is_made_on_a_picture_taken_on_the_way_home_once_the_a
         assert store.action_log()[-1]["decide_hidden"] == pytest.approx(second.decide_hidden)
     finally:
         store.close()
+        cell.close()
+
+
+def test_the_simulator_takes_no_picture_on_the_way_while_a_long_held_object_still_shows_over_the_workspace(
+        tmp_path):
+    """A 20 cm bar held across its middle overhangs the 7 cm tool model: where the model first calls the tool out
+    of view, the bar's end is still over the workspace.  The simulator looks at its render and waits."""
+    cfg = dataclasses.replace(make_config(objects=0, depth_noise=False, domain_randomization=False),
+                              state_dir=str(tmp_path))
+    cfg = dataclasses.replace(cfg, robot=dataclasses.replace(cfg.robot, capture_on_the_way=True))
+    cell = _OnTheWay(cfg)
+    cube_at(cell, -0.45, 0.0, size=(0.03, 0.20, 0.03))   # its long side along y, towards home
+    cube_at(cell, -0.62, -0.12, size=(0.04, 0.04, 0.04))
+    bar = base_to_pixel(-0.45, 0.0, cfg.workspace)
+    agent = _Scripted([Action("grasp", int(bar[0]), int(bar[1]), 0, 16)])
+    try:
+        runner = CycleRunner(cfg, cell, agent)
+        assert runner.run_once().success is True and len(agent.decisions) == 2
+        taken_at = runner.last_frame.tool_position
+        assert tool_in_view(taken_at, cfg) == "" and math.dist(taken_at, cfg.robot.home.position) > 0.02
+        assert agent.decisions[1][1] is runner.current
+        assert float(runner.current.height.max()) < 0.06   # the 4 cm cube, not the held bar at 0.3 m
+    finally:
+        cell.close()
+
+
+def test_without_capture_on_the_way_the_picture_is_taken_at_home(tmp_path):
+    cfg, cell, agent = _cell_and_agent(tmp_path, _OnTheWay)
+    cfg = dataclasses.replace(cfg, robot=dataclasses.replace(cfg.robot, capture_on_the_way=False))
+    try:
+        runner = CycleRunner(cfg, cell, agent)
+        assert runner.run_once().success is True
+        assert np.allclose(runner.last_frame.tool_position, cfg.robot.home.position, atol=0.01)
+        place = [plan for plan in cell.plans if plan[0] == "place"]
+        assert place[0][2] < agent.decisions[1][0] < place[0][3]   # decided while the arm placed
+    finally:
         cell.close()
 
 

@@ -161,6 +161,10 @@ class RobotConfig:
         False, help="a picked object is carried home and to the place at the wrist angle it was grasped at, so the "
                     "wrist turns once a pick (from the last grasp's angle to the next) instead of twice (its yaw in "
                     "the bin does not matter)")
+    capture_on_the_way: bool = param(
+        False, help="with decide_while_placing: take the next picture on a grasp's move home, as soon as the tool "
+                    "is out of the camera's view, and decide while the arm carries on; off: the picture is taken at "
+                    "home (the 7 cm tool model does not cover a long held object's overhang near the view's edge)")
     decide_while_placing: bool = param(
         True, help="take the next picture on a grasp's move home once the arm is out of the camera's view (or at "
                    "home, on a cell that cannot while its arm moves), decide while the arm carries on (or, with "

@@ -24,7 +24,7 @@ import threading
 import time
 from typing import Callable
 
-from flgd.camera_view import tool_in_view
+from flgd.camera_view import in_view_on_the_way
 from flgd.cell import (STOPPED_ON_REQUEST, Cell, CellFault, ContactStop, ExecutionResult, Frame, FrameOnTheWay,
                        StopPending)
 from flgd.config import CellConfig
@@ -349,7 +349,7 @@ class _LookOnTheWay:
             return
         if self._started_at is not None:
             return
-        if tool_in_view(pose[:3], self._cell.config):
+        if in_view_on_the_way(pose[:3], self._cell.config):
             self._clear_since = None
             return
         now = arm.controller_time()
@@ -381,7 +381,7 @@ class _LookOnTheWay:
             taken, self._taken = self._taken, None
         if taken is None:
             return
-        why = tool_in_view(pose[:3], self._cell.config)
+        why = in_view_on_the_way(pose[:3], self._cell.config)
         if why:
             log.warning("picture on the way home dropped: after it was taken, %s", why)
             return
