@@ -251,11 +251,12 @@ def run_policy(root: Path, cycles: int, time_scale: float, host: str,
     return out
 
 
-def run_faults(root: Path, repeats: int, time_scale: float, resume: dict[str, Any], host: str) -> dict[str, Any]:
+def run_faults(root: Path, repeats: int, time_scale: float, resume: dict[str, Any], host: str,
+               robot: dict[str, Any] | None = None) -> dict[str, Any]:
     from flgd.ctl import DaemonUnreachable
     from sim_cell.emulator.faults import inject
 
-    config = _write_config(root, "ur5e", host)
+    config = _write_config(root, "ur5e", host, robot)
     results: dict[str, list[dict]] = {k: list(resume.get(k, [])) for k in FAULT_KINDS}
     unplanned: list[dict] = (json.loads((root / "unplanned.json").read_text())
                              if (root / "unplanned.json").exists() else [])
@@ -443,7 +444,8 @@ def main(argv: list[str] | None = None) -> int:
     if "faults" in args.parts:
         previous = root / "faults" / "faults.json"
         resume = json.loads(previous.read_text()) if previous.exists() else {}
-        summary["faults"] = run_faults(root / "faults", args.faults, args.time_scale, resume, args.host)
+        summary["faults"] = run_faults(root / "faults", args.faults, args.time_scale, resume, args.host,
+                                       {"capture_on_the_way": True} if args.capture_on_the_way else None)
     if "calibrate" in args.parts:
         summary["calibrate"] = run_calibrate(root / "calibrate", args.time_scale, args.host)
     summary.update(command="flgd bench emulated " + " ".join(argv if argv is not None else sys.argv[1:]),

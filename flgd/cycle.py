@@ -62,7 +62,7 @@ from typing import TYPE_CHECKING, Any, Callable
 
 
 from flgd.actions import Action
-from flgd.camera_view import tool_in_view
+from flgd.camera_view import in_view_on_the_way, tool_in_view
 from flgd.cell import STOPPED_ON_REQUEST, Cell, CellFault, ExecutionResult, Frame, FrameOnTheWay
 from flgd.clutter import grasp_mask, judge_move
 from flgd.config import CellConfig
@@ -127,6 +127,11 @@ class CycleRunner(DecidingAhead):
         self.decide_while_placing = (config.robot.decide_while_placing if decide_while_placing is None
                                      else bool(decide_while_placing))
         self._ahead: Ahead | None = None
+        if self.decide_while_placing and config.robot.capture_on_the_way:
+            why = in_view_on_the_way(config.robot.home.position, config)
+            if why:
+                log.warning("robot.capture_on_the_way in %s: at the home pose %s; no picture can be taken on the way "
+                            "home, so every one is taken at home", config.source, why)
         self.frames_refused = 0   # frames taken with the tool in view, never used
         # the tool's yaw where the last plan left it (None: not known, as after a plan cut short; a new state
         # starts with the arm sent home): the next plan turns the wrist from there (``flgd.plans.tool_yaw``)

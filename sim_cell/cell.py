@@ -43,11 +43,10 @@ from typing import Callable
 import numpy as np
 import pybullet as p
 
-from flgd.camera_view import in_view_on_the_way
+from flgd.camera_view import VIEW_MARGIN, in_view_on_the_way
 from flgd.cell import Cell, CellFault, ContactStop, ExecutionResult, Frame, FrameOnTheWay
 from flgd.config import CellConfig
 from flgd.geometry import ToolPose, pose_matrix
-from flgd.perception import make_heightmaps
 from flgd.plans import LIFT_LABEL, GripperCommand, MeasureWidth, MoveL, abort_steps
 from flgd.safety import CheckedPlan
 from sim_cell import camera as simcam
@@ -144,18 +143,26 @@ class SimCell(Cell):
                      timestamp=self._sim_time, tool_position=tuple(float(v) for v in self._tcp()[:3, 3]))
 
     def _arm_over_workspace(self, depth: np.ndarray, seg: np.ndarray) -> bool:
-        """Whether a render shows part of the arm, or of what it holds, where the heightmaps look (its surface points
-        fall inside the workspace): the tool model of ``flgd.camera_view`` (a 7 cm cylinder) leaves out a long held
-        object's overhang and the wrist beside the gripper."""
+        """Whether a render shows part of the arm, or of what it holds, where the heightmaps look: a pixel of it
+        whose surface point lies over the workspace (the heightmaps would show it as an object) or whose ray meets
+        the table inside it (it hides the table there).  The tool model of ``flgd.camera_view`` (a cylinder, tested
+        by its rays) leaves out a long held object's overhang and the wrist beside the gripper."""
         carried = list(self._arm.in_gripper() | self._world.held)
-        arm = ((seg == self._world.robot.body) | np.isin(seg, carried)) & (depth > 0)
-        if not arm.any():
+        rows, cols = np.nonzero(((seg == self._world.robot.body) | np.isin(seg, carried)) & (depth > 0))
+        if rows.size == 0:
             return False
-        cam = self._true_camera
-        only_arm = np.where(arm, depth, 0.0).astype(np.float32)
-        hm = make_heightmaps(np.zeros((*depth.shape, 3), np.uint8), only_arm, cam.intrinsics, 1.0, cam.pose,
-                             self.config.workspace)
-        return bool(np.nan_to_num(hm.height, nan=0.0).max() > 0.0)
+        cam, ws = self._true_camera, self.config.workspace
+        rays = cam.pose[:3, :3] @ (np.linalg.inv(cam.intrinsics) @ np.stack([cols + 0.5, rows + 0.5,
+                                                                              np.ones(rows.size)]))
+        origin = cam.pose[:3, 3]
+        points = origin[:2, None] + depth[rows, cols] * rays[:2]   # the optical z is the render's depth
+        down = rays[2] < 0.0
+        hits = origin[:2, None] + (ws.table_z - origin[2]) / np.where(down, rays[2], -1.0) * rays[:2]
+
+        def over(xy: np.ndarray) -> np.ndarray:
+            return ((ws.x[0] - VIEW_MARGIN <= xy[0]) & (xy[0] <= ws.x[1] + VIEW_MARGIN)
+                    & (ws.y[0] - VIEW_MARGIN <= xy[1]) & (xy[1] <= ws.y[1] + VIEW_MARGIN))
+        return bool(np.any(over(points)) or np.any(down & over(hits)))
 
     def remove_object(self, body: int, settle: float = 0.25) -> bool:
         """Take one object out of the scene (as if picked) and let the rest settle.

@@ -22,6 +22,7 @@ from flgd.perception import base_to_pixel
 from flgd.plans import MoveL, Plan
 from flgd.safety import check_plan
 from flgd.store import Store
+import sim_cell.cell
 from sim_cell.cell import SimCell
 from tests.fakes.agents import ScriptedAgentBase, scripted_decision
 from tests.fakes.sim import cube_at, make_config
@@ -146,9 +147,11 @@ def test_the_next_decision_is_made_on_a_picture_taken_on_the_way_home_once_the_a
 
 
 def test_the_simulator_takes_no_picture_on_the_way_while_a_long_held_object_still_shows_over_the_workspace(
-        tmp_path):
+        tmp_path, monkeypatch):
     """A 20 cm bar held across its middle overhangs the 7 cm tool model: where the model first calls the tool out
-    of view, the bar's end is still over the workspace.  The simulator looks at its render and waits."""
+    of view, the bar's end is still over the workspace.  The simulator looks at its render and waits (tested with
+    the 7 cm model as the trigger, so that the render's check is what keeps the bar out of the picture)."""
+    monkeypatch.setattr(sim_cell.cell, "in_view_on_the_way", tool_in_view)
     cfg = dataclasses.replace(make_config(objects=0, depth_noise=False, domain_randomization=False),
                               state_dir=str(tmp_path))
     cfg = dataclasses.replace(cfg, robot=dataclasses.replace(cfg.robot, capture_on_the_way=True))
@@ -514,3 +517,18 @@ def test_a_snapshot_asked_for_with_the_arm_in_view_is_refused_without_faulting_t
     with pytest.raises(ProtocolError, match="stands between the camera"):
         fresh_snapshot(ctl)
     assert faults == []   # the arm standing in view is no cell fault
+
+
+def test_the_simulator_finds_the_arm_in_a_render_over_the_workspace_and_not_at_home(tmp_path):
+    cfg = dataclasses.replace(make_config(objects=0, depth_noise=False, domain_randomization=False),
+                              state_dir=str(tmp_path))
+    cell = SimCell(cfg)
+    try:
+        _, depth, seg = cell._render(segmented=True)
+        assert not cell._arm_over_workspace(depth, seg)
+        over = MoveL(ToolPose.top_down(-0.50, 0.0, 0.25, 0.0), 0.25, 0.8, "over the table")
+        assert cell.execute(check_plan(Plan("probe", (over,)), cfg)).completed
+        _, depth, seg = cell._render(segmented=True)
+        assert cell._arm_over_workspace(depth, seg)
+    finally:
+        cell.close()

@@ -162,14 +162,13 @@ class RobotConfig:
                     "wrist turns once a pick (from the last grasp's angle to the next) instead of twice (its yaw in "
                     "the bin does not matter)")
     capture_on_the_way: bool = param(
-        False, help="with decide_while_placing: take the next picture on a grasp's move home, as soon as the tool "
-                    "is out of the camera's view, and decide while the arm carries on; off: the picture is taken at "
-                    "home (the 7 cm tool model does not cover a long held object's overhang near the view's edge)")
+        False, help="with decide_while_placing: take the next picture on a grasp's move home, once a 12 cm cylinder "
+                    "around the tool (an object up to 24 cm long held across its middle) is out of the camera's "
+                    "view, and decide while the arm carries on; off: the picture is taken at home")
     decide_while_placing: bool = param(
-        True, help="take the next picture on a grasp's move home once the arm is out of the camera's view (or at "
-                   "home, on a cell that cannot while its arm moves), decide while the arm carries on (or, with "
-                   "the picture taken at home, while it places), and start the next plan from the place pose "
-                   "instead of going home first (flgd train: always off)")
+        True, help="after a grasp held at home: take the next picture there (or on the way, capture_on_the_way), "
+                   "decide while the arm places, and start the next plan from the place pose instead of going home "
+                   "first (flgd train: always off)")
 
 
 @dataclass(frozen=True)

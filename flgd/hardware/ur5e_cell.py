@@ -330,6 +330,7 @@ class _LookOnTheWay:
         self._started_at: tuple[float, float, float] | None = None
         self._thread: threading.Thread | None = None
         self._taken: tuple[Frame, float] | None = None   # (frame, seconds since the plan started), not yet checked
+        self._seen = False   # a poll has found the frame taken: the next one checks it
         self._taken_lock = threading.Lock()
 
     def poll(self, pose: list[float]) -> None:
@@ -349,17 +350,18 @@ class _LookOnTheWay:
             return
         if self._started_at is not None:
             return
-        if in_view_on_the_way(pose[:3], self._cell.config):
+        now = arm.controller_time_or_none()   # (never latches: a failed read here only delays the picture)
+        if now is None or in_view_on_the_way(pose[:3], self._cell.config):
             self._clear_since = None
             return
-        now = arm.controller_time()
         if self._clear_since is None:
             self._clear_since = now
         if now - self._clear_since < CLEAR_BEFORE_CAPTURE:
             return
         self._started_at = (float(pose[0]), float(pose[1]), float(pose[2]))
-        self._thread = threading.Thread(target=self._capture, name="flgd-capture-on-the-way", daemon=True)
-        self._thread.start()
+        thread = threading.Thread(target=self._capture, name="flgd-capture-on-the-way", daemon=True)
+        thread.start()
+        self._thread = thread
 
     def _capture(self) -> None:
         cell = self._cell
@@ -367,18 +369,24 @@ class _LookOnTheWay:
             if cell.camera is None or cell.arm is None:
                 return
             frame = cell.camera.capture()
-            at = cell.arm.controller_time()
+            at = cell.arm.controller_time_or_none()
         except Exception as exc:   # the camera's or the link's fault: no frame now; the capture at home reports it
             log.warning("capture on the way home failed: %s", exc)
             return
-        if self.start_clock is not None:
+        if self.start_clock is not None and at is not None:
             with self._taken_lock:
                 self._taken = (frame, at - self.start_clock)
 
-    def _check_taken(self, pose: list[float]) -> None:
-        """Hand the frame over if the tool at ``pose`` (read after the frame arrived) is out of view."""
+    def _check_taken(self, pose: list[float], read_after: bool = False) -> None:
+        """Hand the frame over if the tool at ``pose`` is out of view.  A poll that first finds the frame there may
+        have read its pose before the frame arrived: the next poll's pose is the one checked (``read_after``: the
+        pose was read after the capture ended, at the plan's end)."""
         with self._taken_lock:
-            taken, self._taken = self._taken, None
+            taken = self._taken
+            if taken is not None and not (read_after or self._seen):
+                self._seen = True
+                return
+            self._taken = None
         if taken is None:
             return
         why = in_view_on_the_way(pose[:3], self._cell.config)
@@ -400,6 +408,6 @@ class _LookOnTheWay:
         arm = self._cell.arm
         try:
             if arm is not None and arm.fault is None:
-                self._check_taken(arm.tcp_pose())
+                self._check_taken(arm.tcp_pose(), read_after=True)
         except CellFault as exc:
             log.warning("picture on the way home: %s", exc)
