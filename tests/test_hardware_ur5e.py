@@ -490,7 +490,7 @@ def test_reset_reopens_a_camera_whose_stream_died(ctl, rg2):
 def test_the_unlock_is_sent_5_0_s_plus_the_margin_after_the_protective_stop_not_sooner_and_not_much_later(ctl, rg2):
     """The controller refuses an unlock sooner than 5.0 s after the stop; the arm waits exactly that plus a
     0.2 s margin for clock differences (simulated time: the fake controller's clock)."""
-    from flgd.hardware.ur_arm import _UNLOCK_MARGIN, UNLOCK_WAIT_STEP
+    from flgd.hardware.ur_recovery import _UNLOCK_MARGIN, UNLOCK_WAIT_STEP
 
     assert PROTECTIVE_STOP_UNLOCK_DELAY == 5.0 and _UNLOCK_MARGIN == 0.2
     cell = make_ur5e(ctl, rg2)

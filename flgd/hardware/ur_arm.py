@@ -18,28 +18,7 @@ the owner clears it on purpose (:meth:`URArm.clear_stop`).  Neither a new plan
 nor a recovery may clear it: a stop that arrives a moment before either would
 otherwise be forgotten and the arm would move after it.
 
-Recovery sequence (:meth:`URArm.recover`), in this order:
-  1. after a lost link (an interface disconnected, or ur_rtde's process ended:
-     flgd/hardware/rtde_process.py) drop every interface and open fresh ones,
-     as a restarted service would; ur_rtde's own ``reconnect`` is not used:
-     against a dropped link its control interface kept failing ("write:
-     Broken pipe") until the process was restarted;
-  2. refuse while an emergency stop is engaged (or a safeguard stop, a safety
-     violation/fault, recovery mode, or the arm is not powered on): those need
-     a person at the cell;
-  3. after a protective stop, wait until at least 5 s have passed since it
-     happened (the controller refuses to unlock sooner), then
-     ``unlockProtectiveStop`` on the dashboard server;
-  4. ``closeSafetyPopup``;
-  5. confirm the safety mode is NORMAL;
-  6. open the RTDE control (and IO) interfaces if they are not open;
-  7. re-upload the control script if it is not running, and confirm it runs;
-  8. read the installation's TCP if the script was re-uploaded (a blended path
-     runs in a fresh script, which starts with it), then set the TCP again (a
-     new script starts with the installation's TCP).
-Moving home is the cell's job (a checked ``plan_home``).  A pending stop
-request refuses recovery (before, during the protective-stop wait, and
-before the fault is cleared) with :class:`flgd.cell.StopPending`.
+The recovery sequence (:meth:`URArm.recover`) is ``flgd.hardware.ur_recovery``'s.
 """
 
 from __future__ import annotations
@@ -53,11 +32,11 @@ from typing import Any, Callable, NoReturn, Sequence
 
 import numpy as np
 
-from flgd.cell import CellFault, StopPending
+from flgd.cell import CellFault
 from flgd.hardware.rtde_process import IsolatedRTDEFactory, RTDEFactory
-from flgd.hardware.ur_modes import (EMERGENCY, NEEDS_A_PERSON, NORMAL, PROTECTIVE, REDUCED, ROBOT_MODES,
-                                    ROBOT_RUNNING, SAFETY_MODES)
+from flgd.hardware.ur_modes import NORMAL, PROTECTIVE, REDUCED, ROBOT_MODES, ROBOT_RUNNING, SAFETY_MODES
 from flgd.hardware.ur_poses import for_tcp, move_duration, pose_error
+from flgd.hardware.ur_recovery import DASHBOARD_TIMEOUT_MS, PROTECTIVE_STOP_UNLOCK_DELAY, URRecovery
 
 __all__ = [
     "URArm",
@@ -74,8 +53,6 @@ log = logging.getLogger(__name__)
 # Called with the TCP pose [x, y, z, rx, ry, rz] at every poll of a running move (``URArm.move_linear``).
 PoseWatch = Callable[[list[float]], None]
 
-PROTECTIVE_STOP_UNLOCK_DELAY = 5.0  # s; the controller refuses "unlock protective stop" sooner
-_UNLOCK_MARGIN = 0.2                # s on top of it, for clock differences with the controller
 STOP_DECELERATION = 10.0            # m/s^2 for stopL (ur_rtde's default)
 CAUSE_SETTLE_TIME = 0.1             # s to let the receive stream show why the control script stopped
 POSITION_TOLERANCE = 0.002          # m between a finished move and its target
@@ -83,9 +60,6 @@ ORIENTATION_TOLERANCE = 0.02        # rad
 START_GRACE = 0.5                   # s for an accepted move to show up as running
 MOVE_TIMEOUT_MARGIN = 5.0           # s beyond twice the trapezoidal move time
 STALLED_CLOCK_FACTOR = 5.0          # a move's wall-clock limit in multiples of its limit on the controller's clock
-CONFIRM_TIMEOUT = 3.0               # s to see NORMAL safety mode / a running script after recovery
-DASHBOARD_TIMEOUT_MS = 2000
-UNLOCK_WAIT_STEP = 0.05             # s; the protective-stop wait looks for a stop request this often
 
 
 class PoseUnreachable(Exception):
@@ -96,7 +70,7 @@ class MotionStopped(Exception):
     """A move was halted on request (``stop_motion``)."""
 
 
-class URArm:
+class URArm(URRecovery):
     """One UR arm: connections, checked moves, fault latch, recovery."""
 
     def __init__(self, host: str, tcp_offset: Sequence[float], *, factory: RTDEFactory | None = None,
@@ -498,110 +472,3 @@ class URArm:
         self.check()
         self._require(self._call(self.io, "setToolDigitalOut", int(index), bool(level)),
                       f"setToolDigitalOut({index}, {level})")
-
-    # ------------------------------------------------------------------ recovery
-    def _refuse_if_stopped(self, when: str) -> None:
-        if self._stop_requested.is_set():
-            raise StopPending(f"UR {self.host}: recovery refused {when}: a stop was requested; the arm was not "
-                              f"moved and stays in FAULT until a reset after the stop")
-
-    def recover(self) -> None:
-        """Run the recovery sequence (module docstring); raise CellFault if it cannot complete.
-
-        Raises StopPending, and leaves the fault latched, when a stop request is
-        pending or arrives during the sequence: a recovery must never clear a stop.
-        """
-        with self._lock:
-            self._refuse_if_stopped("before it started")
-            if self._link_lost():
-                self._reopen()
-            if self._call(self.receive, "isEmergencyStopped"):
-                raise CellFault(f"UR {self.host}: emergency stop engaged: release it at the cell and "
-                                f"reset again (recovery refused)")
-            mode = int(self._call(self.receive, "getSafetyMode"))
-            if mode in EMERGENCY:
-                raise CellFault(f"UR {self.host}: safety mode {SAFETY_MODES[mode]}: release the emergency stop "
-                                f"and reset again (recovery refused)")
-            if mode in NEEDS_A_PERSON:
-                raise CellFault(f"UR {self.host}: {NEEDS_A_PERSON[mode]} (recovery refused)")
-            if not self._call(self.dashboard, "isConnected"):
-                self._call(self.dashboard, "connect", DASHBOARD_TIMEOUT_MS)
-            if mode == PROTECTIVE or self._call(self.receive, "isProtectiveStopped"):
-                if self._protective_since is None:
-                    self._protective_since = self._clock()
-                self._wait_for_unlock()
-                try:
-                    self._call(self.dashboard, "unlockProtectiveStop")
-                except CellFault as exc:
-                    raise CellFault(f"UR {self.host}: the dashboard refused to unlock the protective stop: "
-                                    f"{exc}") from exc
-            self._call(self.dashboard, "closeSafetyPopup")
-            self._confirm(lambda: int(self._call(self.receive, "getSafetyMode")) == NORMAL,
-                          lambda: f"safety mode is "
-                                  f"{SAFETY_MODES.get(int(self._call(self.receive, 'getSafetyMode')))}, "
-                                  f"expected NORMAL after recovery")
-            robot_mode = int(self._call(self.receive, "getRobotMode"))
-            if robot_mode != ROBOT_RUNNING:
-                raise CellFault(f"UR {self.host}: robot mode {ROBOT_MODES.get(robot_mode, robot_mode)}: power on "
-                                f"and release the brakes on the pendant, then reset again")
-            if self.control is None:
-                self._open_control()
-            reuploaded = not self._call(self.control, "isProgramRunning")
-            if reuploaded:
-                self._require(self._call(self.control, "reuploadScript"), "reuploadScript")
-            self._confirm(lambda: bool(self._call(self.control, "isProgramRunning")),
-                          lambda: "the ur_rtde control script does not run after re-upload")
-            if reuploaded:
-                self._read_installation_tcp()
-            self._require(self._call(self.control, "setTcp", list(self.tcp)), "setTcp")
-            self._refuse_if_stopped("at its end")
-            self._fault = None
-            self._protective_since = None
-
-    def _wait_for_unlock(self) -> None:
-        """Wait out the controller's 5 s before an unlock, in short steps, so a stop request cuts it short."""
-        deadline = self._protective_since + PROTECTIVE_STOP_UNLOCK_DELAY + _UNLOCK_MARGIN
-        while True:
-            self._refuse_if_stopped("during the protective-stop wait")
-            left = deadline - self._clock()
-            if left <= 0:
-                return
-            self._sleep(min(left, UNLOCK_WAIT_STEP))
-
-    def _link_lost(self) -> bool:
-        """Whether an interface is gone: never opened, its process ended, or its connection dropped."""
-        for iface in (self.receive, self.dashboard, self.control, self.io):
-            if iface is not None and getattr(iface, "process_alive", True) is False:
-                return True
-        if self.receive is None or self.dashboard is None:
-            return True
-        try:
-            return not (self._call(self.receive, "isConnected")
-                        and (self.control is None or self._call(self.control, "isConnected"))
-                        and (self.io is None or self._call(self.io, "isConnected")))
-        except CellFault:
-            return True
-
-    def _reopen(self) -> None:
-        """Drop every interface (and ur_rtde's process) and open fresh ones; CellFault if the controller cannot
-        be reached.  A robot that is not ready leaves the control interface closed, for the steps that follow."""
-        log.warning("UR %s: the link to the controller was lost; opening fresh connections", self.host)
-        restart = getattr(self._factory, "restart", None)
-        if restart is not None:
-            restart()  # ends ur_rtde's process: its interfaces go with it, whatever state their threads are in
-        else:
-            for iface in (self.control, self.io, self.receive, self.dashboard):
-                if iface is not None:
-                    try:
-                        self._call(iface, "disconnect")
-                    except CellFault:
-                        pass  # the link is gone already
-        self.control = self.io = self.receive = self.dashboard = None
-        self.connect()
-
-    def _confirm(self, condition: Callable[[], bool], message: Callable[[], str]) -> None:
-        deadline = self._clock() + CONFIRM_TIMEOUT
-        while not condition():
-            if self._clock() > deadline:
-                raise CellFault(f"UR {self.host}: {message()}")
-            self._sleep(self._poll)
