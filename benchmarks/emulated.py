@@ -50,7 +50,7 @@ PHASES = ("t_capture", "t_perceive", "t_decide", "t_plan", "t_execute", "t_judge
 
 
 def _write_config(root: Path, backend: str, host: str, robot: dict[str, Any] | None = None,
-                  gripper: dict[str, Any] | None = None) -> Path:
+                  gripper: dict[str, Any] | None = None, seed: int | None = None) -> Path:
     from flgd.config import load_config
 
     data = yaml.safe_load(EMULATED.read_text())
@@ -59,6 +59,8 @@ def _write_config(root: Path, backend: str, host: str, robot: dict[str, Any] | N
     data["robot"]["host"] = host
     data["robot"].update(robot or {})
     data["gripper"].update(gripper or {})
+    if seed is not None:   # both cells lay out the same scenes from it
+        data["sim"]["seed"] = int(seed)
     for key, cap in (("speed", "max_speed"), ("raise_speed", "max_speed"), ("acceleration", "max_acceleration"),
                      ("blend_radius", "max_blend_radius")):
         if key in (robot or {}):
@@ -206,11 +208,12 @@ def _restarted(daemon: _Daemon, config: Path, root: Path) -> _Daemon:
 
 
 def run_policy(root: Path, cycles: int, time_scale: float, host: str,
-               robot: dict[str, Any] | None = None, gripper: dict[str, Any] | None = None) -> dict[str, Any]:
+               robot: dict[str, Any] | None = None, gripper: dict[str, Any] | None = None,
+               seed: int | None = None) -> dict[str, Any]:
     out: dict[str, Any] = {}
     for backend in ("sim", "ur5e"):
         row = root / ("sim" if backend == "sim" else "emulated")
-        config = _write_config(row, backend, host, robot, gripper)
+        config = _write_config(row, backend, host, robot, gripper, seed)
         done = len(_rows(row / "state")) if (row / "state" / "flgd.sqlite").exists() else 0
         if done < cycles:
             emu = _emulator(config, row, time_scale) if backend == "ur5e" else None
@@ -415,6 +418,8 @@ def main(argv: list[str] | None = None) -> int:
                    help="robot.carry_at_grasp_yaw: the wrist keeps the grasp's angle to home and the place")
     p.add_argument("--capture-on-the-way", action="store_true",
                    help="robot.capture_on_the_way: the picture taken on the grasp's move home, the decision during it")
+    p.add_argument("--seed", type=int, default=None, help="sim.seed of both cells' scenes (default: the emulated "
+                                                          "config's, 0)")
     p.add_argument("--serial", action="store_true", help="robot.decide_while_placing off: the arm goes home after "
                                                          "each place and waits there for the next decision")
     args = p.parse_args(argv)
@@ -440,7 +445,8 @@ def main(argv: list[str] | None = None) -> int:
         if args.capture_on_the_way:
             robot["capture_on_the_way"] = True
         gripper = {} if args.release_gap is None else {"release_gap": args.release_gap}
-        summary["policy"] = run_policy(root / "policy", args.cycles, args.time_scale, args.host, robot, gripper)
+        summary["policy"] = run_policy(root / "policy", args.cycles, args.time_scale, args.host, robot, gripper,
+                                       args.seed)
     if "faults" in args.parts:
         previous = root / "faults" / "faults.json"
         resume = json.loads(previous.read_text()) if previous.exists() else {}

@@ -50,3 +50,12 @@ def test_free_space_speed_and_acceleration_are_written_with_the_safety_caps_they
     assert (cfg.robot.speed, cfg.robot.acceleration, cfg.robot.raise_speed) == (1.0, 2.5, 1.2)
     assert (cfg.safety.max_speed, cfg.safety.max_acceleration) == (1.2, 2.5)
     assert cfg.robot.approach_speed == 0.08 and cfg.robot.decide_while_placing
+
+
+def test_a_seed_lays_out_other_scenes_on_both_cells(tmp_path):
+    from benchmarks.emulated import _write_config
+    from flgd.config import load_config
+
+    for backend in ("sim", "ur5e"):
+        assert load_config(_write_config(tmp_path / backend, backend, "127.0.0.1", seed=3)).sim.seed == 3
+    assert load_config(_write_config(tmp_path / "default", "ur5e", "127.0.0.1")).sim.seed == 0
