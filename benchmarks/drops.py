@@ -56,6 +56,9 @@ class DropWatch:
         self._step = 0
         self._depth = 0
         self._plan = ""
+        self._heightmaps: Any = None
+        self._tapers: list[float] | None = None
+        self.grasp_tapers: list[list[float]] = []   # every grasp's, in order; a record's "grasp" indexes it
 
     def wrap(self, cell_class: type, arm_class: type, world_class: type) -> dict[str, Any]:
         """Install the observers; returns the originals (``restore`` puts them back)."""
@@ -63,11 +66,21 @@ class DropWatch:
 
         originals = {"execute": cell_class.execute, **{name: getattr(arm_class, name) for name in STEP_METHODS}}
         originals["remove_lost"] = world_class.remove_lost
+        import flgd.cycle
+
+        originals["frame_heightmaps"] = flgd.cycle.frame_heightmaps
         watch = self
+
+        def frame_heightmaps(*args: Any, **kw: Any) -> Any:
+            watch._heightmaps = originals["frame_heightmaps"](*args, **kw)   # what the next decision sees
+            return watch._heightmaps
 
         def execute(cell: Any, checked: Any) -> Any:
             watch._labels = [s.label or type(s).__name__ for s in checked.verify(cell.config).steps]
             watch._step, watch._depth, watch._plan = 0, 0, checked.plan.primitive
+            watch._tapers = watch._grasp_tapers(cell.config, checked.plan)
+            if checked.plan.primitive == "grasp":
+                watch.grasp_tapers.append(watch._tapers or [])
             try:
                 return originals["execute"](cell, checked)
             finally:   # what left the gripper in this plan (lost or not, counted by now) is followed no further
@@ -94,6 +107,7 @@ class DropWatch:
             originals["remove_lost"](world, body)
 
         cell_class.execute = execute
+        flgd.cycle.frame_heightmaps = frame_heightmaps
         for name in STEP_METHODS:
             setattr(arm_class, name, stepped(name))
         world_class.remove_lost = remove_lost
@@ -101,10 +115,29 @@ class DropWatch:
 
     @staticmethod
     def restore(cell_class: type, arm_class: type, world_class: type, originals: dict[str, Any]) -> None:
+        import flgd.cycle
+
+        flgd.cycle.frame_heightmaps = originals.pop("frame_heightmaps")
         world_class.remove_lost = originals.pop("remove_lost")
         cell_class.execute = originals.pop("execute")
         for name, method in originals.items():
             setattr(arm_class, name, method)
+
+    def _grasp_tapers(self, config: Any, plan: Any) -> list[float] | None:
+        """The sides' tapers (mm, ``flgd.side_slope``) where a grasp plan's pads meet the object, on the heightmap
+        it was decided on; None for other plans."""
+        from flgd.perception import base_to_pixel
+        from flgd.side_slope import SIDE_RISE, side_tapers
+
+        if plan.primitive != "grasp" or self._heightmaps is None or plan.target is None:
+            return None
+        row, col = base_to_pixel(plan.target[0], plan.target[1], config.workspace)
+        height = self._heightmaps.height
+        if not (0 <= row < height.shape[0] and 0 <= col < height.shape[1]):
+            return None
+        tapers = side_tapers(height, row, col, plan.angle, config.workspace.resolution, config.gripper.open_width,
+                             config.robot.grasp_depth, SIDE_RISE, config.safety.min_table_clearance)
+        return [round(1000 * t, 1) for t in tapers]
 
     def _after_step(self, arm: Any, label: str, lift: bool) -> None:
         import pybullet as p
@@ -122,6 +155,7 @@ class DropWatch:
                 record = {"shape": obj.spec.shape or obj.spec.label, "size_mm": [round(v * 1000, 1)
                                                                                  for v in obj.spec.size],
                           "lifted_with": len(lifted), "width_mm": round(arm._robot.width() * 1000, 1),
+                          "taper_mm": self._tapers, "grasp": len(self.grasp_tapers) - 1,
                           **held_geometry(tcp, position, orientation, obj.world_points(arm._client)),
                           "left_at": None, "lost": False, "dropped": False}
                 self._following[body] = record
@@ -195,7 +229,9 @@ def main(argv: list[str]) -> int:
             with Evaluator(config, network, EvalOptions(runs=args.runs, seed=seed)) as ev:
                 for log in (log for _, logs in ev.evaluate([scene]) for log in logs):
                     runs.append({"seed": seed, "run": log.run, "dropped": log.objects_dropped,
-                                 "grasps": sum(a.kind == "grasp" for a in log.actions)})
+                                 "grasps": sum(a.kind == "grasp" for a in log.actions),
+                                 "picks": sum(a.kind == "grasp" and a.success for a in log.actions),
+                                 "actions": len(log.actions), "end": log.end})
                     print(f"seed {seed} run {log.run}: {log.objects_dropped} dropped", flush=True)
     except EvaluationError as exc:
         print(f"flgd bench drops: {exc}", file=sys.stderr)
@@ -204,7 +240,7 @@ def main(argv: list[str]) -> int:
         DropWatch.restore(SimCell, ArmDriver, World, originals)
     result = {"command": "flgd bench drops " + " ".join(argv), "machine": f"{platform.node()} "
               f"({platform.machine()}, {os.cpu_count()} cpus)", "runs": runs,
-              "summary": summary(watch.records), "records": watch.records}
+              "summary": summary(watch.records), "records": watch.records, "grasp_tapers_mm": watch.grasp_tapers}
     print(json.dumps(result["summary"], indent=1))
     if args.out:
         Path(args.out).write_text(json.dumps(result, indent=1) + "\n")

@@ -22,6 +22,7 @@ import numpy as np
 
 from flgd.config import CellConfig, GripperConfig, RewardConfig
 from flgd.finger_clearance import fingers_clear
+from flgd.side_slope import SIDE_RISE, steep_sides
 from flgd.grasp_view import grasps_in_view, moves_in_view
 
 __all__ = [
@@ -182,20 +183,26 @@ def reachable_objects(objects_mask: np.ndarray, grasps: np.ndarray) -> np.ndarra
 
 def cell_action_masks(height: np.ndarray, config: CellConfig, rotations: int) -> tuple[np.ndarray, np.ndarray]:
     """``action_masks`` with the cell's settings (``exploration.masks``, ``exploration.grasp_in_view``,
-    ``exploration.finger_clearance``): what the agent and the learner both call."""
+    ``exploration.finger_clearance``, ``exploration.side_taper``): what the agent and the learner both call."""
     rows, cols, res, rb = height.shape[0], height.shape[1], config.workspace.resolution, config.robot
     ex = config.exploration
     in_view = ((grasps_in_view(rows, cols, rotations, res, config.gripper.open_width),
                 moves_in_view(rows, cols, rotations, res, max(rb.push_distance, rb.shift_distance)))
                if ex.grasp_in_view else None)
+    free = None
     if ex.finger_clearance > 0.0:
         free = fingers_clear(height, objects(height, config.rewards, res), rotations, res,
                              config.gripper.open_width, ex.finger_clearance, config.rewards.min_height)
+    if ex.side_taper > 0.0:
+        steep = steep_sides(height, rotations, res, config.gripper.open_width, rb.grasp_depth, SIDE_RISE,
+                            config.safety.min_table_clearance, ex.side_taper)
+        free = steep if free is None else free & steep
+    if free is not None:
         rho_g, rho_m = action_masks(height, config.rewards, ex.masks, res, in_view, free)
         if _can_act(rho_g, rho_m, ex.grasp_only):
             return rho_g, rho_m
-        # no grasp comes down free and no move may free one: the clearance predicts a poor grasp, it bounds
-        # nothing, so the cell grasps as it would without it rather than stop
+        # no grasp comes down free on steep sides and no move may free one: these limits predict a poor grasp,
+        # they bound nothing, so the cell grasps as it would without them rather than stop
     rho_g, rho_m = action_masks(height, config.rewards, ex.masks, res, in_view)
     if in_view is None or not ex.last_resort_grasps or _can_act(rho_g, rho_m, ex.grasp_only):
         return rho_g, rho_m

@@ -241,6 +241,10 @@ class ExplorationConfig:
                                     help="a grasp only where nothing under either open finger stands higher than "
                                          "the grasped surface less this: the fingertips get this far down the "
                                          "object before they touch anything (0 = off; at most robot.grasp_depth)")
+    side_taper: float = param(0.0, unit="m", ge=0.0, le=0.05,
+                              help="a grasp only where both sides the open pads close on narrow by at most this "
+                                   "over the centimetre above the fingertips (flgd.side_slope): a sloping side "
+                                   "squeezes the object up out of the grip (0 = off)")
     last_resort_grasps: bool = param(False, help="where no grasp and no move is left in view "
                                                  "(exploration.grasp_in_view) while an object is still seen at the "
                                                  "border, grasp it without that limit (the descent is guarded: a "
