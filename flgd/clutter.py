@@ -143,9 +143,9 @@ def action_masks(height: np.ndarray, rc: RewardConfig, enabled: bool = True,
 
     ``in_view`` (two uint8 [R,H,W], ``flgd.grasp_view``): the grasps and the moves whose fingers stay inside the
     heightmap; given, rho_g and rho_m are per rotation, [R,H,W] (a geometric limit, kept in the DPEN ablation too).
-    ``free`` (uint8 [R,H,W], ``flgd.finger_clearance``): the grasps whose fingers come down free; given, rho_g is
-    limited to them after the objects to push are chosen, so an object none of whose grasps is free can still be
-    pushed or shifted apart."""
+    ``free`` (uint8 [R,H,W], ``flgd.finger_clearance``, ``flgd.side_slope``): the grasps allowed by the grasp
+    limits; given, rho_g is limited to them after the objects to push are chosen, so an object none of whose
+    grasps is allowed can still be pushed or shifted apart."""
     if enabled:
         rho_g = grasp_mask(height, rc, resolution)
         rho_m = cv2.dilate(rho_g, _kernel(rc.move_mask_dilation))
@@ -189,20 +189,20 @@ def cell_action_masks(height: np.ndarray, config: CellConfig, rotations: int) ->
     in_view = ((grasps_in_view(rows, cols, rotations, res, config.gripper.open_width),
                 moves_in_view(rows, cols, rotations, res, max(rb.push_distance, rb.shift_distance)))
                if ex.grasp_in_view else None)
-    free = None
+    limits: list[np.ndarray] = []   # the grasp limits to try, strictest first
     if ex.finger_clearance > 0.0:
-        free = fingers_clear(height, objects(height, config.rewards, res), rotations, res,
-                             config.gripper.open_width, ex.finger_clearance, config.rewards.min_height)
+        limits.append(fingers_clear(height, objects(height, config.rewards, res), rotations, res,
+                                    config.gripper.open_width, ex.finger_clearance, config.rewards.min_height))
     if ex.side_taper > 0.0:
-        steep = steep_sides(height, rotations, res, config.gripper.open_width, rb.grasp_depth, SIDE_RISE,
-                            config.safety.min_table_clearance, ex.side_taper)
-        free = steep if free is None else free & steep
-    if free is not None:
-        rho_g, rho_m = action_masks(height, config.rewards, ex.masks, res, in_view, free)
+        upright = steep_sides(height, rotations, res, config.gripper.open_width, rb.grasp_depth, SIDE_RISE,
+                              config.safety.min_table_clearance, ex.side_taper)
+        limits.insert(0, upright if not limits else limits[0] & upright)
+    for allowed in limits:
+        rho_g, rho_m = action_masks(height, config.rewards, ex.masks, res, in_view, allowed)
         if _can_act(rho_g, rho_m, ex.grasp_only):
             return rho_g, rho_m
-        # no grasp comes down free on steep sides and no move may free one: these limits predict a poor grasp,
-        # they bound nothing, so the cell grasps as it would without them rather than stop
+    # no allowed grasp and no move that may free one: these limits predict a poor grasp, they bound nothing, so
+    # the cell grasps as it would without them (the side limit first, then the clearance) rather than stop
     rho_g, rho_m = action_masks(height, config.rewards, ex.masks, res, in_view)
     if in_view is None or not ex.last_resort_grasps or _can_act(rho_g, rho_m, ex.grasp_only):
         return rho_g, rho_m

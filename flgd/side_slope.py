@@ -23,6 +23,12 @@ __all__ = ["SIDE_RISE", "side_tapers", "steep_sides"]
 SIDE_RISE = 0.01   # m above the fingertips where a side's taper is read: the pad's lowest centimetre holds the object
 
 
+def _steps(angle: float, reach: int) -> list[tuple[int, int]]:
+    """(row, column) offsets of the pixels 1 ... ``reach`` steps out from a grasp along ``angle``: one rounding for
+    the single grasp and the mask, so that the two always agree."""
+    return [(int(np.rint(k * math.sin(angle))), int(np.rint(k * math.cos(angle)))) for k in range(1, reach + 1)]
+
+
 def _extent(profile: np.ndarray, level: float) -> int:
     """Samples from the start of ``profile`` (the grasp point outward) that stand at or above ``level`` without a
     gap: where a pad coming in from outside first touches at that height."""
@@ -35,7 +41,7 @@ def side_tapers(height: np.ndarray, row: int, col: int, angle: float, resolution
     """(taper on the side along +angle, on the side along -angle), m: how much nearer the grasp point the object
     ends ``rise`` above the fingertips' height than at it, along the closing line (``angle`` from the x axis;
     columns along x, rows along y) within the open fingers' reach.  0 for a vertical side; an object lower than
-    the fingertips' height plus ``rise`` is measured over the height it has.  NaN heights read as table."""
+    the fingertips' height plus ``rise`` is measured over the lower three quarters of the height it has above them.  NaN heights read as table."""
     h = np.nan_to_num(np.asarray(height, dtype=np.float32), nan=0.0)
     rows, cols = h.shape
     if not (0 <= row < rows and 0 <= col < cols):
@@ -47,11 +53,10 @@ def side_tapers(height: np.ndarray, row: int, col: int, angle: float, resolution
     fingertips = max(surface - grasp_depth, floor)
     upper = min(fingertips + rise, fingertips + 0.75 * max(surface - fingertips, 0.0))
     reach = int(math.ceil(open_width / 2.0 / resolution))
-    k = np.arange(1, reach + 1, dtype=float)
+    steps = np.array(_steps(angle, reach))
     out = []
-    for sign in (1.0, -1.0):
-        c = np.rint(col + sign * k * math.cos(angle)).astype(int)
-        r = np.rint(row + sign * k * math.sin(angle)).astype(int)
+    for sign in (1, -1):
+        r, c = row + sign * steps[:, 0], col + sign * steps[:, 1]
         inside = (r >= 0) & (r < rows) & (c >= 0) & (c < cols)
         profile = np.where(inside, h[np.clip(r, 0, rows - 1), np.clip(c, 0, cols - 1)], 0.0)
         if upper <= fingertips:
@@ -92,7 +97,7 @@ def steep_sides(height: np.ndarray, rotations: int, resolution: float, open_widt
             out[i] = out[i - half]
             continue
         theta = 2.0 * math.pi * i / rotations
-        steps = [(int(np.rint(k * math.sin(theta))), int(np.rint(k * math.cos(theta)))) for k in range(1, reach + 1)]
+        steps = _steps(theta, reach)
         ok = flat.copy()
         taper_ok = np.ones(h.shape, dtype=bool)
         for sign in (1, -1):

@@ -95,3 +95,14 @@ def test_an_object_sloping_every_way_is_still_grasped_when_nothing_else_is_left(
     rho_g, _ = cell_action_masks(h, config(0.001, grasp_only=True), R)
     off, _ = cell_action_masks(h, config(0.0, grasp_only=True), R)
     assert rho_g.any() and (rho_g == off).all()
+
+
+def test_with_the_finger_clearance_too_the_side_limit_is_lifted_first():
+    h = np.zeros((N, N), np.float32)
+    rows, cols = np.mgrid[0:N, 0:N]
+    for col in (100, 125):   # two cones 5 cm apart: every side slopes, and a finger may land on the other
+        h[:] = np.maximum(h, np.clip(0.035 - 0.0025 * np.hypot(rows - 100, cols - col), 0.0, None))
+    both, _ = cell_action_masks(h, config(0.001, grasp_only=True, finger_clearance=0.01), R)
+    clearance, _ = cell_action_masks(h, config(0.0, grasp_only=True, finger_clearance=0.01), R)
+    off, _ = cell_action_masks(h, config(0.0, grasp_only=True), R)
+    assert clearance.any() and (both == clearance).all() and (clearance != off).any()
