@@ -69,3 +69,20 @@ def test_held_geometry_is_in_the_tool_frame():
     assert geo["centre_mm"] == pytest.approx([10.0, 0.0, 0.0], abs=1e-6)
     assert geo["extent_closing_mm"] == pytest.approx(20.0) and geo["extent_pads_mm"] == pytest.approx(20.0)
     assert geo["tilt_deg"] == pytest.approx(0.0, abs=1e-6)
+
+
+def test_a_grasps_tapers_are_read_on_its_heightmap_where_and_how_it_closes():
+    from flgd.config import CellConfig
+    from flgd.perception import Heightmaps, pixel_to_base
+
+    cfg = CellConfig()
+    h = np.zeros((224, 224), np.float32)
+    for c in range(90, 111):   # a prism's ridge along y (rows) at column 100: its sides slope along x
+        h[85:115, c] = 0.035 * (1 - abs(c - 100) / 10.0)
+    watch = DropWatch()
+    watch._heightmaps = Heightmaps(color=np.zeros((224, 224, 3), np.uint8), height=h)
+    x, y, _ = pixel_to_base(100, 100, 0.035, cfg.workspace)
+    across = watch._grasp_tapers(cfg, plan_grasp(x, y, 0.035, 0.0, cfg))
+    along = watch._grasp_tapers(cfg, plan_grasp(x, y, 0.035, math.pi / 2, cfg))
+    assert min(across) >= 4.0 and along == [0.0, 0.0]
+    assert watch._grasp_tapers(cfg, plan_home(cfg)) is None
