@@ -32,17 +32,20 @@ def pool(path: Path, prefix: str) -> dict:
 
 
 def rates(total: dict) -> dict:
+    """The counts with grasp success per grasp and picks per action beside them."""
     return dict(total, grasp_success=total["successes"] / max(1, total["attempts"]),
                 picks_per_action=total["successes"] / max(1, total["actions"]))
 
 
 def variant(name: str) -> dict:
+    """Every part of one variant's evaluations, and rule (d)'s pool."""
     out = {part: pool(EVALS / f"{name}-{file}.json", prefix) for part, (file, prefix) in PARTS.items()}
     out["pooled"] = rates({k: sum(out[p][k] for p in POOLED) for k in ("successes", "attempts", "actions")})
     return out
 
 
 def qualifies(c: dict, b: dict) -> dict:
+    """Rule step 2's checks (a)-(d) of candidate ``c`` against the baseline ``b``."""
     va, pk, gm = "validation", "packed", "presets_grasp_and_move"
     return {
         "a": c[va]["dropped"] <= b[va]["dropped"] and c[va]["grasp_success"] >= b[va]["grasp_success"] - 0.005
