@@ -266,6 +266,28 @@ def test_stop_motion_from_another_thread_halts_the_move_promptly(ctl, rg2):
     assert cell.execute(push(cell.config)).completed, "after a deliberate clear the next plan runs"
 
 
+def test_a_stop_request_that_lands_between_two_looks_at_the_arm_is_a_stop_not_a_fault(ctl, rg2):
+    """The daemon's stop (SIGTERM, the end of a bench) may come after the move's poll looked for a stop request and
+    before it asks whether the arm still moves: the arm then stands short of its target because it was stopped."""
+    cell = make_ur5e(ctl, rg2)
+    ctl.tcp[:3] = (0.40, 0.30, 0.30)
+    control = cell.arm.control
+    progress = control.getAsyncOperationProgressEx
+    polls = {"n": 0}
+
+    def stopped_in_between():
+        polls["n"] += 1
+        if polls["n"] == 5:
+            cell.stop_motion()
+        return progress()
+
+    control.getAsyncOperationProgressEx = stopped_in_between
+    result = cell.execute(grasp(cell.config))
+    assert polls["n"] >= 5
+    assert not result.completed and "stopped on request" in result.failure
+    assert cell.fault is None, "a stop is not a fault"
+
+
 def test_a_controller_slower_than_the_wall_clock_is_judged_by_its_own_clock(ctl, rg2):
     """An emulator on a busy PC runs at a fifth of real time: a 0.6 m move that takes it 3 s of its own time takes
     15 s of the wall clock, beyond the 11.3 s the move is allowed; it is timed on the controller's clock and

@@ -443,6 +443,8 @@ class URArm(URRecovery):
             if not running:
                 if dp <= POSITION_TOLERANCE and dr <= ORIENTATION_TOLERANCE:
                     return False
+                if self._stop_requested.is_set():   # stopped on request after the look above: short, not faulty
+                    raise MotionStopped(f"{what}: stopped on request")
                 if seen_running or elapsed > START_GRACE:
                     self._latch(f"{what} ended {dp * 1000:.1f} mm / {math.degrees(dr):.1f} deg from its target")
             if elapsed > timeout:
