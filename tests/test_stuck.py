@@ -176,3 +176,20 @@ def test_stuck_action_continue_records_it_and_goes_on(real_daemon):
     assert len(c.store.action_log()) == 9   # 11 cycles, two of them declared the cell stuck
     events = [e for e in c.store.events() if e["kind"] == "stuck"]
     assert len(events) == 2 and all("continuing" in e["message"] for e in events)
+
+
+def test_a_cycle_is_in_flight_until_the_gate_has_counted_it(real_daemon):
+    """``flgctl status`` saying no cycle is in flight must agree with the gate's counts in the same status."""
+    c = real_daemon()
+    assert c.gate is not None
+    seen = []
+    counted = c.learning.after_cycle
+
+    def after_cycle(record, runner):
+        seen.append(c.cycle_in_flight)
+        return counted(record, runner)
+
+    c.learning.after_cycle = after_cycle
+    c.handle(Request("start"))
+    c._one_cycle()
+    assert seen == [True] and c.cycle_in_flight is False

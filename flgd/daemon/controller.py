@@ -269,35 +269,15 @@ class Controller:
         self.record_event("learner", f"learner was not running ({why}): started again")
 
     def _one_cycle(self) -> None:
-        assert self.runner is not None
+        # in flight until the gate has counted the cycle: a status that says no cycle is in flight agrees with
+        # every count in it (a refill wait afterwards is not a cycle in flight)
         self.cycle_in_flight = True
         try:
-            record = self.runner.run_once()
-        except CellFault as exc:
-            self.fault(f"cell fault: {exc}")
-            return
-        except StoreError as exc:
-            self.fault(str(exc))
-            return
-        except Exception as exc:  # a bug must stop the arm, not kill the service
-            log.exception("cycle failed")
-            self.fault(f"internal error in the cycle: {type(exc).__name__}: {exc}")
-            return
+            record = self._run_and_judge()
         finally:
             self.cycle_in_flight = False
-        self.last_record = record
-        self._watch_calibration()
-        if self.gate is not None:
-            from flgd.learning.policy_file import PolicyFileError
-            try:
-                self.learning.after_cycle(record, self.runner)  # paced: this cycle's hand-over is taken now
-            except (StoreError, OSError, PolicyFileError) as exc:
-                self.fault(f"the gate could not record its decision: {exc}")
-                return
-            except Exception as exc:  # a bug must stop the arm, not kill the service
-                log.exception("the gate failed")
-                self.fault(f"internal error in the gate: {type(exc).__name__}: {exc}")
-                return
+        if record is None:
+            return
         if record.outcome == CycleOutcome.EMPTY and record.refill_needed:
             self._wait_for_refill()
         elif record.outcome == CycleOutcome.EMPTY:
@@ -308,6 +288,36 @@ class Controller:
             self._on_stuck(record)
         self.notifier.status(self.status_text())
         trim_heap()  # what the cycle and the learner freed goes back to the system (flgd/memory.py)
+
+    def _run_and_judge(self) -> CycleRecord | None:
+        """One cycle and the gate's record of it; None when it ended in a fault (latched here)."""
+        assert self.runner is not None
+        try:
+            record = self.runner.run_once()
+        except CellFault as exc:
+            self.fault(f"cell fault: {exc}")
+            return None
+        except StoreError as exc:
+            self.fault(str(exc))
+            return None
+        except Exception as exc:  # a bug must stop the arm, not kill the service
+            log.exception("cycle failed")
+            self.fault(f"internal error in the cycle: {type(exc).__name__}: {exc}")
+            return None
+        self.last_record = record
+        self._watch_calibration()
+        if self.gate is not None:
+            from flgd.learning.policy_file import PolicyFileError
+            try:
+                self.learning.after_cycle(record, self.runner)  # paced: this cycle's hand-over is taken now
+            except (StoreError, OSError, PolicyFileError) as exc:
+                self.fault(f"the gate could not record its decision: {exc}")
+                return None
+            except Exception as exc:  # a bug must stop the arm, not kill the service
+                log.exception("the gate failed")
+                self.fault(f"internal error in the gate: {type(exc).__name__}: {exc}")
+                return None
+        return record
 
     def _on_stuck(self, record: CycleRecord) -> None:
         """The agent gave up on this scene: say so (event, status, metric), and on a cell that cannot re-lay
