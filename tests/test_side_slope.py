@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import math
 
 import numpy as np
@@ -13,17 +12,14 @@ from flgd.config import CellConfig
 from flgd.learning.agent import Agent
 from flgd.learning.networks import build_network
 from flgd.side_slope import SIDE_RISE, side_tapers, steep_sides
+from tests.test_finger_clearance import config as clearance_config
 
 N, R, RES, OPEN, DEPTH, FLOOR = 224, 16, 0.002, 0.085, 0.03, 0.004
 ALONG_X, ALONG_Y = 0, 4      # rotation indices closing along x (columns) and along y (rows)
 
 
 def config(limit: float, **exploration) -> CellConfig:
-    cfg = CellConfig()
-    ex = dict(side_taper=limit, epsilon_start=0.0, epsilon_end=0.0, curriculum_steps=0)
-    ex.update(exploration)
-    return dataclasses.replace(cfg, exploration=dataclasses.replace(cfg.exploration, **ex),
-                               learning=dataclasses.replace(cfg.learning, device="cpu"))
+    return clearance_config(exploration.pop("finger_clearance", 0.0), side_taper=limit, **exploration)
 
 
 def prism(h: np.ndarray, row: int, col: int) -> None:
