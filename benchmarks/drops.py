@@ -19,9 +19,14 @@ import platform
 import sys
 from collections import Counter
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from flgd.config import CellConfig
+    from flgd.perception import Heightmaps
+    from flgd.plans import Plan
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_CONFIG = REPO / "cell_config" / "sim.yaml"
@@ -56,7 +61,7 @@ class DropWatch:
         self._step = 0
         self._depth = 0
         self._plan = ""
-        self._heightmaps: Any = None
+        self._heightmaps: Heightmaps | None = None
         self._tapers: list[float] | None = None
         self.grasp_tapers: list[list[float]] = []   # every grasp's, in order; a record's "grasp" indexes it
 
@@ -71,7 +76,7 @@ class DropWatch:
         originals["frame_heightmaps"] = flgd.cycle.frame_heightmaps
         watch = self
 
-        def frame_heightmaps(*args: Any, **kw: Any) -> Any:
+        def frame_heightmaps(*args: Any, **kw: Any) -> Heightmaps:
             watch._heightmaps = originals["frame_heightmaps"](*args, **kw)   # what the next decision sees
             return watch._heightmaps
 
@@ -123,7 +128,7 @@ class DropWatch:
         for name, method in originals.items():
             setattr(arm_class, name, method)
 
-    def _grasp_tapers(self, config: Any, plan: Any) -> list[float] | None:
+    def _grasp_tapers(self, config: CellConfig, plan: Plan) -> list[float] | None:
         """The sides' tapers (mm, ``flgd.side_slope``) where a grasp plan's pads meet the object, on the heightmap
         it was decided on; None for other plans."""
         from flgd.perception import base_to_pixel
