@@ -375,10 +375,12 @@ class CycleRunner(DecidingAhead):
         after: Heightmaps | None = None   # the picture the action is judged on
         provisional = None   # the agent before the outcome measured at home was recorded (decided ahead on it)
         thought: Thought | None = None   # made while the arm carried the pick home
+        placed: ExecutionResult | None = None   # the place, run on from the grasp plan while the thought went on
+        park = False   # home after that place: the thought found nothing left to pick
         try:
             with timer.phase("execute"):
                 if action.primitive == "grasp" and self.decide_while_placing and self.config.robot.capture_on_the_way:
-                    result, thought = self._grasp_and_think(record, action, checked, timer)
+                    result, thought, placed = self._grasp_and_think(record, action, checked, timer)
                 else:
                     result = self._execute(checked)
                 on_cell_clock(record, result)
@@ -390,7 +392,7 @@ class CycleRunner(DecidingAhead):
                     return self._stopped(record, result.failure or "after execution", finish, timer)
                 held = self._held(action, result)
                 unstable = unstable_failure(result)
-            if held and not unstable and self.decide_while_placing and thought is None:
+            if held and not unstable and self.decide_while_placing and thought is None and placed is None:
                 after = self._capture_at_home(timer)
             with timer.phase("execute"):
                 if not unstable and action.primitive == "grasp":
@@ -403,17 +405,23 @@ class CycleRunner(DecidingAhead):
                         elif not done:
                             self._ahead = Ahead(after, thought.decision, thought.stuck, thought.seconds,
                                                  thought.hidden)
-                        release = plan_release(True, self.config, home=done, carry_yaw=self._wrist_yaw)
-                        try:
-                            released = on_cell_clock(record, self._run_checked(release, "release"))
-                        except BaseException:   # a fault on the way to the place: no outcome, take it back
-                            if provisional is not None:
-                                self.agent.restore_outcome_state(provisional)
-                            provisional, self._ahead = None, None
-                            raise
+                        if placed is None:
+                            release = plan_release(True, self.config, home=done, carry_yaw=self._wrist_yaw)
+                            try:
+                                placed = self._run_checked(release, "release")
+                            except BaseException:   # a fault on the way to the place: no outcome, take it back
+                                if provisional is not None:
+                                    self.agent.restore_outcome_state(provisional)
+                                provisional, self._ahead = None, None
+                                raise
+                        else:   # placed from the carry, staying there: with nothing left, the arm goes home after
+                            park = done
+                        released = on_cell_clock(record, placed)
                         if provisional is not None and not released.completed:   # no outcome: take it back
                             self.agent.restore_outcome_state(provisional)
                             provisional, self._ahead = None, None
+                    elif placed is not None:   # placed while a thought failed: the next picture is taken there
+                        released = on_cell_clock(record, placed)
                     elif after is not None:
                         released, provisional = self._place_and_decide(record, action, after, timer)
                         if provisional is not None and not released.completed:   # no outcome: take it back
@@ -435,13 +443,14 @@ class CycleRunner(DecidingAhead):
                             if provisional is not None:   # decided on "held": take it back, as if it had waited
                                 self.agent.restore_outcome_state(provisional)
                                 provisional, self._ahead = None, None
-                if not unstable and not result.completed:
+                if not unstable and (not result.completed or park):
                     home = on_cell_clock(record, self._run_checked(plan_home(self.config), "home"))
                     if was_stopped(home):
                         return self._stopped(record, home.failure, finish, timer)
                     unstable = unstable_failure(home)
                     if not home.completed and not unstable:
-                        raise CellFault(f"could not return home after a failed {record.kind}: {home.failure}")
+                        after_what = "the place" if park else f"a failed {record.kind}"
+                        raise CellFault(f"could not return home after {after_what}: {home.failure}")
         except CellFault as exc:
             record.outcome = CycleOutcome.FAULT
             record.failure = str(exc)

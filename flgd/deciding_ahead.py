@@ -17,7 +17,7 @@ import queue
 import threading
 import time
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, Protocol
+from typing import TYPE_CHECKING, Any, Callable, Protocol
 
 import numpy as np
 
@@ -28,7 +28,7 @@ from flgd.config import CellConfig
 from flgd.cycle_parts import CycleAgent
 from flgd.cycle_record import CycleRecord, PhaseTimer, on_cell_clock, unstable_failure
 from flgd.perception import Heightmaps
-from flgd.plans import plan_release
+from flgd.plans import Plan, plan_release
 from flgd.safety import CheckedPlan, PlanRefused, check_plan
 
 if TYPE_CHECKING:
@@ -83,11 +83,13 @@ class _Cycle(Protocol):
     def perceive(self, timer: PhaseTimer) -> Heightmaps: ...
     def _heightmaps(self, frame: Frame, timer: PhaseTimer) -> Heightmaps: ...
     def _execute(self, checked: CheckedPlan, on_frame: FrameOnTheWay | None = None) -> ExecutionResult: ...
+    def _run_checked(self, plan: Plan, what: str) -> ExecutionResult: ...
     def _decide(self, state: Heightmaps) -> tuple[Decision | None, str]: ...
     def wait_for_learner(self) -> None: ...
     def _empty(self, hm: Heightmaps) -> bool: ...
     def _nothing_to_grasp(self, hm: Heightmaps) -> bool: ...
-    def _think(self, record: CycleRecord, action: Action, frame: Frame, timer: PhaseTimer) -> Thought | None: ...
+    def _think(self, record: CycleRecord, action: Action, frame: Frame, timer: PhaseTimer,
+               perceived: Callable[[], None] = ...) -> Thought | None: ...
     def _held(self, action: Action, result: ExecutionResult) -> bool: ...
 
 
@@ -168,20 +170,34 @@ class DecidingAhead:
         return released, provisional
 
     def _grasp_and_think(self: _Cycle, record: CycleRecord, action: Action, checked: CheckedPlan,
-                         timer: PhaseTimer) -> tuple[ExecutionResult, Thought | None]:
-        """Run the grasp plan in a thread of its own and think while it carries the pick home.
+                         timer: PhaseTimer) -> tuple[ExecutionResult, Thought | None, ExecutionResult | None]:
+        """Run the grasp plan in a thread of its own and think while it carries the pick home and on to the place.
 
         A cell that can (``Cell.execute_and_capture``) hands over a picture taken on the way home once the arm is
-        out of view; it is perceived and the next action decided on it while the arm moves on.  The thought is
-        returned only when the plan ended with the object held (the width at home decides); otherwise the outcome
-        recorded ahead is taken back and the cycle goes on as without it.  The arm waits only for the part of the
-        thought that the rest of its motion did not cover: the controller's time, not the cell's."""
+        out of view; it is perceived and the next action decided on it while the arm moves on.  Once such a picture
+        was handed over and the width at home says held, the same thread goes on to the place (``plan_release``,
+        staying there) without waiting for the thought, which needs nothing of that move: the third result, None
+        when it did not run.  The thought is returned only when the plan ended with the object held; otherwise the
+        outcome recorded ahead is taken back and the cycle goes on as without it (as it is when anything raised).
+        The arm waits only for the part of the thought that its motion, home and on to the place, did not cover:
+        the controller's time, not the cell's."""
         frames: queue.Queue[tuple[Frame, float] | None] = queue.Queue()
         outcome: dict[str, Any] = {}
+        handed_over, seen, judged = threading.Event(), threading.Event(), threading.Event()
+
+        def hand_over(frame: Frame, at: float) -> None:
+            handed_over.set()
+            frames.put((frame, at))
 
         def carry() -> None:
             try:
-                outcome["result"] = self._execute(checked, on_frame=lambda frame, at: frames.put((frame, at)))
+                result = outcome["result"] = self._execute(checked, on_frame=hand_over)
+                if handed_over.is_set():
+                    judged.wait()   # the picture perceived (seen) or not: a refused one is taken at home instead
+                if (seen.is_set() and self._held(action, result) and not unstable_failure(result)
+                        and not self._stop.is_set()):
+                    outcome["placed"] = self._run_checked(
+                        plan_release(True, self.config, home=False, carry_yaw=self._wrist_yaw), "release")
             except BaseException as exc:   # re-raised in the cycle's thread once the thought is over
                 outcome["error"] = exc
             finally:
@@ -196,16 +212,24 @@ class DecidingAhead:
             item = frames.get()
             if item is not None and not self._stop.is_set():
                 arrived = time.perf_counter()
-                thought, at = self._think(record, action, item[0], timer), item[1]
+
+                def perceived() -> None:
+                    seen.set()
+                    judged.set()
+
+                thought, at = self._think(record, action, item[0], timer, perceived), item[1]
                 busy = time.perf_counter() - arrived
         except Exception as exc:   # the agent's or the perception's: the arm carries on; decided again at home
             log.error("deciding on the way home failed: %r; the cycle goes on as without it", exc)
         except BaseException as exc:
             failed = exc
         finally:
+            judged.set()
             mover.join()
         result: ExecutionResult | None = outcome.get("result")
-        if result is None or failed is not None or not self._held(action, result) or unstable_failure(result):
+        placed: ExecutionResult | None = outcome.get("placed")
+        if (result is None or failed is not None or "error" in outcome or not self._held(action, result)
+                or unstable_failure(result)):
             if thought is not None and thought.provisional is not None:
                 self.agent.restore_outcome_state(thought.provisional)
             thought = None
@@ -216,16 +240,19 @@ class DecidingAhead:
             assert isinstance(first, BaseException)
             raise first
         assert result is not None
-        remaining = max(0.0, result.duration - at)   # of the carry, on the cell's clock, after the frame was there
+        # of the carry and the place, on the cell's clock, after the frame was there
+        remaining = max(0.0, result.duration + (placed.duration if placed is not None else 0.0) - at)
         timer.discount("execute", max(0.0, busy - remaining))
         if thought is not None and not thought.done:
             before = busy - thought.seconds
             thought = dataclasses.replace(thought, hidden=min(thought.seconds, max(0.0, remaining - before)))
-        return result, thought
+        return result, thought, placed
 
-    def _think(self: _Cycle, record: CycleRecord, action: Action, frame: Frame, timer: PhaseTimer) -> Thought | None:
+    def _think(self: _Cycle, record: CycleRecord, action: Action, frame: Frame, timer: PhaseTimer,
+               perceived: Callable[[], None] = lambda: None) -> Thought | None:
         """Perceive a frame taken on the way home and decide on it, the pick recorded as held first; None when the
-        frame does not show where the tool was or is refused (the tool in view)."""
+        frame does not show where the tool was or is refused (the tool in view).  ``perceived`` is called once the
+        picture is accepted, before the decision."""
         if frame.tool_position is None:
             return None
         try:
@@ -233,6 +260,7 @@ class DecidingAhead:
         except ToolInView as exc:
             log.warning("a picture taken on the way home: %s", exc)
             return None
+        perceived()
         if self._nothing_to_grasp(state):
             return Thought(state, done=True)
         provisional = self.agent.outcome_state()

@@ -35,10 +35,14 @@ class _Scripted(ScriptedAgentBase):
         super().__init__()
         self.actions = actions
         self.decisions: list[tuple[float, object]] = []   # (when, heightmaps decided on)
+        self.decided: list[float] = []   # when each decision was over
         self.taken = 0
+        self.thinking = 0.0   # seconds each decision takes
 
     def decide(self, heightmaps, step):
         self.decisions.append((time.perf_counter(), heightmaps))
+        time.sleep(self.thinking)
+        self.decided.append(time.perf_counter())
         action = self.actions[min(self.taken, len(self.actions) - 1)]
         self.taken += 1
         return scripted_decision(action, heightmaps)
@@ -125,6 +129,7 @@ class _OnTheWay(_Watched):
 
 def test_the_next_decision_is_made_on_a_picture_taken_on_the_way_home_once_the_arm_is_out_of_view(tmp_path):
     cfg, cell, agent = _cell_and_agent(tmp_path, _OnTheWay)
+    agent.thinking = 1.0   # longer than the rest of the carry home: the arm goes on to the place meanwhile
     store = Store(tmp_path)
     try:
         runner = CycleRunner(cfg, cell, agent, store=store)
@@ -134,9 +139,12 @@ def test_the_next_decision_is_made_on_a_picture_taken_on_the_way_home_once_the_a
         assert tool_in_view(taken_at, cfg) == ""
         # taken on the way, short of home: the carry went on after it
         assert math.dist(taken_at, cfg.robot.home.position) > 0.02
-        place = [plan for plan in cell.plans if plan[0] == "place"]
+        grasp, place = (plan for plan in cell.plans if plan[0] in ("grasp", "place"))
+        assert place[0] == "place" and "home" not in place[1]   # the arm stays at the place
         decided_at, decided_on = agent.decisions[1]
-        assert decided_at < place[0][2] and decided_on is runner.current   # decided before the place began
+        assert grasp[2] < decided_at and decided_on is runner.current   # decided on the picture taken on the way
+        # ... and the place did not wait for the decision to be over
+        assert place[2] < agent.decided[1]
         second = runner.run_once()
         assert len(agent.decisions) == 3 and second.success is True
         assert second.decide_hidden is not None and second.decide_hidden > 0.0
@@ -180,6 +188,25 @@ def test_without_capture_on_the_way_the_picture_is_taken_at_home(tmp_path):
         assert np.allclose(runner.last_frame.tool_position, cfg.robot.home.position, atol=0.01)
         place = [plan for plan in cell.plans if plan[0] == "place"]
         assert place[0][2] < agent.decisions[1][0] < place[0][3]   # decided while the arm placed
+    finally:
+        cell.close()
+
+
+def test_the_last_pick_placed_from_the_carry_parks_the_arm_at_home(tmp_path):
+    """The picture on the way shows nothing left: the place, run on from the carry, stays there, and the arm goes
+    home after it."""
+    cfg = dataclasses.replace(make_config(objects=0, depth_noise=False, domain_randomization=False),
+                              state_dir=str(tmp_path))
+    cfg = dataclasses.replace(cfg, robot=dataclasses.replace(cfg.robot, capture_on_the_way=True))
+    cell = _OnTheWay(cfg)
+    cube_at(cell, -0.50, 0.05, size=(0.04, 0.04, 0.04))
+    row, col = base_to_pixel(-0.50, 0.05, cfg.workspace)
+    agent = _Scripted([Action("grasp", int(row), int(col), 0, 16)])
+    try:
+        runner = CycleRunner(cfg, cell, agent)
+        assert runner.run_once().success is True and agent.outcomes == [True] and runner._ahead is None
+        assert [plan[0] for plan in cell.plans][-2:] == ["place", "home"]
+        assert np.allclose(cell._tcp()[:3, 3], cfg.robot.home.position, atol=0.01)
     finally:
         cell.close()
 
@@ -462,10 +489,8 @@ class _FailsSecondTime(_Scripted):
         return super().decide(heightmaps, step)
 
 
-@pytest.mark.parametrize("cls", [_Watched, _OnTheWay])
-def test_a_decision_that_fails_while_the_arm_places_takes_the_provisional_outcome_back(tmp_path, cls):
-    """On the way home too: the failure is logged, the arm goes on, and the decision made again at home fails."""
-    cfg, cell, scripted = _cell_and_agent(tmp_path, cls)
+def test_a_decision_that_fails_while_the_arm_places_takes_the_provisional_outcome_back(tmp_path):
+    cfg, cell, scripted = _cell_and_agent(tmp_path)
     agent = _FailsSecondTime(scripted.actions)
     try:
         runner = CycleRunner(cfg, cell, agent)
@@ -473,6 +498,23 @@ def test_a_decision_that_fails_while_the_arm_places_takes_the_provisional_outcom
             runner.run_once()
         assert [plan[0] for plan in cell.plans] == ["home", "grasp", "place"]   # the arm placed the pick
         assert agent.outcomes == [] and runner._ahead is None
+    finally:
+        cell.close()
+
+
+def test_a_decision_that_fails_on_the_way_home_is_taken_back_and_made_again_at_the_place(tmp_path):
+    """The failure is logged and the arm goes on to the place; the pick's outcome is recorded once, as without
+    deciding ahead, the next picture is taken at the place, and the decision made on it fails again."""
+    cfg, cell, scripted = _cell_and_agent(tmp_path, _OnTheWay)
+    agent = _FailsSecondTime(scripted.actions)
+    try:
+        runner = CycleRunner(cfg, cell, agent)
+        assert runner.run_once().success is True
+        assert [plan[0] for plan in cell.plans] == ["home", "grasp", "place"]   # the arm placed the pick
+        assert agent.outcomes == [True] and runner._ahead is None
+        assert np.allclose(runner.last_frame.tool_position, cfg.robot.place.position, atol=0.01)
+        with pytest.raises(RuntimeError, match="injected"):
+            runner.run_once()
     finally:
         cell.close()
 
