@@ -389,6 +389,10 @@ class CycleRunner(DecidingAhead):
                 if was_stopped(result) or self._stop.is_set():
                     if thought is not None and thought.provisional is not None:
                         self.agent.restore_outcome_state(thought.provisional)
+                    if placed is not None:   # the carry went on to the place: its time, and its stop if it was that
+                        on_cell_clock(record, placed)
+                        if was_stopped(placed):
+                            return self._stopped(record, placed.failure, finish, timer)
                     return self._stopped(record, result.failure or "after execution", finish, timer)
                 held = self._held(action, result)
                 unstable = unstable_failure(result)
@@ -405,23 +409,14 @@ class CycleRunner(DecidingAhead):
                         elif not done:
                             self._ahead = Ahead(after, thought.decision, thought.stuck, thought.seconds,
                                                  thought.hidden)
-                        if placed is None:
-                            release = plan_release(True, self.config, home=done, carry_yaw=self._wrist_yaw)
-                            try:
-                                placed = self._run_checked(release, "release")
-                            except BaseException:   # a fault on the way to the place: no outcome, take it back
-                                if provisional is not None:
-                                    self.agent.restore_outcome_state(provisional)
-                                provisional, self._ahead = None, None
-                                raise
-                        else:   # placed from the carry, staying there: with nothing left, the arm goes home after
-                            park = done
+                        park = done   # the carry placed it and stays there: with nothing left, home after
+                    if placed is not None:   # (without a thought: it failed; the next picture is taken there)
+                        if thought is None:
+                            park = self.cell.workspace_empty_hint() is True
                         released = on_cell_clock(record, placed)
                         if provisional is not None and not released.completed:   # no outcome: take it back
                             self.agent.restore_outcome_state(provisional)
                             provisional, self._ahead = None, None
-                    elif placed is not None:   # placed while a thought failed: the next picture is taken there
-                        released = on_cell_clock(record, placed)
                     elif after is not None:
                         released, provisional = self._place_and_decide(record, action, after, timer)
                         if provisional is not None and not released.completed:   # no outcome: take it back

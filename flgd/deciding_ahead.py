@@ -56,16 +56,16 @@ class Ahead:
 
 @dataclass(frozen=True)
 class Thought:
-    """What was thought while the arm carried a pick home: the picture taken on the way (``state``) and, unless it
-    shows nothing left to grasp (``done``), the next decision, made after the pick's outcome was recorded as held
-    (``provisional``: the agent before that, to take it back)."""
+    """What was thought while the arm carried a pick home and placed it: the picture taken on the way (``state``)
+    and, unless it shows nothing left to grasp (``done``), the next decision, made after the pick's outcome was
+    recorded as held (``provisional``: the agent before that, to take it back)."""
 
     state: Heightmaps
     done: bool
     decision: Decision | None = None
     stuck: str = ""
     seconds: float = 0.0   # what deciding took
-    hidden: float = 0.0    # the part of it the carry covered
+    hidden: float = 0.0    # the part of it the carry and the place covered
     provisional: object | None = None
 
 
@@ -174,26 +174,30 @@ class DecidingAhead:
         """Run the grasp plan in a thread of its own and think while it carries the pick home and on to the place.
 
         A cell that can (``Cell.execute_and_capture``) hands over a picture taken on the way home once the arm is
-        out of view; it is perceived and the next action decided on it while the arm moves on.  Once such a picture
-        was handed over and the width at home says held, the same thread goes on to the place (``plan_release``,
-        staying there) without waiting for the thought, which needs nothing of that move: the third result, None
-        when it did not run.  The thought is returned only when the plan ended with the object held; otherwise the
-        outcome recorded ahead is taken back and the cycle goes on as without it (as it is when anything raised).
-        The arm waits only for the part of the thought that its motion, home and on to the place, did not cover:
-        the controller's time, not the cell's."""
+        out of view; it is perceived and the next action decided on it while the arm moves on.  Once the picture
+        is accepted and the width at home says held (and no stop was asked for), the same thread goes on to the
+        place (``plan_release``, staying there) without waiting for the decision, which needs nothing of that
+        move: the third result, None when it did not run.  The thought is returned only when the pick was held and
+        placed that way; otherwise the outcome recorded ahead is taken back (and the cycle goes on as without
+        it, or re-raises what was raised).  The arm waits only for what its motion, home and on to the place, did
+        not cover: the controller's time, not the cell's."""
         frames: queue.Queue[tuple[Frame, float] | None] = queue.Queue()
         outcome: dict[str, Any] = {}
         handed_over, seen, judged = threading.Event(), threading.Event(), threading.Event()
+        stood = 0.0   # wall seconds the arm stood at home for the picture to be accepted or refused
 
         def hand_over(frame: Frame, at: float) -> None:
             handed_over.set()
             frames.put((frame, at))
 
         def carry() -> None:
+            nonlocal stood
             try:
                 result = outcome["result"] = self._execute(checked, on_frame=hand_over)
-                if handed_over.is_set():
-                    judged.wait()   # the picture perceived (seen) or not: a refused one is taken at home instead
+                if handed_over.is_set():   # a refused picture is taken again where the arm stands now
+                    waiting_from = time.perf_counter()
+                    judged.wait()
+                    stood = time.perf_counter() - waiting_from
                 if (seen.is_set() and self._held(action, result) and not unstable_failure(result)
                         and not self._stop.is_set()):
                     outcome["placed"] = self._run_checked(
@@ -219,7 +223,7 @@ class DecidingAhead:
 
                 thought, at = self._think(record, action, item[0], timer, perceived), item[1]
                 busy = time.perf_counter() - arrived
-        except Exception as exc:   # the agent's or the perception's: the arm carries on; decided again at home
+        except Exception as exc:   # the agent's or the perception's: the arm goes on; decided again at the place
             log.error("deciding on the way home failed: %r; the cycle goes on as without it", exc)
         except BaseException as exc:
             failed = exc
@@ -228,8 +232,8 @@ class DecidingAhead:
             mover.join()
         result: ExecutionResult | None = outcome.get("result")
         placed: ExecutionResult | None = outcome.get("placed")
-        if (result is None or failed is not None or "error" in outcome or not self._held(action, result)
-                or unstable_failure(result)):
+        if (result is None or placed is None or failed is not None or "error" in outcome
+                or not self._held(action, result) or unstable_failure(result)):
             if thought is not None and thought.provisional is not None:
                 self.agent.restore_outcome_state(thought.provisional)
             thought = None
@@ -242,7 +246,7 @@ class DecidingAhead:
         assert result is not None
         # of the carry and the place, on the cell's clock, after the frame was there
         remaining = max(0.0, result.duration + (placed.duration if placed is not None else 0.0) - at)
-        timer.discount("execute", max(0.0, busy - remaining))
+        timer.discount("execute", max(stood, busy - remaining))
         if thought is not None and not thought.done:
             before = busy - thought.seconds
             thought = dataclasses.replace(thought, hidden=min(thought.seconds, max(0.0, remaining - before)))

@@ -141,8 +141,7 @@ def test_the_next_decision_is_made_on_a_picture_taken_on_the_way_home_once_the_a
         assert math.dist(taken_at, cfg.robot.home.position) > 0.02
         grasp, place = (plan for plan in cell.plans if plan[0] in ("grasp", "place"))
         assert place[0] == "place" and "home" not in place[1]   # the arm stays at the place
-        decided_at, decided_on = agent.decisions[1]
-        assert grasp[2] < decided_at and decided_on is runner.current   # decided on the picture taken on the way
+        assert agent.decisions[1][1] is runner.current   # decided on the picture taken on the way
         # ... and the place did not wait for the decision to be over
         assert place[2] < agent.decided[1]
         second = runner.run_once()
@@ -207,6 +206,42 @@ def test_the_last_pick_placed_from_the_carry_parks_the_arm_at_home(tmp_path):
         assert runner.run_once().success is True and agent.outcomes == [True] and runner._ahead is None
         assert [plan[0] for plan in cell.plans][-2:] == ["place", "home"]
         assert np.allclose(cell._tcp()[:3, 3], cfg.robot.home.position, atol=0.01)
+    finally:
+        cell.close()
+
+
+class _StopOnceThePickIsPlaced(_OnTheWay):
+    """Asks the cycle to stop as soon as a place has ended (while the decision made on the way still runs)."""
+
+    runner: CycleRunner | None = None
+
+    def __init__(self, cfg):
+        super().__init__(cfg)
+        self.durations: dict[str, float] = {}
+
+    def execute(self, plan):
+        result = super().execute(plan)
+        self.durations[plan.plan.primitive] = result.duration
+        if plan.plan.primitive == "place" and self.runner is not None:
+            self.runner.request_stop()
+        return result
+
+    def execute_and_capture(self, plan, on_frame):
+        result = super().execute_and_capture(plan, on_frame)
+        self.durations[plan.plan.primitive] = result.duration
+        return result
+
+
+def test_a_stop_while_the_decision_outlasts_the_place_counts_the_places_time(tmp_path):
+    cfg, cell, agent = _cell_and_agent(tmp_path, _StopOnceThePickIsPlaced)
+    agent.thinking = 1.0
+    try:
+        runner = cell.runner = CycleRunner(cfg, cell, agent)
+        record = runner.run_once()
+        assert record.outcome == "stopped" and agent.outcomes == [] and runner._ahead is None
+        assert [plan[0] for plan in cell.plans] == ["home", "grasp", "place"]
+        assert set(cell.durations) == {"home", "grasp", "place"}   # the arm sent home first, as a new state is
+        assert record.cell_time == pytest.approx(sum(cell.durations.values()))
     finally:
         cell.close()
 
