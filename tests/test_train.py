@@ -134,6 +134,15 @@ def test_cached_next_argmax_and_several_updates_per_action_in_a_real_run(tmp_pat
     assert used["reused"] + used["computed"] <= 8 * 2  # at most one a' per sampled non-terminal transition
 
 
+def _strings(data: object) -> list[str]:
+    """Every string value in a parsed YAML document."""
+    if isinstance(data, dict):
+        return [s for v in data.values() for s in _strings(v)]
+    if isinstance(data, list):
+        return [s for v in data for s in _strings(v)]
+    return [data] if isinstance(data, str) else []
+
+
 def test_the_actor_argmax_recipe_runs_is_carried_compactly_and_resumes_elsewhere(tmp_path):
     """A few actions of the cheaper recipe (a' from the cell's decisions, never recomputed; 3 updates per
     action), then ``flgd.training.carry`` to a small directory that ``flgd train --out`` continues."""
@@ -158,6 +167,11 @@ def test_the_actor_argmax_recipe_runs_is_carried_compactly_and_resumes_elsewhere
         carry_run(out, tmp_path / "carried")
 
     dest = tmp_path / "carried"
+    # its config names files relative to the copy, not the paths of the machine the run started on
+    carried_config = yaml.safe_load((dest / "config.yaml").read_text())
+    assert [v for v in _strings(carried_config) if str(tmp_path) in v or v.startswith("/")] == []
+    assert carried_config["state_dir"] == "."
+    assert load_config(dest / "config.yaml").learning.init_trunk == load_config(CONFIG).learning.init_trunk
     assert train_main(["--out", str(dest), "--steps", "6"]) == 0
     rows = read_rows(dest / "actions.csv")
     assert [int(r["step"]) for r in rows] == list(range(6))

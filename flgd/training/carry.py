@@ -9,11 +9,13 @@ trainer state written with it (target network, Adam moments), and a store with t
 only the newest N transitions (default 300) with their priorities.  ``flgd train --out DEST`` then continues at the
 run's step, update count, weights and optimizer state; what it loses is the older replay, so the continuation is
 not the run it would have been on the first machine (run.json's next segment says where it came from).
+DEST's ``config.yaml`` names its files relative to DEST, so a copy committed beside them names no machine's paths.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import os
 import shutil
 import sqlite3
@@ -21,12 +23,13 @@ import sys
 from dataclasses import dataclass
 from pathlib import Path
 
+from flgd.config import CellConfig, ConfigError, dump_config, load_config
 from flgd.state_dir_lock import StateDirBusy, lock_state_dir
 from flgd.store import DB_NAME, Store
 from flgd.training.run import CONFIG_FILE, CURVE_FILE, LOG_FILE, RUN_FILE
 from flgd.training.state import TRAINER_STATE, load_trainer_state
 
-__all__ = ["CarriedRun", "carry_run", "main"]
+__all__ = ["CarriedRun", "carry_run", "main", "portable_config"]
 
 DEFAULT_REPLAY = 300
 
@@ -48,6 +51,17 @@ def _latest_checkpoint(run_dir: Path) -> Path:
     return ckpts[-1]
 
 
+def portable_config(cfg: CellConfig, dest: Path) -> CellConfig:
+    """``cfg`` (paths absolute, as loaded) with its files relative to ``dest`` and its state directory ``.``:
+    a training run keeps its state in its own directory, whatever the config it started from named."""
+    def rel(path: str) -> str:
+        return os.path.relpath(path, dest) if path and os.path.isabs(path) else path
+    return dataclasses.replace(
+        cfg, state_dir=".", policy=rel(cfg.policy),
+        finetune=dataclasses.replace(cfg.finetune, prior_sample=rel(cfg.finetune.prior_sample)),
+        learning=dataclasses.replace(cfg.learning, init_trunk=rel(cfg.learning.init_trunk)))
+
+
 def carry_run(run_dir: Path, dest: Path, replay: int = DEFAULT_REPLAY) -> CarriedRun:
     """Write the compact copy of ``run_dir`` to ``dest`` (which must not exist or be empty)."""
     if replay < 1:
@@ -57,6 +71,7 @@ def carry_run(run_dir: Path, dest: Path, replay: int = DEFAULT_REPLAY) -> Carrie
             raise FileNotFoundError(f"{run_dir / name}: does not exist; expected a flgd train run directory")
     if dest.exists() and any(dest.iterdir()):
         raise FileExistsError(f"{dest}: exists and is not empty; expected a new directory")
+    config = load_config(run_dir / CONFIG_FILE)  # refuse a copy whose config the resume could not read
     checkpoint = _latest_checkpoint(run_dir)
     updates = int(checkpoint.stem.split("-")[-1])
     state = load_trainer_state(run_dir / TRAINER_STATE)  # refuse a copy that would resume without its optimizer
@@ -71,9 +86,10 @@ def carry_run(run_dir: Path, dest: Path, replay: int = DEFAULT_REPLAY) -> Carrie
     try:
         dest.mkdir(parents=True, exist_ok=True)
         (dest / "checkpoints").mkdir()
-        for name in (RUN_FILE, CONFIG_FILE, LOG_FILE, CURVE_FILE, TRAINER_STATE):
+        for name in (RUN_FILE, LOG_FILE, CURVE_FILE, TRAINER_STATE):
             if (run_dir / name).is_file():
                 shutil.copyfile(run_dir / name, dest / name)
+        (dest / CONFIG_FILE).write_text(dump_config(portable_config(config, dest.resolve())))
         shutil.copyfile(checkpoint, dest / "checkpoints" / checkpoint.name)
         source = sqlite3.connect(run_dir / DB_NAME)
         try:
@@ -111,7 +127,8 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     try:
         carried = carry_run(Path(args.run_dir).resolve(), Path(args.dest), args.replay)
-    except (FileNotFoundError, FileExistsError, RuntimeError, ValueError, OSError, sqlite3.Error) as exc:
+    except (ConfigError, FileNotFoundError, FileExistsError, RuntimeError, ValueError, OSError,
+            sqlite3.Error) as exc:
         print(f"carry: {exc}", file=sys.stderr)
         return 1
     print(f"{carried.dest}: {carried.checkpoint} ({carried.updates} updates), {carried.transitions} transitions, "
