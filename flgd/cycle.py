@@ -431,7 +431,7 @@ class CycleRunner(DecidingAhead):
                     if not released.completed and not unstable:
                         raise CellFault(f"could not release after the grasp: {released.failure}")
                     if held and not unstable:
-                        held, dropped = held_at_place(released, self.config)
+                        held, dropped = held_at_place(released, result, self.config)
                         if dropped:
                             record.failure = dropped
                             after = None   # taken before the drop: the object may have fallen into view since

@@ -14,6 +14,7 @@ from flgd.actions import Action
 from flgd.cell import STOPPED_ON_REQUEST, ExecutionResult
 from flgd.clutter import grasp_reward
 from flgd.config import CellConfig
+from flgd.plans import place_is_home
 
 __all__ = ["CycleOutcome", "CycleRecord", "PhaseTimer", "UNSTABLE_MARK", "on_cell_clock", "held_at_place", "was_stopped", "unstable_failure",
            "float_or_none"]
@@ -96,13 +97,15 @@ def on_cell_clock(record: CycleRecord, result: ExecutionResult) -> ExecutionResu
     return result
 
 
-def held_at_place(released: ExecutionResult, config: CellConfig) -> tuple[bool, str]:
+def held_at_place(released: ExecutionResult, grasped: ExecutionResult, config: CellConfig) -> tuple[bool, str]:
     """Whether the object measured as held at home was still held at the place pose, before the fingers
     opened (the width read at ``flgd.plans.PLACE_CHECK_LABEL``), and if not, the failure text saying so.
 
     Why: the width at home says the object was lifted; only the width at the place says it was picked.  A
-    place plan that reported no width proves nothing held."""
-    width = float(released.widths[-1]) if released.widths else math.nan
+    place plan that reported no width proves nothing held.  With the place at home (``place_is_home``) the
+    grasp plan ``grasped`` read it there, over the bin, and the place plan reads none."""
+    widths = grasped.widths if place_is_home(config) else released.widths
+    width = float(widths[-1]) if widths else math.nan
     if grasp_reward(width, config.gripper) > 0:
         return True, ""
     shown = f"{width * 1000:.1f} mm" if math.isfinite(width) else "no reading"

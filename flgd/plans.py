@@ -17,7 +17,9 @@ Distances (defaults in ``RobotConfig``, all configurable):
   * place (after a grasp measured as held): carry to ``robot.place``, measure the
     width again, open (the arm goes on once ``gripper.release_gap`` is open), go
     home.  Only an object still between the fingers at the place pose was picked:
-    one that slipped out on the way is a failed grasp.
+    one that slipped out on the way is a failed grasp.  With home at the place
+    (``place_is_home``) the width read at home is the width at the place: the
+    place is only the release.
   * push (the point is background): close, descend beside the objects to
     ``push_height`` above the table (guarded: a contact on the way down means the
     heightmap missed something there, and the push backs out and goes home),
@@ -63,6 +65,7 @@ __all__ = [
     "plan_push",
     "plan_shift",
     "plan_release",
+    "place_is_home",
     "plan_home",
     "abort_steps",
     "ABORT_LABEL",
@@ -428,6 +431,17 @@ def plan_action(action: Action, height_map: np.ndarray, config: CellConfig, wris
     return plan_push(x, y, action.angle, config, wrist_yaw)
 
 
+PLACE_IS_HOME_TOLERANCE = 1e-6   # m between the home and the place position that counts as one pose
+
+
+def place_is_home(config: CellConfig) -> bool:
+    """Whether a grasp plan, which ends at home, ends at the place pose: the same position, and the same yaw
+    (with ``robot.carry_at_grasp_yaw`` both keep the grasp's).  Its width read at home is then the place check."""
+    rb = config.robot
+    return (math.dist(rb.home.position, rb.place.position) <= PLACE_IS_HOME_TOLERANCE
+            and (rb.carry_at_grasp_yaw or abs(rb.home.yaw - rb.place.yaw) <= 1e-9))
+
+
 def plan_release(held: bool, config: CellConfig, home: bool = True, carry_yaw: float | None = None) -> Plan:
     """After a grasp: carry a held object to the place pose, read the width there and open; otherwise just open.
 
@@ -435,11 +449,15 @@ def plan_release(held: bool, config: CellConfig, home: bool = True, carry_yaw: f
     slipped out between the home pose and the place was not picked, on any cell.  ``home=False`` leaves the
     arm at the place (out of the camera's view, as home is): the next plan starts from there.  With
     ``robot.carry_at_grasp_yaw`` the place and home poses keep ``carry_yaw``, the wrist yaw the grasp ended at
-    (``end_yaw`` of its plan)."""
+    (``end_yaw`` of its plan).  With the place at home (``place_is_home``) the arm is there already and the
+    grasp's width at home was read over the bin: the fingers just open (``flgd.cycle_record.held_at_place``
+    judges by the grasp's width)."""
     gr, rb = config.gripper, config.robot
     release = GripperCommand(gr.open_width, gr.force, "open", proceed_after=gr.release_gap)
     if not held:
         return Plan("release", (release,))
+    if place_is_home(config):
+        return Plan("place", (release,), target=tuple(rb.place.position))
     place = rb.place
     carry = carry_yaw if rb.carry_at_grasp_yaw and carry_yaw is not None else None
     steps: tuple[Step, ...] = (

@@ -67,6 +67,37 @@ def test_a_block_dropped_on_the_way_to_the_place_is_a_failed_grasp_in_the_record
         cell.close()
 
 
+class _PlansSeen(SimCell):
+    """The simulated cell, keeping every plan it ran."""
+
+    def __init__(self, config):
+        super().__init__(config)
+        self.plans = []
+
+    def execute(self, plan):
+        self.plans.append(plan.plan)
+        return super().execute(plan)
+
+
+def test_with_home_at_the_place_a_pick_is_judged_by_its_width_at_home_and_the_place_only_opens(tmp_path):
+    base = make_config(objects=0, depth_noise=False, domain_randomization=False)
+    cfg = dataclasses.replace(base, state_dir=str(tmp_path),
+                              robot=dataclasses.replace(base.robot, home=base.robot.place))
+    cell = _PlansSeen(cfg)
+    store = Store(tmp_path)
+    try:
+        cube_at(cell, -0.50, 0.05, size=(0.04, 0.04, 0.04))
+        row, col = base_to_pixel(-0.50, 0.05, cfg.workspace)
+        record = CycleRunner(cfg, cell, _GraspAt(Action("grasp", int(row), int(col), 0, 16)), store=store).run_once()
+        assert record.outcome == "executed" and record.success is True and record.failure == ""
+        assert cell.stats["grasped_out"] == 1 and cell.stats["dropped"] == 0
+        place = [plan for plan in cell.plans if plan.primitive == "place"]
+        assert len(place) == 1 and [type(s).__name__ for s in place[0].steps] == ["GripperCommand"]
+    finally:
+        store.close()
+        cell.close()
+
+
 class _TimedSimCell(SimCell):
     """The simulated cell, remembering every plan's duration (simulated time) as it hands it back."""
 

@@ -12,9 +12,11 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from flgd.actions import Action
+from flgd.cell import ExecutionResult
 from flgd.config import load_config
 from flgd.config.loader import config_from_dict, config_to_dict
 from flgd.config.messages import ConfigError
+from flgd.cycle_record import held_at_place
 from flgd.geometry import ToolPose, top_down_yaw
 from flgd.perception import base_to_pixel, pixel_to_base
 from flgd.plans import PLACE_CHECK_LABEL, GripperCommand, MeasureWidth, MoveL, Plan, blended_runs, end_yaw, \
@@ -350,6 +352,25 @@ def test_release_places_a_held_object_and_only_opens_otherwise() -> None:
     assert [s.proceed_after for s in opens] == [0.01, 0.01]
     grasp = plan_grasp(-0.5, 0.05, 0.05, 0.0, gap)
     assert all(s.proceed_after == 0.0 for s in grasp.steps if isinstance(s, GripperCommand))
+
+
+def test_with_home_at_the_place_a_pick_is_judged_by_its_width_at_home_and_the_place_only_opens() -> None:
+    at_place = dataclasses.replace(CFG, robot=dataclasses.replace(CFG.robot, home=CFG.robot.place))
+    release = GripperCommand(CFG.gripper.open_width, CFG.gripper.force, "open")
+    assert plan_release(True, at_place).steps == (release,)            # no move there, no second reading
+    assert plan_release(True, at_place, home=False).steps == (release,)
+    check_plan(plan_release(True, at_place), at_place)
+    opened = ExecutionResult(True, [])
+    assert held_at_place(opened, ExecutionResult(True, [0.03]), at_place) == (True, "")
+    held, why = held_at_place(opened, ExecutionResult(True, [0.0]), at_place)
+    assert not held and "dropped" in why
+    # another yaw at the place is a move there (unless the wrist carries the grasp's yaw to both)
+    turned = dataclasses.replace(at_place.robot.place, yaw=0.3)
+    other = dataclasses.replace(at_place, robot=dataclasses.replace(at_place.robot, place=turned))
+    assert [s.label for s in plan_release(True, other).steps] == ["place", PLACE_CHECK_LABEL, "open", "home"]
+    assert held_at_place(opened, ExecutionResult(True, [0.03]), other)[0] is False   # read at the place or nothing
+    carried = dataclasses.replace(other, robot=dataclasses.replace(other.robot, carry_at_grasp_yaw=True))
+    assert plan_release(True, carried, carry_yaw=0.5).steps == (release,)
 
 
 @pytest.mark.parametrize("mutate,needle", [

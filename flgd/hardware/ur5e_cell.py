@@ -43,7 +43,8 @@ log = logging.getLogger(__name__)
 
 # A MeasureWidth step reads until two readings WIDTH_SETTLE_INTERVAL apart differ by at most WIDTH_STEADY: fingers
 # slower than 5 mm/s, an eighth of the RG2's slowest gripping speed (38 mm/s), have stopped.  A pick is judged
-# again at the place (``flgd.plans.PLACE_CHECK_LABEL``), so a slip that starts after this reading still counts.
+# again at the place (``flgd.plans.PLACE_CHECK_LABEL``), so a slip that starts after this reading still counts;
+# with home at the place (``flgd.plans.place_is_home``) an object that slips after it falls where it is placed.
 WIDTH_SETTLE_INTERVAL = 0.04  # s between width readings at a MeasureWidth step
 WIDTH_STEADY = 0.0002        # m: two readings this close mean the fingers have stopped
 WIDTH_SETTLE_TIMEOUT = 1.0   # s: after this the last reading counts
