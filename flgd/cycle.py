@@ -22,9 +22,9 @@ first sends the arm home (``plan_home``, checked like any plan), since it may
 stand in the camera's view -- a real arm halted mid-motion does.
 
 A grasp succeeded (reward 1) only when the width says an object is between the fingers both at the
-home pose after the lift and at the place pose before they open (``plan_release``): an object dropped
-on the way is a failed grasp in the record, the stored transition and every report, and the record's
-``failure`` says it was dropped.
+home pose after the lift and at the place pose before they open (``plan_release``; with home at the place,
+``place_is_home``, the reading at home is both): an object dropped on the way is a failed grasp in the record,
+the stored transition and every report, and the record's ``failure`` says it was dropped.
 
 Outcomes of a cycle (``CycleRecord.outcome``):
   * ``executed``  -- the plan ran; a transition was stored and learned from.

@@ -24,6 +24,7 @@ from sim_cell.stability import FALLEN_DEPTH, SLEEP_MOTION, Stability, Unstable
 SOLVER_ITERATIONS = 20      # enough for resting piles, pushes and free fingers
 GRIP_SOLVER_ITERATIONS = 150  # while fingers squeeze an object; fewer let pads sink into it (sim_cell.cell)
 TABLE_MARGIN = 0.15         # m of table beyond the workspace on each side
+BIN_HALF_SIZE = 0.10        # m: the bin under robot.place, 20 cm square, open at the top
 
 
 @dataclass(frozen=True)
@@ -62,6 +63,7 @@ class World:
         self._mass_scale = config.sim.object_mass_scale
         self._home_joints = home_joints
         self._open_width = config.gripper.open_width
+        self._place = tuple(config.robot.place.position[:2])
         ws, c = self.ws, self.client
         p.resetSimulation(physicsClientId=c)
         p.setGravity(0, 0, -9.81, physicsClientId=c)
@@ -153,10 +155,22 @@ class World:
     def remove_lost(self, body: int) -> None:
         """An object out of the cell other than in the gripper: it left the workspace, and was dropped when the
         gripper had lifted it in this plan or held it (a grip that gave way).  Carried out is counted where the
-        gripper opens on it (the cell's release)."""
+        gripper opens on it (the cell's release), or where one still held at the last width reading fell into
+        the bin under the place (``over_bin``): the reading judged it picked, and it lies where picks go."""
+        if body in self.held and self.over_bin(body):
+            self.remove(body, "grasped_out")
+            return
         if body in self.lifted or body in self.held:
             self.stats["dropped"] += 1
         self.remove(body, "left_workspace")
+
+    def over_bin(self, body: int) -> bool:
+        """Whether ``body``'s centre lies over the bin under ``robot.place``: within ``BIN_HALF_SIZE`` of it and
+        outside the workspace (a place over the workspace has no bin)."""
+        (x, y, _z), _ = p.getBasePositionAndOrientation(body, physicsClientId=self.client)
+        ws = self.ws
+        return (abs(x - self._place[0]) <= BIN_HALF_SIZE and abs(y - self._place[1]) <= BIN_HALF_SIZE
+                and not (ws.x[0] <= x <= ws.x[1] and ws.y[0] <= y <= ws.y[1]))
 
     def remove_outside(self, keep: set[int] | frozenset[int] = frozenset()) -> None:
         """Remove every object whose centre left the workspace or fell off the table, except ``keep`` (what

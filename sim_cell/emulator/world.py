@@ -33,13 +33,13 @@ import pybullet as p
 from flgd.config import CellConfig
 from sim_cell.cell import SimCell
 from sim_cell.stability import Unstable
+from sim_cell.world import BIN_HALF_SIZE
 
 __all__ = ["EmulatorWorld", "TickCallback", "slow_clock_warning", "in_bin", "BIN_HALF_SIZE"]
 
 log = logging.getLogger(__name__)
 
 TickCallback = Callable[[float], None]   # called with the physics time step (s) before each step
-BIN_HALF_SIZE = 0.10                     # m: the bin under robot.place, 20 cm square, open at the top
 BIN_CHECK_STEPS = 24                     # physics steps between looks into the bin (0.1 s at 240 Hz)
 MAX_BURST_STEPS = 2                      # steps taken at once when behind: the RTDE stream gets its turn between
 MAX_LAG_STEPS = 24                       # steps behind real time before the clock gives up catching up
