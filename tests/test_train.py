@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import signal
@@ -168,11 +169,15 @@ def test_the_actor_argmax_recipe_runs_is_carried_compactly_and_resumes_elsewhere
 
     dest = tmp_path / "carried"
     # its config names files relative to the copy, not the paths of the machine the run started on
-    carried_config = yaml.safe_load((dest / "config.yaml").read_text())
-    assert [v for v in _strings(carried_config) if str(tmp_path) in v or v.startswith("/")] == []
-    assert carried_config["state_dir"] == "."
+    for run in (out, dest):
+        run_config = yaml.safe_load((run / "config.yaml").read_text())
+        assert [v for v in _strings(run_config) if str(tmp_path) in v or v.startswith("/")] == []
+        assert run_config["state_dir"] == "."
     assert load_config(dest / "config.yaml").learning.init_trunk == load_config(CONFIG).learning.init_trunk
+    assert dataclasses.replace(load_config(dest / "config.yaml"), source="") == dataclasses.replace(
+        load_config(out / "config.yaml"), state_dir=str(dest), source="")   # the same settings, read there
     assert train_main(["--out", str(dest), "--steps", "6"]) == 0
+    assert yaml.safe_load((dest / "config.yaml").read_text())["state_dir"] == "."   # still no machine's paths
     rows = read_rows(dest / "actions.csv")
     assert [int(r["step"]) for r in rows] == list(range(6))
     assert [int(r["updates"]) for r in rows[4:]] == [15, 18]  # the update count goes on from the checkpoint

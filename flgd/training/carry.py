@@ -15,7 +15,6 @@ DEST's ``config.yaml`` names its files relative to DEST, so a copy committed bes
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import os
 import shutil
 import sqlite3
@@ -23,13 +22,14 @@ import sys
 from dataclasses import dataclass
 from pathlib import Path
 
-from flgd.config import CellConfig, ConfigError, dump_config, load_config
+from flgd.config import ConfigError, dump_config, load_config
 from flgd.state_dir_lock import StateDirBusy, lock_state_dir
 from flgd.store import DB_NAME, Store
 from flgd.training.run import CONFIG_FILE, CURVE_FILE, LOG_FILE, RUN_FILE
+from flgd.training.settings import portable_config
 from flgd.training.state import TRAINER_STATE, load_trainer_state
 
-__all__ = ["CarriedRun", "carry_run", "main", "portable_config"]
+__all__ = ["CarriedRun", "carry_run", "main"]
 
 DEFAULT_REPLAY = 300
 
@@ -49,17 +49,6 @@ def _latest_checkpoint(run_dir: Path) -> Path:
         raise FileNotFoundError(f"{run_dir / 'checkpoints'}: no checkpoint; expected a flgd train run directory "
                                 "that has taken at least one checkpoint")
     return ckpts[-1]
-
-
-def portable_config(cfg: CellConfig, dest: Path) -> CellConfig:
-    """``cfg`` (paths absolute, as loaded) with its files relative to ``dest`` and its state directory ``.``:
-    a training run keeps its state in its own directory, whatever the config it started from named."""
-    def rel(path: str) -> str:
-        return os.path.relpath(path, dest) if path and os.path.isabs(path) else path
-    return dataclasses.replace(
-        cfg, state_dir=".", policy=rel(cfg.policy),
-        finetune=dataclasses.replace(cfg.finetune, prior_sample=rel(cfg.finetune.prior_sample)),
-        learning=dataclasses.replace(cfg.learning, init_trunk=rel(cfg.learning.init_trunk)))
 
 
 def carry_run(run_dir: Path, dest: Path, replay: int = DEFAULT_REPLAY) -> CarriedRun:

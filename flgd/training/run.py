@@ -60,7 +60,7 @@ from flgd.training.actions_csv import ActionsCsv
 from flgd.training.collector import Collector, CollectorStart, LocalCollector
 from flgd.training.progress import BarProgress, LineProgress
 from flgd.training.settings import (RUN_FILE, TRAIN_VARIANTS, TRUNK_NETWORKS, RunFileError, RunSettings,
-                                    effective_config, read_run_info, variant_network)
+                                    effective_config, portable_config, read_run_info, variant_network)
 from flgd.wiring import resume_seed
 
 if TYPE_CHECKING:
@@ -257,7 +257,7 @@ class TrainingRun:
         """config.yaml, atomically (a kill mid-write must not leave a file the resume cannot load), and
         only when it changed."""
         path = self.out / CONFIG_FILE
-        data = dump_config(self.config).encode()
+        data = dump_config(portable_config(self.config, self.out.resolve())).encode()
         try:
             if path.read_bytes() == data:
                 return

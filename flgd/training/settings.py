@@ -9,13 +9,14 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import os
 from dataclasses import dataclass
 from pathlib import Path
 
 from flgd.config import CellConfig
 from flgd.wiring import resume_seed
 
-__all__ = ["RUN_FILE", "TRAIN_VARIANTS", "TRUNK_NETWORKS", "variant_network", "RunSettings", "RunFileError",
+__all__ = ["RUN_FILE", "TRAIN_VARIANTS", "TRUNK_NETWORKS", "variant_network", "RunSettings", "RunFileError", "portable_config",
            "read_run_info", "effective_config", "command_line", "settings_from_command_line"]
 
 RUN_FILE = "run.json"
@@ -188,3 +189,15 @@ def settings_from_command_line(args: argparse.Namespace, previous: dict | None) 
     if s.curriculum:
         s = dataclasses.replace(s, objects=10)
     return s
+
+
+def portable_config(cfg: CellConfig, dest: Path) -> CellConfig:
+    """``cfg`` (paths absolute, as loaded) with its files relative to ``dest`` and its state directory ``.``, as
+    a run's ``config.yaml`` in ``dest`` names them: a training run keeps its state in its own directory, and a
+    run directory (or its carried copy) names no machine's paths."""
+    def rel(path: str) -> str:
+        return os.path.relpath(path, dest) if path and os.path.isabs(path) else path
+    return dataclasses.replace(
+        cfg, state_dir=".", policy=rel(cfg.policy),
+        finetune=dataclasses.replace(cfg.finetune, prior_sample=rel(cfg.finetune.prior_sample)),
+        learning=dataclasses.replace(cfg.learning, init_trunk=rel(cfg.learning.init_trunk)))
