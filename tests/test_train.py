@@ -53,7 +53,7 @@ def _config_variant(tmp_path: Path, name: str, policy: str = "", **sections: dic
     return str(config)
 
 
-def test_a_short_run_writes_log_checkpoint_and_curve_then_resumes(tmp_path):
+def test_a_short_run_writes_log_checkpoint_and_curve_then_resumes(tmp_path, monkeypatch):
     out = tmp_path / "run"
     assert _train(out, "--steps", "3", "--seed", "5") == 0
 
@@ -118,6 +118,14 @@ def test_a_short_run_writes_log_checkpoint_and_curve_then_resumes(tmp_path):
     assert saved == json.loads(json.dumps(info)) and saved["run_settings"]["seed"] == 5
     assert saved["resume_command"] == f"flgd train --out {out}"
     assert (tmp_path / "policies" / "p-curve.png").read_bytes()[:8] == PNG_MAGIC
+    # the run named as the command line named it: an export committed beside its run names no machine's paths
+    from flgd.training.export import main as export_main
+
+    monkeypatch.chdir(tmp_path)
+    assert export_main(["run", "policies/q.safetensors"]) == 0
+    named = json.loads((tmp_path / "policies" / "q.json").read_text())
+    assert named["exported_from"] == f"run/checkpoints/{_checkpoints(out)[-1].name}"
+    assert named["resume_command"] == "flgd train --out run"
 
 
 def test_cached_next_argmax_and_several_updates_per_action_in_a_real_run(tmp_path):

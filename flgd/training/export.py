@@ -85,7 +85,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--checkpoint", default="latest", help="latest, best, or a checkpoint file")
     args = ap.parse_args(argv)
     try:
-        info = export_policy(Path(args.run_dir).resolve(), Path(args.dest), args.checkpoint)
+        # the run as the command line named it: a relative name stays relative in the JSON
+        info = export_policy(Path(args.run_dir), Path(args.dest), args.checkpoint)
     except (FileNotFoundError, PolicyFileError, OSError, ValueError) as exc:
         print(f"export: {exc}", file=sys.stderr)
         return 1
