@@ -22,7 +22,7 @@ import sys
 from dataclasses import dataclass
 from pathlib import Path
 
-from flgd.config import ConfigError, dump_config, load_config
+from flgd.config import dump_config, load_config
 from flgd.state_dir_lock import StateDirBusy, lock_state_dir
 from flgd.store import DB_NAME, Store
 from flgd.training.run import CONFIG_FILE, CURVE_FILE, LOG_FILE, RUN_FILE
@@ -116,8 +116,7 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     try:
         carried = carry_run(Path(args.run_dir).resolve(), Path(args.dest), args.replay)
-    except (ConfigError, FileNotFoundError, FileExistsError, RuntimeError, ValueError, OSError,
-            sqlite3.Error) as exc:
+    except (FileNotFoundError, FileExistsError, RuntimeError, ValueError, OSError, sqlite3.Error) as exc:  # ConfigError is a ValueError
         print(f"carry: {exc}", file=sys.stderr)
         return 1
     print(f"{carried.dest}: {carried.checkpoint} ({carried.updates} updates), {carried.transitions} transitions, "
