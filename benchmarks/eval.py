@@ -12,8 +12,9 @@ Three parts, all frozen and greedy (``flgd eval`` defaults), each with
 
 and, only when asked for (``--parts validation``), the check for choosing
 between policies: random clutter of 20 blocks, ``--validation-runs`` runs at
-each of the evaluation seeds 7, 8, 9 and 10 (never training seeds), pooled --
-target: grasp success >= 92 %.  It touches neither VPG's scenes nor the
+each of the evaluation seeds 7, 8, 9 and 10 (never training seeds; another set
+with ``--validation-seeds``, for a choice that needs seeds no earlier choice
+has seen), pooled -- target: grasp success >= 92 %.  It touches neither VPG's scenes nor the
 held-out objects, so a choice made on it does not tune on test data.
 ``--parts packed`` is its companion for hard arrangements: packed scenes of our
 blocks (``flgd eval --set packed``: rows laid flush, a new one every run),
@@ -92,12 +93,13 @@ def _packed_name(seed: int) -> str:
     return f"packed arrangements, seed {seed}"
 
 
-def validation_pooled(reports: dict[str, dict], name_of=_validation_name) -> tuple[int, int, int, int] | None:
+def validation_pooled(reports: dict[str, dict], name_of=_validation_name,
+                      seeds: tuple[int, ...] = VALIDATION_SEEDS) -> tuple[int, int, int, int] | None:
     """(grasp successes, grasp attempts, completed runs, counted runs) summed over the validation seeds
     present in ``reports`` (``name_of(seed)`` names a seed's report: the 20-block or the packed part);
     None when none is.  Pooled counts, not a mean of rates: seeds whose runs took more grasps weigh
     more, as every grasp is one trial."""
-    parts = [reports[name_of(s)]["overall"] for s in VALIDATION_SEEDS if name_of(s) in reports]
+    parts = [reports[name_of(s)]["overall"] for s in seeds if name_of(s) in reports]
     if not parts:
         return None
     return (sum(p["grasp_successes"] for p in parts), sum(p["grasp_attempts"] for p in parts),
@@ -129,6 +131,9 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--validation-runs", type=int, default=5,
                     help="runs of 20 random blocks (and of packed arrangements) per validation seed "
                          f"(default 5; seeds {', '.join(map(str, VALIDATION_SEEDS))})")
+    ap.add_argument("--validation-seeds", default=",".join(map(str, VALIDATION_SEEDS)),
+                    help="comma list of the seeds of the validation and packed parts (default "
+                         f"{','.join(map(str, VALIDATION_SEEDS))}); never a training seed")
     ap.add_argument("--parts", default="vpg,presets,novel",
                     help="comma list of vpg, presets, novel, validation, packed (default: the first three)")
     ap.add_argument("--json", help="write the reports here")
@@ -151,6 +156,14 @@ def main(argv: list[str]) -> int:
             return _fail(f"{flag}: got {value}, expected >= 1")
     if args.max_actions is not None and args.max_actions < 1:
         return _fail(f"--max-actions: got {args.max_actions}, expected >= 1")
+    try:
+        validation_seeds = tuple(int(s) for s in args.validation_seeds.split(","))
+    except ValueError:
+        validation_seeds = ()
+    if not validation_seeds or len(set(validation_seeds)) != len(validation_seeds) \
+            or min(validation_seeds) < 0:
+        return _fail(f"--validation-seeds: got {args.validation_seeds!r}, expected a comma list of distinct "
+                     f"seeds >= 0, e.g. {','.join(map(str, VALIDATION_SEEDS))}")
     try:
         json_out = prepare_output(args.json, "--json")
     except OSError as exc:
@@ -182,11 +195,11 @@ def main(argv: list[str]) -> int:
                            args.seed))
         if "validation" in parts:
             blocks = [clutter_scene(VALIDATION_OBJECTS, VALIDATION_COUNT)]
-            for seed in VALIDATION_SEEDS:
+            for seed in validation_seeds:
                 suites.append((_validation_name(seed), blocks, False, args.validation_runs, seed))
         if "packed" in parts:
             packed = named_set("packed")
-            for seed in VALIDATION_SEEDS:
+            for seed in validation_seeds:
                 suites.append((_packed_name(seed), packed, False, args.validation_runs, seed))
         # what the Evaluator refuses (a real-cell config, --max-actions 0), refused now rather than as a
         # traceback: it is built per part, and building it is cheap (no simulator until a scene runs)
@@ -200,7 +213,7 @@ def main(argv: list[str]) -> int:
           f"{platform.python_version()}; config {args.config}; policy {policy['path']} "
           f"({policy.get('training_steps', 0)} training steps); {args.runs} run(s) per scene "
           f"({args.clutter_runs} of the novel clutter), seed {args.seed}"
-          + (f"; validation {args.validation_runs} run(s) at each of seeds {', '.join(map(str, VALIDATION_SEEDS))}"
+          + (f"; validation {args.validation_runs} run(s) at each of seeds {', '.join(map(str, validation_seeds))}"
              if {"validation", "packed"} & set(parts) else ""))
     reports: dict[str, dict] = {}
     write_error = ""
@@ -246,11 +259,11 @@ def main(argv: list[str]) -> int:
     if "novel objects, clutter of 10" in reports:
         s = reports["novel objects, clutter of 10"]["overall"]
         print(f"target novel clutter: grasp success {_pct(s['grasp_success'])} (target >= 90 %; paper 94.7 %)")
-    seeds = ', '.join(map(str, VALIDATION_SEEDS))
+    seeds = ', '.join(map(str, validation_seeds))
     for label, name_of, target in ((f"validation (20 random blocks, seeds {seeds} pooled)", _validation_name,
                                     " (target >= 92 % grasp success)"),
                                    (f"packed arrangements (seeds {seeds} pooled)", _packed_name, "")):
-        pooled = validation_pooled(reports, name_of)
+        pooled = validation_pooled(reports, name_of, validation_seeds)
         if pooled is not None:
             successes, attempts, cleared, counted = pooled
             rate = successes / attempts if attempts else None

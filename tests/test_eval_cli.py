@@ -385,6 +385,25 @@ def test_bench_eval_validation_runs_20_blocks_at_each_evaluation_seed_and_pools_
     assert "--validation-runs: got 0, expected >= 1" in capsys.readouterr().err
 
 
+def test_bench_eval_validation_seeds_replace_the_evaluation_seeds(tmp_path, capsys):
+    """A choice that needs seeds no earlier choice has seen names them; the pooled line covers those seeds."""
+    from benchmarks import eval as bench_eval
+
+    out = tmp_path / "fresh-seeds.json"
+    assert bench_eval.main(["--fresh", "--parts", "validation", "--validation-seeds", "15,16", "--validation-runs",
+                            "1", "--max-actions", "1", "--json", str(out)]) == 0
+    reports = json.loads(out.read_text())
+    assert list(reports) == ["validation: 20 random blocks, seed 15", "validation: 20 random blocks, seed 16"]
+    assert [r["options"]["seed"] for r in reports.values()] == [15, 16]
+    successes, attempts, _, counted = bench_eval.validation_pooled(reports, seeds=(15, 16))
+    assert counted == 2 and attempts == sum(r["overall"]["grasp_attempts"] for r in reports.values())
+    printed = capsys.readouterr().out
+    assert "at each of seeds 15, 16" in printed and "seeds 15, 16 pooled): grasp success" in printed
+    for bad in ("", "15,x", "15,15", "-1"):
+        assert bench_eval.main(["--fresh", "--parts", "validation", "--validation-seeds", bad]) == 2
+        assert f"--validation-seeds: got {bad!r}" in capsys.readouterr().err
+
+
 def test_eval_variant_sets_the_masks_and_must_match_the_policy_head(tmp_path, capsys):
     """--variant is the method (masks on or off, FLG or VPG head), independent of the trunk."""
     shipped = REPO / "policies" / "flg-sim.safetensors"
