@@ -263,6 +263,22 @@ def test_bad_arguments_are_refused_with_the_flag_named(tmp_path, capsys):
     assert not (tmp_path / "w").exists()
 
 
+def test_set_changes_a_new_runs_config_and_a_resume_refuses_it(tmp_path, capsys):
+    """A recipe is a config plus named changes: the run's config.yaml keeps them, so a resume needs none."""
+    out = tmp_path / "run"
+    assert _train(out, "--steps", "1", "--set", "exploration.side_taper=0.003", "--set", "learning.batch_size=3") == 0
+    kept = load_config(out / "config.yaml")
+    assert kept.exploration.side_taper == 0.003 and kept.learning.batch_size == 3
+    assert load_config(CONFIG).exploration.side_taper != 0.003   # the file named by --config is untouched
+    assert train_main(["--out", str(out), "--steps", "2", "--set", "exploration.side_taper=0"]) == 2
+    assert "--set: the run in" in capsys.readouterr().err
+    assert _train(tmp_path / "bad", "--set", "exploration.no_such_key=1") == 2
+    assert "--set exploration.no_such_key: no such config key" in capsys.readouterr().err
+    assert _train(tmp_path / "bad2", "--set", "exploration.side_taper=-1") == 2
+    assert "side_taper" in capsys.readouterr().err
+    assert not (tmp_path / "bad").exists() and not (tmp_path / "bad2").exists()
+
+
 class FlakyCell(WrappedCell):
     """A real SimCell behind a wrapper that fails chosen executions like a simulator can (a fake of failures only):
     ``errors`` non-CellFault exceptions (pybullet giving up) and ``faults`` CellFaults."""

@@ -10,6 +10,7 @@ import sys
 from pathlib import Path
 
 from flgd.config import ConfigError, load_sim_config
+from flgd.overrides import apply_overrides, parse_override
 from flgd.training.progress import make_progress
 from flgd.training.collector import Collector, LocalCollector
 from flgd.training.run import CONFIG_FILE, EXIT_ERROR, EXIT_INTERRUPTED, EXIT_USAGE, TrainingCellError, TrainingRun
@@ -48,9 +49,16 @@ def main(argv: list[str]) -> int:
     if config_path is None:
         print("flgd train: --config is required for a new run", file=sys.stderr)
         return EXIT_USAGE
+    if args.overrides and previous_info:
+        print(f"flgd train: --set: the run in {out} keeps the config it was started with ({CONFIG_FILE}); start "
+              f"another --out for another config", file=sys.stderr)
+        return EXIT_USAGE
     try:
         base = load_sim_config(config_path, "training runs in sim_cell; fine-tune on a real cell with `flgd run`")
-    except ConfigError as exc:
+        if args.overrides:
+            base = apply_overrides(base, dict(parse_override(item) for item in args.overrides),
+                                   source=str(base.source), label="--set ")
+    except (ConfigError, ValueError) as exc:
         print(f"flgd train: {exc}", file=sys.stderr)
         return EXIT_USAGE
     try:

@@ -164,6 +164,9 @@ def command_line() -> argparse.ArgumentParser:
     p.add_argument("--address", metavar="HOST:PORT",
                    help="with --workers: join the Ray cluster at this address (`ray start --head` prints it) "
                         "instead of starting a local one for the run")
+    p.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE", dest="overrides",
+                   help="a new run's config with this key changed (repeatable; e.g. exploration.side_taper=0): the "
+                        "run's config.yaml keeps it, so a resume needs no --set and refuses one")
     p.add_argument("--log-every", type=int, default=25, help="steps between plain progress lines (no terminal)")
     return p
 
