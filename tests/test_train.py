@@ -263,20 +263,34 @@ def test_bad_arguments_are_refused_with_the_flag_named(tmp_path, capsys):
     assert not (tmp_path / "w").exists()
 
 
-def test_set_changes_a_new_runs_config_and_a_resume_refuses_it(tmp_path, capsys):
-    """A recipe is a config plus named changes: the run's config.yaml keeps them, so a resume needs none."""
+def test_set_changes_the_runs_config_and_every_resume_keeps_it(tmp_path, capsys, monkeypatch):
+    """A recipe is a config plus named changes: run.json keeps them and every start applies them, so a resume from
+    the run's config.yaml, or from the original --config, trains the same config; it may repeat them, not change
+    them.  Keys the run sets itself are refused with the flag that sets them."""
     out = tmp_path / "run"
-    assert _train(out, "--steps", "1", "--set", "exploration.side_taper=0.003", "--set", "learning.batch_size=3") == 0
+    trunk = load_config(CONFIG).learning.init_trunk
+    monkeypatch.chdir(Path(trunk).parent)   # a relative file is read from where the command runs
+    assert _train(out, "--steps", "1", "--set", "exploration.side_taper=0.003", "--set", "learning.batch_size=3",
+                  "--set", f"learning.init_trunk={Path(trunk).name}") == 0
     kept = load_config(out / "config.yaml")
     assert kept.exploration.side_taper == 0.003 and kept.learning.batch_size == 3
+    assert kept.learning.init_trunk == trunk   # config.yaml names it relative to the run: still the same file
     assert load_config(CONFIG).exploration.side_taper != 0.003   # the file named by --config is untouched
+    run_json = (out / "run.json").read_text()
     assert train_main(["--out", str(out), "--steps", "2", "--set", "exploration.side_taper=0"]) == 2
-    assert "--set: the run in" in capsys.readouterr().err
-    assert _train(tmp_path / "bad", "--set", "exploration.no_such_key=1") == 2
-    assert "--set exploration.no_such_key: no such config key" in capsys.readouterr().err
-    assert _train(tmp_path / "bad2", "--set", "exploration.side_taper=-1") == 2
-    assert "side_taper" in capsys.readouterr().err
-    assert not (tmp_path / "bad").exists() and not (tmp_path / "bad2").exists()
+    assert "--set: got ['exploration.side_taper=0']" in capsys.readouterr().err
+    assert (out / "run.json").read_text() == run_json
+    # the original command again (with --config, without --set): the changes still apply
+    assert train_main(["--config", CONFIG, "--out", str(out), "--threads", "1", "--steps", "2"]) == 0
+    kept = load_config(out / "config.yaml")
+    assert kept.exploration.side_taper == 0.003 and kept.learning.batch_size == 3
+    for item, message in (("exploration.no_such_key=1", "--set exploration.no_such_key: no such config key"),
+                          ("exploration.side_taper=-1", "with --set exploration.side_taper=-1"),
+                          ("side_taper=0", "--set 'side_taper=0': "),
+                          ("sim.objects=5", "the run sets sim.objects itself; use --objects or --curriculum")):
+        assert _train(tmp_path / "bad", "--set", item) == 2
+        assert message in capsys.readouterr().err
+        assert not (tmp_path / "bad").exists()
 
 
 class FlakyCell(WrappedCell):

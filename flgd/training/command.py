@@ -49,15 +49,11 @@ def main(argv: list[str]) -> int:
     if config_path is None:
         print("flgd train: --config is required for a new run", file=sys.stderr)
         return EXIT_USAGE
-    if args.overrides and previous_info:
-        print(f"flgd train: --set: the run in {out} keeps the config it was started with ({CONFIG_FILE}); start "
-              f"another --out for another config", file=sys.stderr)
-        return EXIT_USAGE
     try:
         base = load_sim_config(config_path, "training runs in sim_cell; fine-tune on a real cell with `flgd run`")
-        if args.overrides:
-            base = apply_overrides(base, dict(parse_override(item) for item in args.overrides),
-                                   source=str(base.source), label="--set ")
+        if settings.overrides:   # every start: a resume from --config as well as from the run's config.yaml
+            base = apply_overrides(base, dict(parse_override(item) for item in settings.overrides),
+                                   source=f"{config_path} with --set {' '.join(settings.overrides)}", label="--set ")
     except (ConfigError, ValueError) as exc:
         print(f"flgd train: {exc}", file=sys.stderr)
         return EXIT_USAGE

@@ -57,13 +57,46 @@ class RunSettings:
     grasp_only: bool = False
     init_policy: str = ""  # a new run starts from this policy file's weights (fresh replay and optimizer)
     give_up_after: int = 0  # new scene after this many actions in a row without a successful grasp (0 = never)
+    overrides: list[str] = dataclasses.field(default_factory=list)  # --set items, applied to the config at every start
 
     def describe(self) -> str:
         scene = "curriculum 10->20 objects + presets" if self.curriculum else f"{self.objects} objects"
         mode = ", grasp only" if self.grasp_only else ""
         start = f", from {self.init_policy}" if self.init_policy else ""
         give_up = f", new scene after {self.give_up_after} actions without a grasp" if self.give_up_after else ""
-        return f"{self.variant} ({TRAIN_VARIANTS[self.variant][2]}), {scene}{mode}, seed {self.seed}{start}{give_up}"
+        changed = f", config with {' '.join(self.overrides)}" if self.overrides else ""
+        return (f"{self.variant} ({TRAIN_VARIANTS[self.variant][2]}), {scene}{mode}, seed {self.seed}{start}{give_up}"
+                f"{changed}")
+
+
+# keys a run sets itself (effective_config, the curriculum): a --set of one would be overwritten, so it is refused
+# and the flag that sets it named instead
+RUN_SET_KEYS = {"sim.objects": "--objects or --curriculum", "sim.seed": "--seed", "sim.scene": "a scene set per run",
+                "learning.seed": "--seed", "learning.network": "--variant (the head) and the config file (the trunk)",
+                "exploration.masks": "--variant", "exploration.grasp_only": "--grasp-only",
+                "exploration.curriculum_steps": "--curriculum"}
+# config keys that hold a file: a relative --set value is read from the current directory, as --init-policy is
+PATH_KEYS = ("learning.init_trunk", "finetune.prior_sample")
+
+
+def parse_set_items(items: list[str]) -> dict[str, object]:
+    """``--set`` items as {dotted key: value}; ValueError naming ``--set``, the item and the problem."""
+    from flgd.overrides import parse_override
+
+    out: dict[str, object] = {}
+    for item in items:
+        try:
+            key, value = parse_override(item)
+        except ValueError as exc:
+            raise ValueError(f"--set {item!r}: {exc}") from None
+        if key in RUN_SET_KEYS:
+            raise ValueError(f"--set {item!r}: the run sets {key} itself; use {RUN_SET_KEYS[key]}")
+        if key in out:
+            raise ValueError(f"--set {item!r}: {key} is given twice")
+        if key in PATH_KEYS and isinstance(value, str) and value:
+            value = os.path.abspath(value)
+        out[key] = value
+    return out
 
 
 class RunFileError(ValueError):
@@ -99,6 +132,8 @@ def read_run_info(out: Path) -> dict | None:
             continue
         want = type(defaults[key])
         ok = isinstance(value, want) and (want is bool or not isinstance(value, bool))
+        if want is list and ok:
+            ok = all(isinstance(v, str) for v in value)
         if key == "variant" and ok and value not in TRAIN_VARIANTS:
             raise RunFileError(f"{path}: settings.variant: got {value!r}, expected one of "
                                f"{sorted(TRAIN_VARIANTS)}; {fix}")
@@ -165,8 +200,8 @@ def command_line() -> argparse.ArgumentParser:
                    help="with --workers: join the Ray cluster at this address (`ray start --head` prints it) "
                         "instead of starting a local one for the run")
     p.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE", dest="overrides",
-                   help="a new run's config with this key changed (repeatable; e.g. exploration.side_taper=0): the "
-                        "run's config.yaml keeps it, so a resume needs no --set and refuses one")
+                   help="the run's config with this key changed (repeatable; e.g. exploration.side_taper=0), kept "
+                        "in run.json and applied at every resume; a resume may repeat them, not change them")
     p.add_argument("--log-every", type=int, default=25, help="steps between plain progress lines (no terminal)")
     return p
 
@@ -176,12 +211,14 @@ def settings_from_command_line(args: argparse.Namespace, previous: dict | None) 
     given = {"variant": args.variant, "objects": args.objects, "steps": args.steps, "seed": args.seed,
              "curriculum": args.curriculum, "grasp_only": args.grasp_only,
              "init_policy": None if args.init_policy is None else str(Path(args.init_policy).resolve()),
-             "give_up_after": args.give_up_after}
+             "give_up_after": args.give_up_after,
+             "overrides": [f"{k}={v}" for k, v in parse_set_items(args.overrides).items()] or None}
     if previous:
         for key, value in given.items():
             before = previous.get(key, getattr(RunSettings(), key))  # a key newer than the run: its default
             if key != "steps" and value is not None and value != before:
-                raise ValueError(f"--{key.replace('_', '-')}: got {value!r}, but the run in --out was started "
+                flag = "--set" if key == "overrides" else f"--{key.replace('_', '-')}"
+                raise ValueError(f"{flag}: got {value!r}, but the run in --out was started "
                                  f"with {before!r}; use another --out for other settings")
         merged = {**dataclasses.asdict(RunSettings()), **previous, **{k: v for k, v in given.items() if v is not None}}
         return RunSettings(**{f.name: merged[f.name] for f in dataclasses.fields(RunSettings)})
