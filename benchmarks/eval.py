@@ -133,7 +133,7 @@ def main(argv: list[str]) -> int:
                          f"(default 5; seeds {', '.join(map(str, VALIDATION_SEEDS))})")
     ap.add_argument("--validation-seeds", default=",".join(map(str, VALIDATION_SEEDS)),
                     help="comma list of the seeds of the validation and packed parts (default "
-                         f"{','.join(map(str, VALIDATION_SEEDS))}); never a training seed")
+                         f"{','.join(map(str, VALIDATION_SEEDS))}); choose seeds no training run and no earlier choice used")
     ap.add_argument("--parts", default="vpg,presets,novel",
                     help="comma list of vpg, presets, novel, validation, packed (default: the first three)")
     ap.add_argument("--json", help="write the reports here")
