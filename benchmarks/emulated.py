@@ -3,7 +3,7 @@ beside the sim backend on the same scenes and seed; then every fault kind inject
 
     flgd bench emulated --root runs/emulated --cycles 200 --faults 10 [--parts policy faults calibrate] [--serial]
         [--free-speed M_S] [--acceleration M_S2] [--raise-speed M_S] [--contact-clearance M] [--blend-radius M]
-        [--release-gap M] [--home-at-place] [--carry-at-grasp-yaw] [--out FILE]
+        [--release-gap M] [--preshape-margin M] [--home-at-place] [--carry-at-grasp-yaw] [--out FILE]
 
 *policy*: ``flgd run`` with the shipped policy, frozen (``finetune.updates_per_action: 0``), on
 cell_config/ur5e-emulated.yaml (backend ur5e against the emulator) and on the same file with ``backend: sim``,
@@ -255,11 +255,11 @@ def run_policy(root: Path, cycles: int, time_scale: float, host: str,
 
 
 def run_faults(root: Path, repeats: int, time_scale: float, resume: dict[str, Any], host: str,
-               robot: dict[str, Any] | None = None) -> dict[str, Any]:
+               robot: dict[str, Any] | None = None, gripper: dict[str, Any] | None = None) -> dict[str, Any]:
     from flgd.ctl import DaemonUnreachable
     from sim_cell.emulator.faults import inject
 
-    config = _write_config(root, "ur5e", host, robot)
+    config = _write_config(root, "ur5e", host, robot, gripper)
     results: dict[str, list[dict]] = {k: list(resume.get(k, [])) for k in FAULT_KINDS}
     unplanned: list[dict] = (json.loads((root / "unplanned.json").read_text())
                              if (root / "unplanned.json").exists() else [])
@@ -411,6 +411,8 @@ def main(argv: list[str] | None = None) -> int:
                    help="robot.blend_radius (m): free moves of a plan blended into one path")
     p.add_argument("--release-gap", type=float, default=None,
                    help="gripper.release_gap (m): a release goes on once the fingers opened this far")
+    p.add_argument("--preshape-margin", type=float, default=None,
+                   help="gripper.preshape_margin (m): a grasp opens only as wide as its fingers need, set on the way")
     p.add_argument("--home-at-place", action="store_true",
                    help="robot.home = robot.place: the arm waits and the camera takes its pictures with the arm over "
                         "the bin, so a pick goes from its raise straight to where it is placed")
@@ -445,13 +447,17 @@ def main(argv: list[str] | None = None) -> int:
         if args.capture_on_the_way:
             robot["capture_on_the_way"] = True
         gripper = {} if args.release_gap is None else {"release_gap": args.release_gap}
+        if args.preshape_margin is not None:
+            gripper["preshape_margin"] = args.preshape_margin
         summary["policy"] = run_policy(root / "policy", args.cycles, args.time_scale, args.host, robot, gripper,
                                        args.seed)
     if "faults" in args.parts:
         previous = root / "faults" / "faults.json"
         resume = json.loads(previous.read_text()) if previous.exists() else {}
         summary["faults"] = run_faults(root / "faults", args.faults, args.time_scale, resume, args.host,
-                                       {"capture_on_the_way": True} if args.capture_on_the_way else None)
+                                       {"capture_on_the_way": True} if args.capture_on_the_way else None,
+                                       None if args.preshape_margin is None
+                                       else {"preshape_margin": args.preshape_margin})
     if "calibrate" in args.parts:
         summary["calibrate"] = run_calibrate(root / "calibrate", args.time_scale, args.host)
     summary.update(command="flgd bench emulated " + " ".join(argv if argv is not None else sys.argv[1:]),

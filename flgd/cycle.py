@@ -68,7 +68,7 @@ from flgd.clutter import grasp_mask, judge_move
 from flgd.config import CellConfig
 from flgd.cycle_record import (UNSTABLE_MARK, CycleOutcome, CycleRecord, PhaseTimer, float_or_none, held_at_place,
                                 on_cell_clock, unstable_failure, was_stopped)
-from flgd.deciding_ahead import Ahead, DecidingAhead, Thought, ToolInView, record_outcome
+from flgd.deciding_ahead import Ahead, DecidingAhead, Thought, ToolInView, last_width, record_outcome
 from flgd.perception import Heightmaps, frame_heightmaps
 from flgd.plans import end_yaw, plan_action, plan_home, plan_release
 from flgd.cycle_commit import commit_cycle
@@ -418,12 +418,14 @@ class CycleRunner(DecidingAhead):
                             self.agent.restore_outcome_state(provisional)
                             provisional, self._ahead = None, None
                     elif after is not None:
-                        released, provisional = self._place_and_decide(record, action, after, timer)
+                        released, provisional = self._place_and_decide(record, action, after, timer,
+                                                                       last_width(result))
                         if provisional is not None and not released.completed:   # no outcome: take it back
                             self.agent.restore_outcome_state(provisional)
                             provisional, self._ahead = None, None
                     else:
-                        release = plan_release(held, self.config, carry_yaw=self._wrist_yaw)
+                        release = plan_release(held, self.config, carry_yaw=self._wrist_yaw,
+                                               width=last_width(result))
                         released = on_cell_clock(record, self._run_checked(release, "release"))
                     if was_stopped(released):
                         return self._stopped(record, released.failure, finish, timer)

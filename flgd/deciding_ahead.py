@@ -34,7 +34,7 @@ from flgd.safety import CheckedPlan, PlanRefused, check_plan
 if TYPE_CHECKING:
     from flgd.learning.agent import Decision
 
-__all__ = ["Ahead", "Thought", "DecidingAhead", "ToolInView", "record_outcome"]
+__all__ = ["Ahead", "Thought", "DecidingAhead", "ToolInView", "last_width", "record_outcome"]
 
 log = logging.getLogger("flgd.cycle")
 
@@ -110,14 +110,14 @@ class DecidingAhead:
         return after if self.last_frame is not None and self.last_frame.tool_position is not None else None
 
     def _place_and_decide(self: _Cycle, record: CycleRecord, action: Action, after: Heightmaps,
-                          timer: PhaseTimer) -> tuple[ExecutionResult, object | None]:
+                          timer: PhaseTimer, width: float | None = None) -> tuple[ExecutionResult, object | None]:
         """Place the picked object in a thread of its own while the next decision is made on ``after``.
 
         The decision rests on the outcome measured at home (held), recorded first; the agent as it was before is
         returned, so a drop found at the place can take that outcome back.  The arm stays at the place when a
         decision follows (the next plan starts there) and goes home when the workspace is empty."""
         done = self._empty(after)
-        plan = plan_release(True, self.config, home=done, carry_yaw=self._wrist_yaw)
+        plan = plan_release(True, self.config, home=done, carry_yaw=self._wrist_yaw, width=width)
         if self._stop.is_set():
             return ExecutionResult(False, [], f"release: {STOPPED_ON_REQUEST}"), None
         try:
@@ -201,7 +201,8 @@ class DecidingAhead:
                 if (seen.is_set() and self._held(action, result) and not unstable_failure(result)
                         and not self._stop.is_set()):
                     outcome["placed"] = self._run_checked(
-                        plan_release(True, self.config, home=False, carry_yaw=self._wrist_yaw), "release")
+                        plan_release(True, self.config, home=False, carry_yaw=self._wrist_yaw,
+                                     width=last_width(result)), "release")
             except BaseException as exc:   # re-raised in the cycle's thread once the thought is over
                 outcome["error"] = exc
             finally:
@@ -287,6 +288,11 @@ class DecidingAhead:
             return False
         width = float(result.widths[-1]) if result.widths else math.nan
         return grasp_reward(width, self.config.gripper) > 0
+
+
+def last_width(result: ExecutionResult) -> float | None:
+    """The last width a plan measured (a grasp's: at home), None when it measured none."""
+    return float(result.widths[-1]) if result.widths else None
 
 
 def record_outcome(agent: CycleAgent, action: Action, grasp_success: bool | None, move_changed: bool,

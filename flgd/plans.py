@@ -40,6 +40,7 @@ import numpy as np
 
 from flgd.actions import Action, move_kind_at
 from flgd.config import CellConfig
+from flgd.finger_preshape import preshape_width
 from flgd.geometry import WRIST_YAW_LIMIT, ToolPose, nearest_symmetric_yaw, top_down_yaw
 from flgd.grasp_view import FINGER_DEPTH, FINGER_HALF_WIDTH
 from flgd.perception import pixel_to_base
@@ -50,6 +51,9 @@ __all__ = [
     "MeasureWidth",
     "RAISE_LABEL",
     "LOWER_LABEL",
+    "PRESHAPE_LABEL",
+    "PRESHAPE_PROCEED",
+    "release_opening",
     "Step",
     "Plan",
     "move_kind",
@@ -130,6 +134,9 @@ Step = Union[MoveL, GripperCommand, MeasureWidth]
 LIFT_LABEL = "lift"   # a grasp's move up with the gripper closed: what is between the pads then was picked up
 RAISE_LABEL = "raise"   # the rest of the way up to robot.lift_height, above the neighbours, at robot.raise_speed
 LOWER_LABEL = "lower"   # a grasp's way down from the approach height to its contact zone, at robot.raise_speed
+PRESHAPE_LABEL = "pre-shape"   # a grasp's first step: the fingers to its opening while the arm travels to it
+PRESHAPE_PROCEED = 0.001   # m the fingers travel before a pre-shape lets the arm go on
+RELEASE_OPENING = 0.01   # m a release opens beyond the width held, with a pre-shape and no gripper.release_gap
 PLACE_CHECK_LABEL = "at place"   # the width read at the place pose before opening: still held there = picked
 
 
@@ -249,12 +256,15 @@ def contact_zone_radius(config: CellConfig) -> float:
 
 
 def plan_grasp(x: float, y: float, surface_height: float, angle: float, config: CellConfig,
-               surroundings_top: float = math.nan, wrist_yaw: float | None = None) -> Plan:
+               surroundings_top: float = math.nan, wrist_yaw: float | None = None,
+               opening: float = math.nan) -> Plan:
     """Top-down grasp with the fingers closing along ``angle`` at (x, y); heights above the table.
 
     ``surroundings_top``: the highest point within ``contact_zone_radius`` (``slow_lift_top``; NaN = unknown: the
     whole lift up to the approach height slow).  ``wrist_yaw``: the tool's yaw where the plan starts (``tool_yaw``;
-    None: the home pose's)."""
+    None: the home pose's).  ``opening`` (m; NaN = ``gripper.open_width``): the width the fingers come down at
+    (``flgd.finger_preshape``); a narrower one is set as the plan's first step, while the arm travels to the
+    approach pose (``PRESHAPE_LABEL``), and the fingers have stopped there before the descent."""
     if not all(map(math.isfinite, (x, y, surface_height, angle))):
         return _refused("grasp", f"non-finite grasp request x={x!r} y={y!r} "
                                  f"height={surface_height!r} angle={angle!r}")
@@ -277,9 +287,13 @@ def plan_grasp(x: float, y: float, surface_height: float, angle: float, config: 
         (MoveL(ToolPose.top_down(x, y, lifted, yaw), rb.approach_speed, rb.acceleration, LIFT_LABEL),))
     # the fingers open at the approach pose, above everything the descent passes: a release at the place that
     # went on before they were open (gripper.release_gap) finishes during the approach
+    width = gr.open_width if not math.isfinite(opening) else min(max(opening, gr.closed_width), gr.open_width)
+    preshape: tuple[Step, ...] = ((GripperCommand(width, gr.force, PRESHAPE_LABEL, proceed_after=PRESHAPE_PROCEED),)
+                                  if math.isfinite(opening) else ())
     steps: tuple[Step, ...] = (
+        *preshape,
         MoveL(ToolPose.top_down(x, y, above, yaw), rb.speed, rb.acceleration, "approach"),
-        GripperCommand(gr.open_width, gr.force, "open"),
+        GripperCommand(width, gr.force, "open"),
         *((MoveL(ToolPose.top_down(x, y, contact_top, yaw), rb.raise_speed, rb.acceleration, LOWER_LABEL,
                  stop_on_contact=rb.descent_contact_force),)
           if rb.raise_speed > 0.0 and contact_top < above - 0.01 else ()),
@@ -423,9 +437,16 @@ def plan_action(action: Action, height_map: np.ndarray, config: CellConfig, wris
         if config.robot.grasp_centring > 0.0:
             row, col = centred_grasp_pixel(height_map, action.row, action.col, action.angle, config)
             x, y, _z = pixel_to_base(row, col, h, config.workspace)
+        gr = config.gripper
+        opening = math.nan
+        if gr.preshape_margin > 0.0:
+            fingertips = max(h - config.robot.grasp_depth, config.safety.min_table_clearance)
+            opening = preshape_width(height_map, row, col, action.angle, fingertips, gr.open_width,
+                                     gr.preshape_margin, config.workspace.resolution)
         return plan_grasp(x, y, h, action.angle, config,
                           surroundings_top=highest_around(height_map, row, col, contact_zone_radius(config),
-                                                          config.workspace.resolution), wrist_yaw=wrist_yaw)
+                                                          config.workspace.resolution), wrist_yaw=wrist_yaw,
+                          opening=opening)
     if move_kind(h, config) == "shift":
         return plan_shift(x, y, h, action.angle, config, wrist_yaw)
     return plan_push(x, y, action.angle, config, wrist_yaw)
@@ -442,7 +463,20 @@ def place_is_home(config: CellConfig) -> bool:
             and (rb.carry_at_grasp_yaw or abs(rb.home.yaw - rb.place.yaw) <= 1e-9))
 
 
-def plan_release(held: bool, config: CellConfig, home: bool = True, carry_yaw: float | None = None) -> Plan:
+def release_opening(config: CellConfig, width: float | None) -> GripperCommand:
+    """The release of fingers at ``width`` (m, as the grasp measured it; None = unknown): fully open, going on
+    once ``gripper.release_gap`` is open; with ``gripper.preshape_margin`` only that gap (``RELEASE_OPENING``
+    without one) beyond ``width``, waiting for it: the next grasp sets its own opening on the way
+    (``PRESHAPE_LABEL``), and a full opening left running would make it wait."""
+    gr = config.gripper
+    if gr.preshape_margin > 0.0 and width is not None and math.isfinite(width):
+        return GripperCommand(min(max(width, gr.closed_width) + (gr.release_gap or RELEASE_OPENING), gr.open_width),
+                              gr.force, "open")
+    return GripperCommand(gr.open_width, gr.force, "open", proceed_after=gr.release_gap)
+
+
+def plan_release(held: bool, config: CellConfig, home: bool = True, carry_yaw: float | None = None,
+                 width: float | None = None) -> Plan:
     """After a grasp: carry a held object to the place pose, read the width there and open; otherwise just open.
 
     The width at the place pose (``PLACE_CHECK_LABEL``) is the grasp's final judgement: an object that
@@ -451,9 +485,9 @@ def plan_release(held: bool, config: CellConfig, home: bool = True, carry_yaw: f
     ``robot.carry_at_grasp_yaw`` the place and home poses keep ``carry_yaw``, the wrist yaw the grasp ended at
     (``end_yaw`` of its plan).  With the place at home (``place_is_home``) the arm is there already and the
     grasp's width at home was read over the bin: the fingers just open (``flgd.cycle_record.held_at_place``
-    judges by the grasp's width)."""
-    gr, rb = config.gripper, config.robot
-    release = GripperCommand(gr.open_width, gr.force, "open", proceed_after=gr.release_gap)
+    judges by the grasp's width).  ``width``: the width the grasp measured, for ``release_opening``."""
+    rb = config.robot
+    release = release_opening(config, width)
     if not held:
         return Plan("release", (release,))
     if place_is_home(config):

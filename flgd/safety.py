@@ -122,10 +122,28 @@ def _check_gripper(step: GripperCommand, cfg: CellConfig) -> str | None:
         return f"gripper force {step.force!r} N is outside (0, {cfg.gripper.force}] N"
     if not (_finite([step.proceed_after]) and 0.0 <= step.proceed_after <= GRIPPER_STROKE):
         return f"gripper proceed_after {step.proceed_after!r} m is outside [0, {GRIPPER_STROKE}] m"
-    if step.proceed_after > 0.0 and step.width < cfg.gripper.open_width:
-        return (f"gripper proceed_after {step.proceed_after!r} m on a move to {step.width!r} m: only an opening "
-                f"to gripper.open_width ({cfg.gripper.open_width} m) may go on before the fingers stop")
     return None
+
+
+def _check_proceeding(plan: Plan, i: int, cfg: CellConfig) -> str | None:
+    """A gripper move the plan goes on from before the fingers stop (``proceed_after``): an opening to
+    ``gripper.open_width`` (a release), or a grasp's pre-shape -- its first step (a grasp starts with nothing held:
+    after a release), whose width the plan's next gripper step repeats before any guarded move, so that the fingers
+    have stopped at that width before they come down."""
+    step = plan.steps[i]
+    if step.width >= cfg.gripper.open_width:
+        return None
+    refused = (f"gripper proceed_after {step.proceed_after!r} m on a move to {step.width!r} m: only an opening to "
+               f"gripper.open_width ({cfg.gripper.open_width} m) or a grasp's pre-shape (its first step, repeated "
+               "by its next gripper step before any guarded move) may go on before the fingers stop")
+    if plan.primitive != "grasp" or i != 0:
+        return refused
+    for later in plan.steps[i + 1:]:
+        if isinstance(later, GripperCommand):
+            return None if abs(later.width - step.width) <= 1e-9 and later.proceed_after == 0.0 else refused
+        if isinstance(later, MoveL) and later.stop_on_contact > 0.0:
+            return refused
+    return refused
 
 
 def check_plan(plan: Plan, config: CellConfig) -> CheckedPlan:
@@ -146,6 +164,8 @@ def check_plan(plan: Plan, config: CellConfig) -> CheckedPlan:
                        else next(filter(None, (_check_move(m, config) for m in abort_steps(plan.steps, i))), None))
         elif isinstance(step, GripperCommand):
             why = _check_gripper(step, config)
+            if why is None and step.proceed_after > 0.0:
+                why = _check_proceeding(plan, i, config)
         elif isinstance(step, MeasureWidth):
             why = None
         else:

@@ -79,6 +79,15 @@ def test_a_release_gap_within_the_pads_give_or_past_the_stroke_is_a_config_error
     config_from_dict(data, "cell.yaml")
 
 
+def test_a_preshape_on_a_gripper_that_only_opens_and_closes_is_a_config_error():
+    data = yaml.safe_load((REPO / "cell_config" / "ur5e-d415.yaml").read_text())
+    data["gripper"]["preshape_margin"] = 0.01
+    config_from_dict(data, "cell.yaml")   # the RG2's XML-RPC driver sets any opening
+    data["gripper"]["driver"] = "tool_digital_output"
+    (p,) = problems_of(data)
+    assert p.startswith("gripper.preshape_margin: got 0.01 m with gripper.driver tool_digital_output")
+
+
 def test_the_simulator_accepts_a_real_driver_so_a_real_config_can_swap_to_sim():
     data = sim_data()
     data["gripper"]["driver"] = "rg2_xmlrpc"

@@ -116,6 +116,45 @@ def test_a_release_lets_the_arm_leave_while_the_fingers_open_and_the_next_grasp_
     assert not sent["descend"], "the descent started with the fingers still opening"
 
 
+def test_a_preshape_sets_the_opening_while_the_arm_travels_and_the_descent_waits_until_it_stands(ctl, rg2):
+    """gripper.preshape_margin on the real cell: after a release that opened only its gap, the grasp's first
+    step narrows nothing held while the approach runs, and its descent starts with the fingers stopped there."""
+    import time
+
+    from flgd.plans import plan_grasp, plan_release
+
+    rg2.move_time = 0.4
+    cell = make_ur5e(ctl, rg2, real_config(xmlrpc_port=rg2.port, release_gap=0.01, preshape_margin=0.01))
+    cfg = cell.config
+    busy_at: list[bool] = []   # RG2 busy when each move was sent
+    record = ctl.record
+
+    def watching(iface, method, *args):
+        if method == "moveL":
+            busy_at.append(time.monotonic() < rg2._busy_until)
+        record(iface, method, *args)
+
+    ctl.record = watching
+    rg2.object_width_mm = 31.0
+    held = cell.execute(grasp(cfg))
+    assert held.completed
+    released = cell.execute(check_plan(plan_release(True, cfg, home=False, width=held.widths[-1]), cfg))
+    assert released.completed and time.monotonic() >= rg2._busy_until, "the release waits for its gap"
+    rg2.object_width_mm = None
+    busy_at.clear()
+    plan = check_plan(plan_grasp(0.50, 0.05, 0.04, 0.3, cfg, opening=0.06), cfg)
+    moves = [s.label for s in plan.plan.steps if isinstance(s, MoveL)]
+    grips = len([c for c in rg2.calls if c[0] == "rg_grip"])
+    assert cell.execute(plan).completed
+    sent = dict(zip(moves, busy_at))
+    assert sent["approach"], "the approach ran while the fingers moved to the opening"
+    assert not sent["descend"], "the descent started with the fingers still moving"
+    widths = [c[2] for c in rg2.calls if c[0] == "rg_grip"]
+    assert widths[grips - 1] == pytest.approx(41.0)   # the release: 31 mm held, its 10 mm gap
+    # the pre-shape, then the close: the wait at the approach pose sends nothing (the fingers stand at 60 mm)
+    assert widths[grips:] == [pytest.approx(60.0), pytest.approx(0.0)]
+
+
 def test_a_plan_outside_the_envelope_never_reaches_the_robot(ctl, rg2):
     cell = make_ur5e(ctl, rg2)
     cfg = cell.config

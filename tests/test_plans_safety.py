@@ -19,7 +19,7 @@ from flgd.config.messages import ConfigError
 from flgd.cycle_record import held_at_place
 from flgd.geometry import ToolPose, top_down_yaw
 from flgd.perception import base_to_pixel, pixel_to_base
-from flgd.plans import PLACE_CHECK_LABEL, GripperCommand, MeasureWidth, MoveL, Plan, blended_runs, end_yaw, \
+from flgd.plans import PLACE_CHECK_LABEL, PRESHAPE_LABEL, GripperCommand, MeasureWidth, MoveL, Plan, blended_runs, end_yaw, \
     move_kind, plan_action, plan_grasp, plan_push, plan_release, plan_shift
 from flgd.safety import CheckedPlan, PlanRefused, check_plan
 
@@ -482,3 +482,55 @@ def test_a_push_descends_guarded_and_its_abort_path_is_straight_up_then_home_che
                                                       for k, s in enumerate(plan.steps)))
     with pytest.raises(PlanRefused, match="not guarded"):
         check_plan(unguarded, CFG)
+
+
+PRESHAPE = dataclasses.replace(CFG, gripper=dataclasses.replace(CFG.gripper, preshape_margin=0.01))
+
+
+def test_a_preshaped_grasp_sets_its_opening_on_the_way_and_has_the_fingers_stopped_there_before_the_descent():
+    h = np.zeros((224, 224), dtype=np.float32)
+    h[100:120, 100:116] = 0.03   # 32 mm across the closing line (along the columns)
+    plan = plan_action(Action("grasp", 110, 108, 0), h, PRESHAPE)
+    gripper = [s for s in plan.steps if isinstance(s, GripperCommand)]
+    first = plan.steps[0]
+    assert isinstance(first, GripperCommand) and first.label == PRESHAPE_LABEL and first.proceed_after > 0.0
+    assert 0.052 <= first.width <= 0.056   # the block's 32 mm and 10 mm either side, to a pixel
+    assert isinstance(plan.steps[1], MoveL) and plan.steps[1].label == "approach"
+    assert isinstance(plan.steps[2], GripperCommand) and plan.steps[2].width == first.width
+    assert plan.steps[2].proceed_after == 0.0
+    assert [s.label for s in gripper] == [PRESHAPE_LABEL, "open", "close"]
+    check_plan(plan, PRESHAPE)
+    # without the margin: fully open at the approach pose, as before
+    assert [s.width for s in plan_action(Action("grasp", 110, 108, 0), h, CFG).steps
+            if isinstance(s, GripperCommand)] == [CFG.gripper.open_width, CFG.gripper.closed_width]
+
+
+def test_only_a_grasps_first_step_repeated_before_its_descent_may_narrow_the_fingers_without_waiting():
+    h = np.zeros((224, 224), dtype=np.float32)
+    h[100:120, 100:116] = 0.03
+    plan = plan_action(Action("grasp", 110, 108, 0), h, PRESHAPE)
+    preshape, approach, stop, *rest = plan.steps
+    assert isinstance(stop, GripperCommand)
+    narrowing = (r"proceed_after .* only an opening to gripper.open_width .* or a grasp's pre-shape")
+    for steps in ((approach, preshape, stop, *rest),                                      # not the first step
+                  (preshape, approach, *rest),                                            # never stopped
+                  (preshape, approach, dataclasses.replace(stop, width=stop.width + 0.01), *rest)):   # elsewhere
+        with pytest.raises(PlanRefused, match=narrowing):
+            check_plan(dataclasses.replace(plan, steps=steps), PRESHAPE)
+    push = plan_push(-0.5, 0.0, 0.0, PRESHAPE)
+    with pytest.raises(PlanRefused, match=narrowing):
+        check_plan(dataclasses.replace(push, steps=(preshape, stop, *push.steps)), PRESHAPE)
+
+
+def test_with_a_preshape_a_release_opens_a_gap_beyond_the_width_held_and_waits_for_it():
+    gap = dataclasses.replace(PRESHAPE, gripper=dataclasses.replace(PRESHAPE.gripper, release_gap=0.015))
+    for cfg, opened in ((PRESHAPE, 0.01), (gap, 0.015)):
+        for held in (True, False):
+            release = [s for s in plan_release(held, cfg, width=0.03).steps if isinstance(s, GripperCommand)]
+            assert release == [GripperCommand(0.03 + opened, cfg.gripper.force, "open")]
+            check_plan(plan_release(held, cfg, width=0.03), cfg)
+    # an unknown width, or no pre-shape: fully open, going on after the release gap
+    assert plan_release(False, gap).steps == (GripperCommand(gap.gripper.open_width, gap.gripper.force, "open",
+                                                             proceed_after=0.015),)
+    assert plan_release(False, CFG, width=0.03).steps == (GripperCommand(CFG.gripper.open_width,
+                                                                         CFG.gripper.force, "open"),)

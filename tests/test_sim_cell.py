@@ -566,6 +566,32 @@ def test_a_release_with_a_gap_charges_the_rest_of_its_opening_to_the_next_grippe
         cell.close()
 
 
+def test_a_preshaped_grasp_holds_its_block_and_spends_less_time_closing():
+    """gripper.preshape_margin on the sim backend: the opening set during the travel to the approach costs the
+    plan no gripper time there, and the close at the block starts near it."""
+    from sim_cell.robot import RG2_STROKE_SPEED
+
+    base = make_config(objects=0, depth_noise=False, domain_randomization=False)
+    cfg = dataclasses.replace(base, gripper=dataclasses.replace(base.gripper, preshape_margin=0.01))
+    gr = cfg.gripper
+    cell = SimCell(cfg)
+    try:
+        times = []
+        for opening in (math.nan, 0.06):   # fully open, then pre-shaped to the 4 cm block and 1 cm either side
+            body = cube_at(cell, -0.52, 0.04, yaw=0.0)
+            s = state(cell, body)
+            grasp = plan_grasp(s.position[0], s.position[1], s.top - cfg.workspace.table_z, math.pi / 2, cfg,
+                               opening=opening)
+            result = cell.execute(check_plan(grasp, cfg))
+            assert result.completed and grasp_reward(result.widths[-1], gr) == 1.0, result.failure
+            times.append(result.gripper_time)
+            cell.execute(check_plan(plan_release(True, cfg, width=result.widths[-1]), cfg))
+        saved = times[0] - times[1]
+        assert saved == pytest.approx((gr.open_width - 0.06) / RG2_STROKE_SPEED, abs=0.03), times
+    finally:
+        cell.close()
+
+
 def test_a_push_that_comes_down_on_a_block_the_plan_did_not_know_backs_out_instead_of_pressing_it():
     """The push's descent is guarded and ends the push: no collision stop, the block not dragged, the arm home."""
     cfg = make_config(objects=0, depth_noise=False, domain_randomization=False)

@@ -124,6 +124,10 @@ def check_relations(cfg: CellConfig, problems: list[str]) -> None:
         problems.append(f"gripper.release_gap: got {gr.release_gap!r} m, expected 0 (wait until open) or between "
                         f"{RELEASE_GAP_MIN} m (below it the pads may still hold the object as the grip relaxes) "
                         f"and the stroke open_width - closed_width ({gr.open_width - gr.closed_width!r} m)")
+    if gr.preshape_margin and gr.driver == "tool_digital_output":
+        problems.append(f"gripper.preshape_margin: got {gr.preshape_margin!r} m with gripper.driver "
+                        "tool_digital_output, expected 0: a gripper switched by a tool output only opens and closes "
+                        "fully, it cannot be set to an opening")
     ex = cfg.exploration
     if ex.epsilon_end > ex.epsilon_start:
         problems.append(f"exploration.epsilon_end: got {ex.epsilon_end!r}, expected <= epsilon_start "

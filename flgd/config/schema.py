@@ -185,6 +185,10 @@ class GripperConfig:
     release_gap: float = param(0.0, unit="m", ge=0.0, le=0.110,
                                help="a release goes on once the fingers opened this far (the object is let go): "
                                     "the arm moves on while they open the rest of the way (0 = wait until open)")
+    preshape_margin: float = param(0.0, unit="m", ge=0.0, le=0.03,
+                                   help="a grasp opens only as wide as its fingers need to land free beside the "
+                                        "object, with this much free space inside each pad, set while the arm "
+                                        "travels to it; a release opens only a release gap (0 = open fully)")
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,64 @@
+"""The opening a grasp comes down with: just wide enough for the fingers to land free beside the object.
+
+An RG2 closes at about 110 mm/s.  A grasp that comes down fully open (``gripper.open_width``, 85 mm) on a 30 mm
+block spends half a second closing before the pads touch it, every pick.  With ``gripper.preshape_margin`` (m) a
+grasp opens only as far as its fingers need: the fingers set to that opening while the arm travels to the grasp
+(``flgd.plans.plan_grasp``), and the close at the bottom starts near the object.
+
+The opening is the narrowest at which both fingers land where the heightmap has nothing higher than the
+fingertips' depth (the descent reaches its depth, as with fully open fingers on a free object), with
+``preshape_margin`` of free space inside each pad face for what the heightmap does not show exactly (an edge
+blurred by a pixel, a few millimetres of calibration).  Where no opening up to ``open_width`` is free, the grasp
+opens fully, as without a pre-shape.  The footprints are those of ``flgd.grasp_view`` (the RG2's fingers).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from flgd.grasp_view import FINGER_DEPTH, FINGER_HALF_WIDTH
+
+__all__ = ["preshape_width"]
+
+
+def preshape_width(height: np.ndarray, row: float, col: float, angle: float, fingertips: float,
+                   open_width: float, margin: float, resolution: float) -> float:
+    """The narrowest opening (m, at most ``open_width``) of a grasp at pixel (``row``, ``col``) closing along
+    ``angle`` (rad from the heightmap's columns towards its rows) whose fingers come down where nothing stands
+    higher than ``fingertips`` (m above the table, where the descent takes them) from ``margin`` (m) inside
+    either pad face to the finger's outer face.  ``open_width`` when no narrower opening is free.
+
+    A pixel stands in a band where its square's extent along and across the closing line reaches into it (a
+    little more than the square itself at angles between the axes).  Unknown heights (NaN) read as table; beyond the heightmap's border counts as free (``flgd.finger_clearance``
+    treats them so too)."""
+    if not (margin > 0.0 and open_width > 0.0 and resolution > 0.0):
+        raise ValueError(f"preshape width: margin={margin} open_width={open_width} resolution={resolution}: "
+                         "expected positive values")
+    reach = open_width / 2.0 + FINGER_DEPTH + resolution
+    n = int(math.ceil(reach / resolution))
+    rows, cols = height.shape
+    r0, c0 = int(round(row)), int(round(col))
+    lo_r, hi_r, lo_c, hi_c = max(r0 - n, 0), min(r0 + n + 1, rows), max(c0 - n, 0), min(c0 + n + 1, cols)
+    if lo_r >= hi_r or lo_c >= hi_c:
+        return open_width
+    patch = np.nan_to_num(np.asarray(height[lo_r:hi_r, lo_c:hi_c], dtype=float), nan=0.0)
+    rr, cc = np.mgrid[lo_r:hi_r, lo_c:hi_c]
+    dx, dy = (cc - col) * resolution, (rr - row) * resolution
+    along = np.abs(dx * math.cos(angle) + dy * math.sin(angle))
+    across = np.abs(-dx * math.sin(angle) + dy * math.cos(angle))
+    # a pixel's square reaches half_pixel either way along and across the closing line, at any angle (at most)
+    half_pixel = resolution / 2.0 * (abs(math.cos(angle)) + abs(math.sin(angle)))
+    blocking = (patch > fingertips) & (across <= FINGER_HALF_WIDTH + half_pixel)
+    a = along[blocking]
+    # a pixel at |along| = a lies in a finger's band [w/2 - margin, w/2 + FINGER_DEPTH] for openings w in
+    # [2 (a - FINGER_DEPTH), 2 (a + margin)], widened by half a pixel either way
+    order = np.argsort(a, kind="stable")
+    starts, ends = 2.0 * (a[order] - FINGER_DEPTH - half_pixel), 2.0 * (a[order] + margin + half_pixel)
+    width = 2.0 * margin
+    for start, end in zip(starts, ends):
+        if start > width:
+            break
+        width = max(width, end)
+    return min(width, open_width)
