@@ -120,7 +120,8 @@ def trial(cell: SimCell, cfg: CellConfig, shape: str, mode: str, rng: np.random.
         del cell._arm.run_line
     width = result.widths[-1] if result.widths else math.nan
     held = grasp_reward(width, cfg.gripper) > 0
-    cell.execute(check_plan(plan_release(held, cfg, carry_yaw=end_yaw(plan, cfg)), cfg))
+    cell.execute(check_plan(plan_release(held, cfg, carry_yaw=end_yaw(plan, cfg),
+                                         width=width if math.isfinite(width) else None), cfg))
     target_out = body not in {s.body for s in cell.object_states()}
     if held and target_out and cell.stats["left_workspace"] == before["left_workspace"]:
         return "held"

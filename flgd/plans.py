@@ -5,7 +5,8 @@ execute the same motions.  Plans are pure data; ``flgd.safety.check_plan``
 must pass before a cell runs one.
 
 Distances (defaults in ``RobotConfig``, all configurable):
-  * grasp: approach ``approach_height`` above the grasp point, open there, descend to
+  * grasp: approach ``approach_height`` above the grasp point, open there (with ``gripper.preshape_margin``
+    only as wide as the fingers need, set on the way: ``flgd.finger_preshape``), descend to
     ``grasp_depth`` below the surface (never below the table clearance; the
     descent stops early where the fingers meet ``descent_contact_force``; with
     ``contact_clearance`` and ``raise_speed`` it is slow only from that clearance

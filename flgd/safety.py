@@ -128,21 +128,24 @@ def _check_gripper(step: GripperCommand, cfg: CellConfig) -> str | None:
 def _check_proceeding(plan: Plan, i: int, cfg: CellConfig) -> str | None:
     """A gripper move the plan goes on from before the fingers stop (``proceed_after``): an opening to
     ``gripper.open_width`` (a release), or a grasp's pre-shape -- its first step (a grasp starts with nothing held:
-    after a release), whose width the plan's next gripper step repeats before any guarded move, so that the fingers
-    have stopped at that width before they come down."""
+    after a release), whose width the plan's next gripper step repeats after one move at most (the travel to the
+    approach pose), so that the fingers have stopped at that width before anything comes down."""
     step = plan.steps[i]
     if step.width >= cfg.gripper.open_width:
         return None
     refused = (f"gripper proceed_after {step.proceed_after!r} m on a move to {step.width!r} m: only an opening to "
                f"gripper.open_width ({cfg.gripper.open_width} m) or a grasp's pre-shape (its first step, repeated "
-               "by its next gripper step before any guarded move) may go on before the fingers stop")
+               "by its next gripper step after one move at most) may go on before the fingers stop")
     if plan.primitive != "grasp" or i != 0:
         return refused
+    moves = 0
     for later in plan.steps[i + 1:]:
         if isinstance(later, GripperCommand):
             return None if abs(later.width - step.width) <= 1e-9 and later.proceed_after == 0.0 else refused
-        if isinstance(later, MoveL) and later.stop_on_contact > 0.0:
-            return refused
+        if isinstance(later, MoveL):
+            moves += 1
+            if moves > 1:
+                return refused
     return refused
 
 

@@ -512,9 +512,12 @@ def test_only_a_grasps_first_step_repeated_before_its_descent_may_narrow_the_fin
     preshape, approach, stop, *rest = plan.steps
     assert isinstance(stop, GripperCommand)
     narrowing = (r"proceed_after .* only an opening to gripper.open_width .* or a grasp's pre-shape")
+    descend = next(s for s in rest if isinstance(s, MoveL))
+    unguarded = dataclasses.replace(descend, stop_on_contact=0.0)
     for steps in ((approach, preshape, stop, *rest),                                      # not the first step
                   (preshape, approach, *rest),                                            # never stopped
-                  (preshape, approach, dataclasses.replace(stop, width=stop.width + 0.01), *rest)):   # elsewhere
+                  (preshape, approach, dataclasses.replace(stop, width=stop.width + 0.01), *rest),   # elsewhere
+                  (preshape, approach, unguarded, stop, *rest[1:])):      # stopped only after coming down
         with pytest.raises(PlanRefused, match=narrowing):
             check_plan(dataclasses.replace(plan, steps=steps), PRESHAPE)
     push = plan_push(-0.5, 0.0, 0.0, PRESHAPE)

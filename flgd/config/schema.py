@@ -184,7 +184,8 @@ class GripperConfig:
     timeout: float = param(5.0, unit="s", gt=0.0)
     release_gap: float = param(0.0, unit="m", ge=0.0, le=0.110,
                                help="a release goes on once the fingers opened this far (the object is let go): "
-                                    "the arm moves on while they open the rest of the way (0 = wait until open)")
+                                    "the arm moves on while they open the rest of the way (0 = wait until open); "
+                                    "with preshape_margin the release opens only this far and waits")
     preshape_margin: float = param(0.0, unit="m", ge=0.0, le=0.03,
                                    help="a grasp opens only as wide as its fingers need to land free beside the "
                                         "object, with this much free space inside each pad, set while the arm "
