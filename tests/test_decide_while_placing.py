@@ -19,7 +19,7 @@ from flgd.cycle import CycleRunner, ToolInView
 from flgd.daemon.metrics import compute_stats
 from flgd.geometry import ToolPose
 from flgd.perception import base_to_pixel
-from flgd.plans import MoveL, Plan
+from flgd.plans import PRESHAPE_LABEL, GripperCommand, MoveL, Plan
 from flgd.safety import check_plan
 from flgd.store import Store
 import sim_cell.cell
@@ -607,5 +607,48 @@ def test_the_simulator_finds_the_arm_in_a_render_over_the_workspace_and_not_at_h
         assert cell.execute(check_plan(Plan("probe", (over,)), cfg)).completed
         _, depth, seg = cell._render(segmented=True)
         assert cell._arm_over_workspace(depth, seg)
+    finally:
+        cell.close()
+
+
+class _Gripping(_Watched):
+    """Keeps each plan's gripper commands and the widths it measured."""
+
+    def __init__(self, cfg):
+        super().__init__(cfg)
+        self.gripper: list[tuple[str, list[GripperCommand], list[float]]] = []
+
+    def execute(self, plan):
+        result = super().execute(plan)
+        self.gripper.append((plan.plan.primitive, [s for s in plan.plan.steps if isinstance(s, GripperCommand)],
+                             list(result.widths)))
+        return result
+
+
+class _GrippingOnTheWay(_Gripping):
+    on_the_way = True
+
+
+@pytest.mark.parametrize("cls,overlap", [(_Gripping, False), (_Gripping, True), (_GrippingOnTheWay, True)])
+def test_with_a_preshape_every_release_path_opens_only_its_gap_beyond_the_width_the_grasp_held(tmp_path, cls,
+                                                                                               overlap):
+    cfg = dataclasses.replace(make_config(objects=0, depth_noise=False, domain_randomization=False),
+                              state_dir=str(tmp_path))
+    cfg = dataclasses.replace(cfg, robot=dataclasses.replace(cfg.robot, capture_on_the_way=cls.on_the_way,
+                                                             decide_while_placing=overlap),
+                              gripper=dataclasses.replace(cfg.gripper, preshape_margin=0.01))
+    cell = cls(cfg)
+    try:
+        for x, y in ((-0.50, 0.05), (-0.40, -0.12), (-0.62, -0.12)):
+            cube_at(cell, x, y, size=(0.04, 0.04, 0.04))
+        row, col = base_to_pixel(-0.50, 0.05, cfg.workspace)
+        agent = _Scripted([Action("grasp", int(row), int(col), 0, 16)])
+        assert CycleRunner(cfg, cell, agent).run_once().success is True
+        (grasp,) = [g for g in cell.gripper if g[0] == "grasp"]
+        (place,) = [g for g in cell.gripper if g[0] == "place"]
+        assert grasp[1][0].label == PRESHAPE_LABEL and grasp[1][0].width < cfg.gripper.open_width
+        held = grasp[2][-1]
+        assert held == pytest.approx(0.04, abs=0.004)
+        assert [(s.width, s.proceed_after) for s in place[1]] == [(pytest.approx(held + 0.01), 0.0)]
     finally:
         cell.close()
