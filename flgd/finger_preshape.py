@@ -24,11 +24,17 @@ __all__ = ["preshape_width"]
 
 
 def preshape_width(height: np.ndarray, row: float, col: float, angle: float, fingertips: float,
-                   open_width: float, margin: float, resolution: float) -> float:
+                   open_width: float, margin: float, resolution: float, floor: float = 0.0) -> float:
     """The narrowest opening (m, at most ``open_width``) of a grasp at pixel (``row``, ``col``) closing along
-    ``angle`` (rad from the heightmap's columns towards its rows) whose fingers come down where nothing stands
-    higher than ``fingertips`` (m above the table, where the descent takes them) from ``margin`` (m) inside
-    either pad face to the finger's outer face.  ``open_width`` when no narrower opening is free.
+    ``angle`` (rad from the heightmap's columns towards its rows) that has nothing higher than ``fingertips`` (m
+    above the table, where the descent takes them) within ``margin`` (m) inside either pad face, and under either
+    finger nothing higher than that or than what the fully open fingers would come down on: the descent gets at
+    least as deep as fully open, and the pads never land on the object's side.  ``open_width`` when no narrower
+    opening is so.
+
+    Heights up to ``floor`` (m; ``rewards.min_height``, the object/table threshold) are table whatever the
+    fingertips' depth: a depth camera reads the table a few millimetres high here and there, and a low object's
+    fingertips come down to ``safety.min_table_clearance``, below that noise.
 
     A pixel stands in a band where its square's extent along and across the closing line reaches into it (a
     little more than the square itself at angles between the axes).  Unknown heights (NaN) read as table; beyond the heightmap's border counts as free (``flgd.finger_clearance``
@@ -50,12 +56,23 @@ def preshape_width(height: np.ndarray, row: float, col: float, angle: float, fin
     across = np.abs(-dx * math.sin(angle) + dy * math.cos(angle))
     # a pixel's square reaches half_pixel either way along and across the closing line, at any angle (at most)
     half_pixel = resolution / 2.0 * (abs(math.cos(angle)) + abs(math.sin(angle)))
-    blocking = (patch > fingertips) & (across <= FINGER_HALF_WIDTH + half_pixel)
-    a = along[blocking]
+    level = max(fingertips, floor)
+    beside = across <= FINGER_HALF_WIDTH + half_pixel
+    standing = (patch > level) & beside
+    # what the fully open fingers come down on: a narrower finger may land on nothing higher than that
+    under_open = beside & (along + half_pixel >= open_width / 2.0) & (along - half_pixel <= open_width / 2.0
+                                                                      + FINGER_DEPTH)
+    open_top = float(patch[under_open].max()) if under_open.any() else 0.0
+    higher = standing & (patch > open_top)
     # a pixel at |along| = a lies in a finger's band [w/2 - margin, w/2 + FINGER_DEPTH] for openings w in
-    # [2 (a - FINGER_DEPTH), 2 (a + margin)], widened by half a pixel either way
+    # [2 (a - FINGER_DEPTH), 2 (a + margin)], and in its margin [w/2 - margin, w/2] for w in [2 a, 2 (a + margin)];
+    # each widened by half a pixel either way.  Above the open fingers' top a pixel blocks the band, else the margin.
+    a = along[standing]
     order = np.argsort(a, kind="stable")
-    starts, ends = 2.0 * (a[order] - FINGER_DEPTH - half_pixel), 2.0 * (a[order] + margin + half_pixel)
+    a, reach = a[order], np.where(higher[standing][order], FINGER_DEPTH, 0.0)
+    starts, ends = 2.0 * (a - reach - half_pixel), 2.0 * (a + margin + half_pixel)
+    order = np.argsort(starts, kind="stable")
+    starts, ends = starts[order], ends[order]
     width = 2.0 * margin
     for start, end in zip(starts, ends):
         if start > width:

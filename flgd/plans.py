@@ -443,7 +443,7 @@ def plan_action(action: Action, height_map: np.ndarray, config: CellConfig, wris
         if gr.preshape_margin > 0.0:
             fingertips = max(h - config.robot.grasp_depth, config.safety.min_table_clearance)
             opening = preshape_width(height_map, row, col, action.angle, fingertips, gr.open_width,
-                                     gr.preshape_margin, config.workspace.resolution)
+                                     gr.preshape_margin, config.workspace.resolution, config.rewards.min_height)
         return plan_grasp(x, y, h, action.angle, config,
                           surroundings_top=highest_around(height_map, row, col, contact_zone_radius(config),
                                                           config.workspace.resolution), wrist_yaw=wrist_yaw,

@@ -1,4 +1,5 @@
-"""Apply part 1 of rule.md to the evaluation JSONs in evals/: ``python benchmarks/results/preshape/decide.py [OUT]``."""
+"""Apply part 1 of rule.md to the evaluation JSONs in evals/: ``python benchmarks/results/preshape/decide.py [OUT
+[BASE PRE]]`` (the second addendum's run: base31 pre31)."""
 
 import sys
 from pathlib import Path
@@ -7,7 +8,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[3]))
 from benchmarks.rule_checks import decide  # noqa: E402
 
 EVALS = Path(__file__).resolve().parent / "evals"
-VARIANTS = ("base", "pre")
+VARIANTS = tuple(sys.argv[2:4]) if len(sys.argv) > 3 else ("base", "pre")   # second addendum: base31 pre31
 PARTS = {"validation": ("valpacked", "validation"), "packed": ("valpacked", "packed")}
 
 
