@@ -5,11 +5,12 @@ block spends half a second closing before the pads touch it, every pick.  With `
 grasp opens only as far as its fingers need: the fingers set to that opening while the arm travels to the grasp
 (``flgd.plans.plan_grasp``), and the close at the bottom starts near the object.
 
-The opening is the narrowest at which both fingers land where the heightmap has nothing higher than the
-fingertips' depth (the descent reaches its depth, as with fully open fingers on a free object), with
-``preshape_margin`` of free space inside each pad face for what the heightmap does not show exactly (an edge
-blurred by a pixel, a few millimetres of calibration).  Where no opening up to ``open_width`` is free, the grasp
-opens fully, as without a pre-shape.  The footprints are those of ``flgd.grasp_view`` (the RG2's fingers).
+The opening is the narrowest with ``preshape_margin`` of free space inside each pad face (for what the heightmap
+does not show exactly: an edge blurred by a pixel, a few millimetres of calibration) and nothing under either
+finger that would stop the descent sooner than it stops fully open fingers: nothing higher than the fingertips'
+depth, or than what the fully open fingers come down on (in clutter they often land on a neighbour).  Heights up to
+``rewards.min_height`` are table, as everywhere else.  Where no opening up to ``open_width`` is so, the grasp opens
+fully, as without a pre-shape.  The footprints are those of ``flgd.grasp_view`` (the RG2's fingers).
 """
 
 from __future__ import annotations
