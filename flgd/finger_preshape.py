@@ -38,8 +38,8 @@ def preshape_width(height: np.ndarray, row: float, col: float, angle: float, fin
     fingertips come down to ``safety.min_table_clearance``, below that noise.
 
     A pixel stands in a band where its square's extent along and across the closing line reaches into it (a
-    little more than the square itself at angles between the axes).  Unknown heights (NaN) read as table; beyond the heightmap's border counts as free (``flgd.finger_clearance``
-    treats them so too)."""
+    little more than the square itself at angles between the axes).  Unknown heights (NaN) read as table; beyond
+    the heightmap's border counts as free (``flgd.finger_clearance`` treats them so too)."""
     if not (margin > 0.0 and open_width > 0.0 and resolution > 0.0):
         raise ValueError(f"preshape width: margin={margin} open_width={open_width} resolution={resolution}: "
                          "expected positive values")
@@ -68,10 +68,8 @@ def preshape_width(height: np.ndarray, row: float, col: float, angle: float, fin
     # a pixel at |along| = a lies in a finger's band [w/2 - margin, w/2 + FINGER_DEPTH] for openings w in
     # [2 (a - FINGER_DEPTH), 2 (a + margin)], and in its margin [w/2 - margin, w/2] for w in [2 a, 2 (a + margin)];
     # each widened by half a pixel either way.  Above the open fingers' top a pixel blocks the band, else the margin.
-    a = along[standing]
-    order = np.argsort(a, kind="stable")
-    a, reach = a[order], np.where(higher[standing][order], FINGER_DEPTH, 0.0)
-    starts, ends = 2.0 * (a - reach - half_pixel), 2.0 * (a + margin + half_pixel)
+    a, inward = along[standing], np.where(higher[standing], FINGER_DEPTH, 0.0)
+    starts, ends = 2.0 * (a - inward - half_pixel), 2.0 * (a + margin + half_pixel)
     order = np.argsort(starts, kind="stable")
     starts, ends = starts[order], ends[order]
     width = 2.0 * margin
